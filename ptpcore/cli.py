@@ -1,0 +1,256 @@
+"""The ``ptp`` command line.
+
+Every command is a thin layer over one engine call; bad input ends with exit
+code 2 and one line naming the culprit, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import Cancelled, PtpError
+
+EXIT_BAD_INPUT = 2
+
+
+class _Bar:
+    """A ``progress(fraction, message)`` callback drawn with tqdm on stderr."""
+
+    def __init__(self, enabled: bool = True):
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=1000, disable=not enabled, leave=False, file=sys.stderr,
+                         bar_format="{desc:<44.44} {percentage:3.0f}%|{bar}| {elapsed}")
+
+    def __call__(self, fraction: float, message: str) -> None:
+        self._bar.n = int(round(1000 * min(max(fraction, 0.0), 1.0)))
+        self._bar.set_description_str(message, refresh=False)
+        self._bar.refresh()
+
+    def close(self) -> None:
+        self._bar.close()
+
+
+def _progress(args):
+    return _Bar(enabled=not getattr(args, "quiet", False) and sys.stderr.isatty())
+
+
+# --------------------------------------------------------------------------- commands
+
+def cmd_simulate(args) -> int:
+    from dataclasses import replace
+
+    from .rig import Camera
+    from .simulate import preset, simulate_dataset
+
+    rig, settings = preset(args.preset)
+    if args.width or args.height:
+        rig = replace(rig, camera=Camera(args.width or rig.camera.width, args.height or rig.camera.height,
+                                         rig.camera.bit_depth))
+    if args.positions:
+        z = np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), args.positions)
+        rig = rig.with_z(z)
+    bar = _progress(args)
+    try:
+        out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
+                               image_ext=".tif" if args.tiff else ".png")
+    finally:
+        bar.close()
+    n = rig.stage.n_positions * rig.fringes.frames_per_position
+    print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
+          f" and truth.h5 to {out}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from .dataset import DatasetSource
+    from .lut import save_lut
+    from .pipeline import calibrate
+
+    source = DatasetSource(args.dataset_dir)
+    out = Path(args.out)
+    bar = _progress(args)
+    try:
+        lut, _ = calibrate(source, model=args.model, degree=args.degree, progress=bar)
+    finally:
+        bar.close()
+    save_lut(lut, out)
+    print(_lut_summary(lut, out))
+    return 0
+
+
+def _lut_summary(lut, path) -> str:
+    v = lut.valid
+    model = f"poly degree {lut.degree}" if lut.kind == "poly" else lut.kind
+    lines = [
+        f"{path}: ptp-lut/1, {model}, {lut.shape[1]}x{lut.shape[0]} px, z {lut.z_min:g} .. {lut.z_max:g} mm",
+        f"  valid pixels        {v.sum()} ({100 * v.mean():.1f} %)",
+    ]
+    if v.any():
+        npos = lut.n_positions[v]
+        lines.append(f"  positions per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
+        for name in ("rms", "loo"):
+            for a in "xy":
+                arr = getattr(lut, f"{name}_{a}")[v]
+                arr = arr[np.isfinite(arr)]
+                if arr.size:
+                    label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
+                    lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
+                                 f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
+        if lut.sigma_x is not None:
+            s = np.hypot(lut.sigma_x[v], lut.sigma_y[v]) / np.sqrt(2)
+            lines.append(f"  predicted sigma     median {1e3 * np.nanmedian(s):.2f} µm")
+    return "\n".join(lines)
+
+
+def cmd_inspect(args) -> int:
+    from .lut import load_lut
+
+    lut = load_lut(args.lut_file)
+    print(_lut_summary(lut, args.lut_file))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from dataclasses import replace
+
+    from .accuracy import held_out_accuracy, predicted_poly_sigma, sample_sigma
+    from .dataset import DatasetSource
+    from .lut import fit_lut
+    from .patterns import design_check
+    from .pipeline import collect_samples
+    from .simulate import load_truth, preset, simulate_dataset
+
+    rig, settings = preset(args.preset)
+    workdir = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ptp-demo-"))
+    bar = _progress(args)
+    try:
+        print(f"simulating the '{args.preset}' rig into {workdir} ...", flush=True)
+        simulate_dataset(workdir, rig, settings, seed=args.seed, progress=bar)
+        source = DatasetSource(workdir)
+        print("decoding every position ...", flush=True)
+        samples = collect_samples(source, progress=bar)
+    finally:
+        bar.close()
+    truth, settings, _ = load_truth(workdir)
+    rig = source.rig
+    k = rig.stage.n_positions
+    cal = list(range(0, k, 2))
+    held = list(range(1, k, 2))
+    lut = fit_lut(samples, "poly", args.degree, positions=cal)
+    f = rig.fringes
+    sig = sample_sigma(samples, lambda a: settings.noise_dn(rig.camera, a), f.steps[-1], f.periods_px[-1],
+                       rig.lcd.pitch_mm[0], settings.stage_error_um * 1e-3, truth.sx - rig.stage.direction[0])
+    pred = predicted_poly_sigma(samples, sig, args.degree, cal, [rig.stage.z_mm[i] for i in held])
+    acc = held_out_accuracy(lut, truth, rig.stage.z_mm, held, pred)
+    med_b = float(np.nanmedian(samples.modulation[samples.valid]))
+    med_a = float(np.nanmedian(samples.background[samples.valid]))
+    report = design_check(rig, modulation_dn=med_b, noise_dn=float(settings.noise_dn(rig.camera, med_a)))
+    valid_frac = samples.valid.mean(axis=(1, 2))
+    print()
+    print(f"PTP demo: '{args.preset}' rig, camera {rig.camera.width}x{rig.camera.height} {rig.camera.bit_depth}-bit,"
+          f" {k} positions z = {min(rig.stage.z_mm):g} .. {max(rig.stage.z_mm):g} mm")
+    print(f"  design check        {'ok' if report.ok else 'PROBLEMS: ' + '; '.join(i.message for i in report.failures())}")
+    print(f"  valid pixels        {100 * valid_frac.min():.1f} .. {100 * valid_frac.max():.1f} % per position")
+    print(f"  median modulation   {med_b:.1f} grey levels; predicted sample noise"
+          f" {1e3 * np.nanmedian(sig):.2f} µm (median)")
+    print(f"  LUT                 poly degree {args.degree}, fitted on {len(cal)} positions, "
+          f"valid for {100 * lut.valid.mean():.1f} % of pixels")
+    print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays:")
+    print(f"    RMS {acc.rms_um:.2f} µm   95th percentile {acc.p95_um:.2f} µm   max {acc.max_um:.2f} µm")
+    print(f"    predicted from phase noise: RMS {acc.predicted_rms_um:.2f} µm"
+          f"  (observed / predicted = {acc.rms_um / acc.predicted_rms_um:.2f})")
+    print("    per position: " + ", ".join(f"z={rig.stage.z_mm[p]:g}: {e:.2f}" for p, e in
+                                           zip(held, acc.per_position_rms_um)) + " µm")
+    if args.compare:
+        _demo_compare(args, workdir, samples, rig, truth)
+    return 0
+
+
+def _demo_compare(args, workdir, samples, rig, truth) -> None:
+    try:
+        from .compare import compare, format_summary
+    except ImportError:
+        return
+    result = compare(samples, rig, truth=truth, seed=args.seed)
+    print(format_summary(result))
+
+
+# --------------------------------------------------------------------------- parser
+
+def build_parser() -> argparse.ArgumentParser:
+    from .lut import MODELS
+    from .simulate import PRESETS
+
+    p = argparse.ArgumentParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
+    p.add_argument("--version", action="version", version=f"ptp {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", help="render a ptp-dataset/1 folder with the virtual rig",
+                       description="Render a ptp-dataset/1 folder (rig.toml, images, truth.h5) with the virtual rig.")
+    s.add_argument("out_dir", metavar="OUT_DIR")
+    s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--width", type=int, help="camera width in pixels (default: the preset's)")
+    s.add_argument("--height", type=int, help="camera height in pixels")
+    s.add_argument("--positions", type=int, help="number of stage positions (default: the preset's)")
+    s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
+                       description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
+    c.add_argument("dataset_dir", metavar="DATASET_DIR")
+    c.add_argument("--out", required=True, metavar="FILE.lut.h5")
+    c.add_argument("--model", default="poly", choices=list(MODELS))
+    c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
+                   help="polynomial degree 1-5 (poly only, default 3)")
+    c.add_argument("-q", "--quiet", action="store_true")
+    c.set_defaults(func=cmd_calibrate)
+
+    i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
+    i.add_argument("lut_file", metavar="FILE.lut.h5")
+    i.set_defaults(func=cmd_inspect)
+
+    d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
+                       description="Simulate a rig, calibrate on every second position and report the accuracy"
+                                   " at the others against the simulator's exact truth.")
+    d.add_argument("--preset", default="realistic", choices=list(PRESETS))
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D")
+    d.add_argument("--out", help="keep the simulated dataset in this folder (default: a temporary folder)")
+    d.add_argument("--no-compare", dest="compare", action="store_false", help="skip the 3DSTC comparison")
+    d.add_argument("-q", "--quiet", action="store_true")
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    warnings.simplefilter("default")
+    try:
+        return args.func(args)
+    except Cancelled:
+        print("ptp: cancelled", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("ptp: interrupted", file=sys.stderr)
+        return 130
+    except PtpError as exc:
+        print(f"ptp: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (ValueError, OSError) as exc:
+        print(f"ptp: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

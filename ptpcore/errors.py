@@ -1,0 +1,26 @@
+"""Exceptions the engine raises on bad input.
+
+Every error a user can cause derives from :class:`PtpError`; the CLI and the
+GUI show its message as one line. The message always names the culprit (a
+file, a TOML key, a value).
+"""
+
+
+class PtpError(Exception):
+    """Base class of user-facing errors (bad input, bad files)."""
+
+
+class ConfigError(PtpError, ValueError):
+    """A configuration document (``rig.toml``) is invalid."""
+
+
+class DatasetError(PtpError):
+    """A dataset folder or one of its images is missing or unusable."""
+
+
+class FileFormatError(PtpError):
+    """A LUT, session or report file is not what its format promises."""
+
+
+class Cancelled(PtpError):
+    """Raised by a progress callback to stop a long job."""
