@@ -37,6 +37,7 @@ __all__ = [
     "SimSettings",
     "PRESETS",
     "preset",
+    "scaled_preset",
     "GroundTruth",
     "VirtualRig",
     "simulate_dataset",
@@ -161,7 +162,7 @@ def _presets():
         SimSettings(name="rough",
                     lens=LensSettings(780.0, (10.0, -7.0), (-0.32, 0.14, 1.5e-3, -1.0e-3, -0.03), 1.5, 2.0),
                     tilt_deg=(3.0, -2.5, 1.0), offset_mm=(4.0, -3.0), supersample=3,
-                    blur_sigma_px=0.8, blur_per_mm=0.05, display_gamma=2.4, lcd_black=0.004,
+                    blur_sigma_px=0.8, blur_per_mm=0.035, display_gamma=2.4, lcd_black=0.004,
                     vignetting=0.35, exposure=0.97, ambient=0.02, full_well_e=8000.0,
                     read_noise_e=12.0, stage_error_um=0.5, skew=(0.004, 0.003)),
     )
@@ -177,6 +178,44 @@ def preset(name: str) -> tuple[Rig, SimSettings]:
         return PRESETS[name]
     except KeyError:
         raise ConfigError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})") from None
+
+
+def scaled_preset(name: str, width: int, height: int | None = None,
+                  positions: int | None = None) -> tuple[Rig, SimSettings]:
+    """A preset with another sensor size but the same field of view and lens.
+
+    The focal length, principal-point offset, blur and non-parametric field
+    scale with the width (and, for a smaller sensor, the finer fringe periods,
+    so each still spans as many camera pixels), so the same scene and the same distortion (in normalised
+    coordinates) are seen with fewer or more pixels. Handy for fast tests and
+    for big-sensor benchmarks.
+
+    Parameters
+    ----------
+    name : str
+    width : int
+    height : int, optional
+        Default keeps the preset's aspect ratio.
+    positions : int, optional
+        Number of stage positions over the same z range.
+    """
+    rig, s = preset(name)
+    scale = width / rig.camera.width
+    if height is None:
+        height = int(round(rig.camera.height * scale))
+    lens = replace(s.lens, focal_px=s.lens.focal_px * scale,
+                   principal_offset_px=tuple(p * scale for p in s.lens.principal_offset_px),
+                   field_amplitude_px=s.lens.field_amplitude_px * scale)
+    s = replace(s, lens=lens, blur_sigma_px=s.blur_sigma_px * scale, blur_per_mm=s.blur_per_mm * scale)
+    rig = replace(rig, camera=Camera(width, height, rig.camera.bit_depth))
+    if scale < 1:
+        # Keep the finer fringes at the same number of camera pixels per period.
+        f = rig.fringes
+        periods = (f.periods_px[0],) + tuple(int(round(p / scale)) for p in f.periods_px[1:])
+        rig = replace(rig, fringes=replace(f, periods_px=periods))
+    if positions is not None:
+        rig = rig.with_z(np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), positions))
+    return rig, s
 
 
 def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
