@@ -45,18 +45,13 @@ def _progress(args):
 # --------------------------------------------------------------------------- commands
 
 def cmd_simulate(args) -> int:
-    from dataclasses import replace
-
-    from .rig import Camera
-    from .simulate import preset, simulate_dataset
+    from .simulate import preset, scaled_preset, simulate_dataset
 
     rig, settings = preset(args.preset)
-    if args.width or args.height:
-        rig = replace(rig, camera=Camera(args.width or rig.camera.width, args.height or rig.camera.height,
-                                         rig.camera.bit_depth))
-    if args.positions:
-        z = np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), args.positions)
-        rig = rig.with_z(z)
+    if args.width or args.height or args.positions:
+        # Same field of view and lens with another sensor size (see scaled_preset).
+        rig, settings = scaled_preset(args.preset, args.width or rig.camera.width, args.height,
+                                      args.positions)
     bar = _progress(args)
     try:
         out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
@@ -70,25 +65,49 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from .dataset import DatasetSource
-    from .lut import save_lut
-    from .pipeline import calibrate
+    from .session import new_session, save_session
 
-    source = DatasetSource(args.dataset_dir)
-    out = Path(args.out)
+    if args.session and Path(args.session).exists():
+        raise FileExistsError(f"{args.session}: session file exists; continue it with `ptp resume"
+                              f" {args.session}` or choose another name")
+    # Validates rig.toml, the design and every image in one pass, before the long decode.
+    session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out)
+    if args.session:
+        save_session(session, args.session)
+    return _finish_session(args, session, args.session, Path(args.out), validate=False)
+
+
+def cmd_resume(args) -> int:
+    from .session import load_session
+
+    session = load_session(args.session_file)
+    out = args.out or session.out
+    if not out:
+        raise ValueError(f"{args.session_file}: the session names no LUT file; give --out FILE.lut.h5")
+    print(f"{args.session_file}: resuming after stage '{session.stage}'")
+    return _finish_session(args, session, args.session_file, Path(out), validate=True)
+
+
+def _finish_session(args, session, session_path, out: Path, validate: bool) -> int:
+    """Run a session's remaining stages (saved after each), then write the LUT."""
+    from .lut import save_lut
+    from .session import run_session
+
     bar = _progress(args)
     try:
-        lut, _ = calibrate(source, model=args.model, degree=args.degree, progress=bar)
+        run_session(session, session_path, progress=bar, validate=validate)
     finally:
         bar.close()
-    save_lut(lut, out)
-    print(_lut_summary(lut, out))
+    save_lut(session.lut, out)
+    print(_lut_summary(session.lut, out))
     return 0
 
 
 def _lut_summary(lut, path) -> str:
+    from .models import describe_lut
+
     v = lut.valid
-    model = f"poly degree {lut.degree}" if lut.kind == "poly" else lut.kind
+    model = describe_lut(lut)
     lines = [
         f"{path}: ptp-lut/1, {model}, {lut.shape[1]}x{lut.shape[0]} px, z {lut.z_min:g} .. {lut.z_max:g} mm",
         f"  valid pixels        {v.sum()} ({100 * v.mean():.1f} %)",
@@ -104,9 +123,12 @@ def _lut_summary(lut, path) -> str:
                     label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
                     lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
                                  f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
-        if lut.sigma_x is not None:
-            s = np.hypot(lut.sigma_x[v], lut.sigma_y[v]) / np.sqrt(2)
-            lines.append(f"  predicted sigma     median {1e3 * np.nanmedian(s):.2f} µm")
+        for a in "xy":
+            sig = getattr(lut, f"sigma_{a}")
+            arr = sig[v][np.isfinite(sig[v])] if sig is not None else np.zeros(0)
+            if arr.size:
+                lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
+                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm (from the phase noise)")
     return "\n".join(lines)
 
 
@@ -175,18 +197,50 @@ def cmd_demo(args) -> int:
 
 
 def _demo_compare(args, workdir, samples, rig, truth) -> None:
-    try:
-        from .compare import compare, format_summary
-    except ImportError:
-        return
-    result = compare(samples, rig, truth=truth, seed=args.seed)
+    from .compare import compare, format_summary
+
+    print()
+    result = compare(samples, rig, truth=truth, seed=args.seed, degree=args.degree)
     print(format_summary(result))
+
+
+def cmd_compare(args) -> int:
+    import json
+
+    from .atomic import write_text_atomic
+    from .compare import compare, format_summary
+    from .dataset import DatasetSource
+    from .errors import DatasetError
+    from .pipeline import collect_samples
+    from .simulate import TRUTH_FILE, load_truth
+
+    source = DatasetSource(args.dataset_dir)
+    truth = None
+    truth_path = Path(args.dataset_dir) / TRUTH_FILE
+    if truth_path.exists():
+        try:
+            truth, _, _ = load_truth(truth_path)
+        except (OSError, KeyError, ValueError) as exc:
+            raise DatasetError(f"{truth_path}: unreadable ground truth ({exc})") from None
+    bar = _progress(args)
+    try:
+        samples = collect_samples(source, progress=bar)
+        result = compare(samples, source.rig, truth=truth, seed=args.seed, split=args.split,
+                         n_points=args.points, rational=args.rational, model=args.model, degree=args.degree,
+                         with_smooth=args.smooth, progress=bar)
+    finally:
+        bar.close()
+    write_text_atomic(args.out, json.dumps(result.to_json_dict(), indent=1, allow_nan=False) + "\n")
+    print(format_summary(result))
+    print(f"report written to {args.out}" + ("" if truth is None else f" (with {TRUTH_FILE} as exact truth)"))
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
 
 def build_parser() -> argparse.ArgumentParser:
     from .lut import MODELS
+    from .models import LUT_MODELS
     from .simulate import PRESETS
 
     p = argparse.ArgumentParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
@@ -198,8 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("out_dir", metavar="OUT_DIR")
     s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--width", type=int, help="camera width in pixels (default: the preset's)")
-    s.add_argument("--height", type=int, help="camera height in pixels")
+    s.add_argument("--width", type=int, help="camera width in pixels, same field of view (default: the preset's)")
+    s.add_argument("--height", type=int, help="camera height in pixels (default: keeps the aspect ratio)")
     s.add_argument("--positions", type=int, help="number of stage positions (default: the preset's)")
     s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -209,15 +263,47 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
     c.add_argument("dataset_dir", metavar="DATASET_DIR")
     c.add_argument("--out", required=True, metavar="FILE.lut.h5")
-    c.add_argument("--model", default="poly", choices=list(MODELS))
+    c.add_argument("--model", default="poly", choices=list(LUT_MODELS),
+                   help="poly: per-pixel polynomial; pchip, linear: interpolated tables; smooth: per-pixel"
+                        " polynomial regularised across neighbouring pixels (default poly)")
     c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                   help="polynomial degree 1-5 (poly only, default 3)")
+                   help="polynomial degree 1-5 (poly and smooth, default 3)")
+    c.add_argument("--session", metavar="FILE.ptps.h5",
+                   help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("-q", "--quiet", action="store_true")
     c.set_defaults(func=cmd_calibrate)
+
+    r = sub.add_parser("resume", help="continue a calibration session from its last completed stage",
+                       description="Continue a ptp-session file from its last completed stage (decoding,"
+                                   " LUT fit), saving it after each stage, then write the LUT file.")
+    r.add_argument("session_file", metavar="FILE.ptps.h5")
+    r.add_argument("--out", metavar="FILE.lut.h5", help="LUT file to write (default: the one the session names)")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_resume)
 
     i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
     i.add_argument("lut_file", metavar="FILE.lut.h5")
     i.set_defaults(func=cmd_inspect)
+
+    cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
+                        description="Calibrate a ptp-dataset/1 folder both ways (per-pixel LUT and pinhole +"
+                                    " Brown from feature points) on some positions, judge both at the others"
+                                    " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
+                                    " folder (simulated data) adds errors against the exact truth.")
+    cm.add_argument("dataset_dir", metavar="DATASET_DIR")
+    cm.add_argument("--out", required=True, metavar="REPORT.json")
+    cm.add_argument("--seed", type=int, default=0, help="seed of the feature points and point pairs (default 0)")
+    cm.add_argument("--points", type=int, default=2000, metavar="M", help="3DSTC feature points (default 2000)")
+    cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
+                    help="hold out every second position (default) or leave one position out")
+    cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
+    cm.add_argument("--model", default="poly", choices=list(MODELS), help="plain PTP LUT model (default poly)")
+    cm.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
+                    help="polynomial degree 1-5 (poly only, default 3)")
+    cm.add_argument("--no-smooth", dest="smooth", action="store_false",
+                    help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
+    cm.add_argument("-q", "--quiet", action="store_true")
+    cm.set_defaults(func=cmd_compare)
 
     d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
                        description="Simulate a rig, calibrate on every second position and report the accuracy"
@@ -229,13 +315,23 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-compare", dest="compare", action="store_false", help="skip the 3DSTC comparison")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
+
+    from .capture_cli import add_parser as add_capture_parser
+
+    add_capture_parser(sub)  # ptp capture (ptpcore/capture_cli.py)
     return p
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Engine warnings (e.g. colour images converted to grey) as one ``ptp: warning:`` line."""
+    print(f"ptp: warning: {message}", file=file or sys.stderr)
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.simplefilter("default")
+    warnings.showwarning = _show_warning
     try:
         return args.func(args)
     except Cancelled:

@@ -24,3 +24,15 @@ class FileFormatError(PtpError):
 
 class Cancelled(PtpError):
     """Raised by a progress callback to stop a long job."""
+
+
+class DeviceError(PtpError):
+    """A camera, stage or display failed, timed out or cannot be reached.
+
+    The message names the device and what it was asked to do; a capture that
+    stops on one is left resumable (``ptpcore.capture``).
+    """
+
+
+class CaptureError(PtpError):
+    """A live capture cannot start or go on (folder, plan or exposure problem)."""

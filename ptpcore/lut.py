@@ -41,7 +41,7 @@ __all__ = [
 
 LUT_FORMAT = "ptp-lut/1"
 MODELS = ("poly", "pchip", "linear")
-_TILE = 1 << 18  # pixels per fitting tile: bounds the float64 working set
+_TILE = 1 << 16  # pixels per fitting tile: bounds the float64 working set (~10 MB per array at K = 21)
 
 
 @dataclass
@@ -63,6 +63,8 @@ class SampleStack:
         Finest-period modulation (worse direction), grey levels.
     background : (K, H, W) float32 or None
         Background level A (grey levels).
+    noise : ptpcore.noise.NoiseModel or None
+        The camera noise measured from the N-step fit residuals.
     """
 
     z: np.ndarray
@@ -73,6 +75,7 @@ class SampleStack:
     reasons: np.ndarray
     modulation: np.ndarray | None = None
     background: np.ndarray | None = None
+    noise: "NoiseModel | None" = None  # measured from the N-step residuals (ptpcore.noise)
 
     @classmethod
     def empty(cls, z, shape, with_photometry: bool = True) -> "SampleStack":
@@ -121,7 +124,7 @@ class SampleStack:
         return SampleStack(self.z[idx], self.x[idx], self.y[idx], self.x_ref, self.y_ref,
                            self.reasons[idx],
                            None if self.modulation is None else self.modulation[idx],
-                           None if self.background is None else self.background[idx])
+                           None if self.background is None else self.background[idx], self.noise)
 
 
 @dataclass
@@ -207,21 +210,49 @@ class Lut:
         if z.ndim not in (0, 2) or (z.ndim == 2 and z.shape != self.shape):
             raise ValueError(f"z must be a scalar or a {self.shape} map, got shape {z.shape}")
         eps = 1e-9
-        in_range = self.valid & (z >= self.pixel_z_min - eps) & (z <= self.pixel_z_max + eps)
         if self.kind == "poly":
-            t = (z - self.z_center) / self.z_scale
-            x = _horner(self.x, t)
-            y = _horner(self.y, t)
-        else:
-            x = _interp_table(self.z_nodes, self.x, z, self.kind)
-            y = _interp_table(self.z_nodes, self.y, z, self.kind)
+            # Row tiles on every core: each tile's Horner steps stay in cache, so
+            # the coefficients are read once (the cost floor) instead of once per step.
+            from .phase import run_tiles
+
+            h, w = self.shape
+            x = np.empty((h, w))
+            y = np.empty((h, w))
+            in_range = np.empty((h, w), bool)
+
+            def rows(r0: int, r1: int) -> None:
+                zr = z if z.ndim == 0 else z[r0:r1]
+                ok = self.valid[r0:r1] & (zr >= self.pixel_z_min[r0:r1] - eps) & (zr <= self.pixel_z_max[r0:r1] + eps)
+                in_range[r0:r1] = ok
+                keep = ok if not extrapolate else self.valid[r0:r1]
+                t = (zr - self.z_center) / self.z_scale
+                for coeffs, out in ((self.x, x), (self.y, y)):
+                    o = out[r0:r1]
+                    _horner(coeffs[:, r0:r1], t, o)
+                    o[~keep] = np.nan
+
+            run_tiles(rows, h, w)
+            return LutEvaluation(x, y, in_range)
+        in_range = self.valid & (z >= self.pixel_z_min - eps) & (z <= self.pixel_z_max + eps)
+        x = _interp_table(self.z_nodes, self.x, z, self.kind)
+        y = _interp_table(self.z_nodes, self.y, z, self.kind)
         keep = in_range if not extrapolate else self.valid
         return LutEvaluation(np.where(keep, x, np.nan), np.where(keep, y, np.nan), in_range)
 
 
-def _horner(coeffs: np.ndarray, t) -> np.ndarray:
-    out = np.array(coeffs[-1], dtype=np.float64, copy=True)
-    for c in coeffs[-2::-1]:
+def _horner(coeffs: np.ndarray, t, out: np.ndarray | None = None) -> np.ndarray:
+    """``sum_i coeffs[i] * t**i`` by Horner's rule (coefficients lowest power first), float64."""
+    if out is None:
+        out = np.array(coeffs[-1], dtype=np.float64, copy=True)
+        rest = coeffs[-2::-1]
+    elif len(coeffs) > 1:
+        np.multiply(coeffs[-1], t, out=out)  # the first step without a copy: same numbers
+        out += coeffs[-2]
+        rest = coeffs[-3::-1]
+    else:
+        out[...] = coeffs[-1]
+        rest = ()
+    for c in rest:
         out *= t
         out += c
     return out
@@ -344,66 +375,83 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if model == "poly" and not 1 <= int(degree) <= 5:
         raise ValueError(f"poly degree must be 1 to 5, got {degree}")
-    if positions is not None:
-        samples = samples.subset(positions)
-        if weights is not None:
-            weights = np.asarray(weights)[np.asarray(positions)]
-    z = samples.z
+    from .fastio import read_block  # file-backed stacks are read block by block, never mapped whole
+
+    k_all = samples.x.shape[0]
+    idx = np.arange(k_all) if positions is None else np.asarray(positions)
+    if weights is not None:
+        weights = np.asarray(weights)[idx]
+    z = np.asarray(samples.z, dtype=float)[idx]
     order = np.argsort(z)
-    k, h, w = samples.x.shape
-    valid_all = samples.valid.reshape(k, -1)
-    n_pos = valid_all.sum(axis=0)
+    k = len(idx)
+    h, w = samples.shape
     z_center, z_scale = _z_normalisation(z)
     if min_positions is None:
         min_positions = degree + 2 if model == "poly" else 2
-    usable = n_pos >= min_positions
-    zk = np.where(valid_all, z[:, None], np.nan)
-    with np.errstate(all="ignore"):
-        pz_min = np.where(usable, np.nanmin(np.where(valid_all, zk, np.inf), axis=0), np.nan)
-        pz_max = np.where(usable, np.nanmax(np.where(valid_all, zk, -np.inf), axis=0), np.nan)
     p_total = h * w
-    out = {}
+    n_pos = np.zeros(p_total, np.int64)
+    pz_min = np.full(p_total, np.nan)
+    pz_max = np.full(p_total, np.nan)
     if model == "poly":
-        n_coef = degree + 1
-        coef = {a: np.full((n_coef, p_total), np.nan) for a in "xy"}
+        coef = {a: np.full((degree + 1, p_total), np.nan) for a in "xy"}
     else:
         coef = {a: np.full((k, p_total), np.nan) for a in "xy"}
     rms = {a: np.full(p_total, np.nan, np.float32) for a in "xy"}
     loo = {a: np.full(p_total, np.nan, np.float32) for a in "xy"}
     t_all = (z - z_center) / z_scale
     wflat = None if weights is None else np.asarray(weights, dtype=float).reshape(k, -1)
-    for start in range(0, p_total, _TILE):
-        if progress:
-            progress(start / p_total, f"fitting LUT ({model})")
+    sel = None if positions is None else idx
+
+    def tile(start: int) -> None:
         stop = min(start + _TILE, p_total)
-        mask = valid_all[:, start:stop] & usable[None, start:stop]
-        for axis_name in "xy":
-            offs = getattr(samples, axis_name).reshape(k, -1)[:, start:stop].astype(np.float64)
-            ref = getattr(samples, f"{axis_name}_ref").reshape(-1)[start:stop]
-            if model == "poly":
-                c, r, l = _fit_poly_tile(t_all, offs, mask, degree,
-                                         None if wflat is None else wflat[:, start:stop])
-                c[0] += ref
-                coef[axis_name][:, start:stop] = c
-            else:
-                vals = np.where(mask, offs + ref[None, :], np.nan)
-                coef[axis_name][:, start:stop] = vals[order]
-                r = np.where(mask.any(axis=0), 0.0, np.nan)
-                l = _table_loo(z[order], offs[order], mask[order], model)
-            rms[axis_name][start:stop] = r
-            loo[axis_name][start:stop] = l
-    valid = usable & np.all(np.isfinite(coef["x"]) | (model != "poly"), axis=0)
-    if model != "poly":
-        valid &= np.isfinite(coef["x"]).sum(axis=0) >= 2
-    for a in "xy":
+        valid_t = read_block(samples.reasons, start, stop, sel) == 0
+        n_t = valid_t.sum(axis=0)
+        n_pos[start:stop] = n_t
+        usable_t = n_t >= min_positions
+        if usable_t.any():
+            zk = np.broadcast_to(z[:, None], valid_t.shape)
+            pz_min[start:stop] = np.where(usable_t, np.min(np.where(valid_t, zk, np.inf), axis=0), np.nan)
+            pz_max[start:stop] = np.where(usable_t, np.max(np.where(valid_t, zk, -np.inf), axis=0), np.nan)
+        mask = valid_t & usable_t[None, :]
+        offs = {a: read_block(getattr(samples, a), start, stop, sel).astype(np.float64) for a in "xy"}
+        refs = {a: getattr(samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}
         if model == "poly":
-            coef[a][:, ~valid] = np.nan
+            fits = _fit_poly_tile_xy(t_all, [offs["x"], offs["y"]], mask, degree,
+                                     None if wflat is None else wflat[:, start:stop])
+            for axis_name, (c, r, l) in zip("xy", fits):
+                c[0] += refs[axis_name]
+                coef[axis_name][:, start:stop] = c
+                rms[axis_name][start:stop] = r
+                loo[axis_name][start:stop] = l
         else:
-            coef[a][:, ~valid] = np.nan
-        rms[a][~valid] = np.nan
-        loo[a][~valid] = np.nan
-    pz_min = np.where(valid, pz_min, np.nan)
-    pz_max = np.where(valid, pz_max, np.nan)
+            for axis_name in "xy":
+                o = offs[axis_name]
+                vals = np.where(mask, o + refs[axis_name][None, :], np.nan)
+                coef[axis_name][:, start:stop] = vals[order]
+                rms[axis_name][start:stop] = np.where(mask.any(axis=0), 0.0, np.nan)
+                loo[axis_name][start:stop] = _table_loo(z[order], o[order], mask[order], model)
+
+    # Pixel tiles on every core (numpy's loops release the GIL); results land in
+    # disjoint slices, so the order of completion does not matter.
+    from .phase import _pool, tile_workers
+
+    starts = list(range(0, p_total, _TILE))
+    done = map(tile, starts) if tile_workers() == 1 or len(starts) == 1 else _pool().map(tile, starts)
+    for i, _ in enumerate(done):
+        if progress:
+            progress(i / len(starts), f"fitting LUT ({model})")
+    usable = n_pos >= min_positions
+    if model == "poly":
+        valid = usable & np.all(np.isfinite(coef["x"]), axis=0)
+    else:
+        valid = usable & (np.isfinite(coef["x"]).sum(axis=0) >= 2)
+    invalid = ~valid
+    for a in "xy":
+        coef[a][:, invalid] = np.nan
+        rms[a][invalid] = np.nan
+        loo[a][invalid] = np.nan
+    pz_min[invalid] = np.nan
+    pz_max[invalid] = np.nan
     shape = (h, w)
     if progress:
         progress(1.0, "LUT fitted")
@@ -436,14 +484,34 @@ def _fit_poly_tile(t: np.ndarray, values: np.ndarray, mask: np.ndarray, degree: 
     -------
     coef : (D+1, P) ; rms : (P,) ; loo : (P,)
     """
-    k, p = values.shape
+    return _fit_poly_tile_xy(t, [values], mask, degree, weights)[0]
+
+
+def _pattern_groups(mask: np.ndarray, n_min: int):
+    """``_group_by_pattern`` of the columns with at least ``n_min`` samples.
+
+    The common pattern "every position valid" is found without sorting.
+    """
+    counts = mask.sum(axis=0)
+    full = counts == mask.shape[0]
+    if full.any():
+        yield np.ones(mask.shape[0], bool), np.flatnonzero(full)
+    rest = np.flatnonzero(~full & (counts >= n_min))
+    if rest.size:
+        for pattern, cols in _group_by_pattern(mask[:, rest]):
+            yield pattern, rest[cols]
+
+
+def _fit_poly_tile_xy(t: np.ndarray, values_list, mask: np.ndarray, degree: int,
+                      weights: np.ndarray | None):
+    """:func:`_fit_poly_tile` of several value arrays sharing one mask (X and Y):
+    one grouping and one pseudo-inverse per pattern serve them all."""
+    k, p = mask.shape
     n_coef = degree + 1
-    coef = np.full((n_coef, p), np.nan)
-    rms = np.full(p, np.nan)
-    loo = np.full(p, np.nan)
+    out = [(np.full((n_coef, p), np.nan), np.full(p, np.nan), np.full(p, np.nan)) for _ in values_list]
     vander = np.vander(t, n_coef, increasing=True)  # (K, D+1)
     if weights is None:
-        groups = _group_by_pattern(mask)
+        groups = _pattern_groups(mask, n_coef)
     else:
         groups = ((None, np.array([j])) for j in np.flatnonzero(mask.sum(axis=0) >= n_coef))
     for pattern, cols in groups:
@@ -452,23 +520,34 @@ def _fit_poly_tile(t: np.ndarray, values: np.ndarray, mask: np.ndarray, degree: 
         n = int(pattern.sum())
         if n < n_coef:
             continue
-        v = vander[pattern]
-        y = values[pattern][:, cols]
+        rows = np.flatnonzero(pattern)
+        v = vander[rows]
         if weights is not None:
-            sw = np.sqrt(weights[pattern][:, cols[0]])
+            sw = np.sqrt(weights[rows][:, cols[0]])
             pinv = np.linalg.pinv(v * sw[:, None]) * sw[None, :]
         else:
             pinv = np.linalg.pinv(v)  # (D+1, n)
-        c = pinv @ y
-        resid = y - v @ c
         hat = np.einsum("ij,ji->i", v, pinv)  # leverages h_kk
-        coef[:, cols] = c
-        rms[cols] = np.sqrt(np.mean(resid * resid, axis=0))
-        if n > n_coef:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                loo_r = resid / (1.0 - hat)[:, None]
-            loo[cols] = np.sqrt(np.mean(loo_r * loo_r, axis=0))
-    return coef, rms, loo
+        with np.errstate(divide="ignore", invalid="ignore"):
+            loo_scale = (1.0 / (1.0 - hat))[:, None] if n > n_coef else None
+        all_cols = cols.size == p
+        for values, (coef, rms, loo) in zip(values_list, out):
+            if all_cols:
+                y = values if n == k else values[rows]
+            else:
+                y = values[np.ix_(rows, cols)]
+            # einsum, not BLAS: (D+1, K) x (K, P) is too thin for BLAS's threads,
+            # which on a busy machine cost ten times the arithmetic.
+            c = np.einsum("ij,jk->ik", pinv, y)
+            resid = np.einsum("ij,jk->ik", v, c)
+            np.subtract(y, resid, out=resid)
+            coef[:, cols] = c
+            sq = np.einsum("ij,ij->j", resid, resid)
+            rms[cols] = np.sqrt(sq / n)
+            if loo_scale is not None:
+                resid *= loo_scale
+                loo[cols] = np.sqrt(np.einsum("ij,ij->j", resid, resid) / n)
+    return out
 
 
 def _table_loo(z_sorted: np.ndarray, values: np.ndarray, mask: np.ndarray, kind: str) -> np.ndarray:
@@ -496,40 +575,231 @@ def _table_loo(z_sorted: np.ndarray, values: np.ndarray, mask: np.ndarray, kind:
 # Files
 
 _QUALITY = ("n_positions", "z_min", "z_max", "rms_x", "rms_y", "loo_x", "loo_y")
+_MAX_DEGREE = 5
+
+
+def _lut_root_attrs(obj) -> None:
+    """The ``/`` attributes of ``ptp-lut/1`` (also put on a session's ``/lut`` group)."""
+    obj.attrs["format"] = LUT_FORMAT
+    obj.attrs["software"] = f"ptpcore {__version__}"
+    obj.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    obj.attrs["units"] = "mm"
+
+
+def _write_lut_group(group, lut: Lut) -> None:
+    """Write every ``ptp-lut/1`` dataset and group of ``lut`` into an open HDF5 group.
+
+    ``save_lut`` writes into the file's root group; a session file into ``/lut``.
+    The format attributes are not written here (see :func:`_lut_root_attrs`).
+    """
+    h, w = lut.shape
+    group.create_group("camera").attrs.update({"width": w, "height": h})
+    m = group.create_group("model")
+    m.attrs.update({"kind": lut.kind, "z_center": lut.z_center, "z_scale": lut.z_scale,
+                    "z_min": lut.z_min, "z_max": lut.z_max})
+    if lut.kind == "poly":
+        m.attrs["degree"] = lut.degree
+    for key, val in lut.extra_attrs.items():
+        m.attrs[key] = val
+    opts = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
+    group.create_dataset("x", data=lut.x.astype(np.float64), **opts)
+    group.create_dataset("y", data=lut.y.astype(np.float64), **opts)
+    if lut.z_nodes is not None:
+        group["z_nodes"] = np.asarray(lut.z_nodes, dtype=np.float64)
+    group.create_dataset("valid", data=lut.valid.astype(np.uint8), **opts)
+    q = group.create_group("quality")
+    q.create_dataset("n_positions", data=lut.n_positions.astype(np.uint16), **opts)
+    q.create_dataset("z_min", data=lut.pixel_z_min.astype(np.float32), **opts)
+    q.create_dataset("z_max", data=lut.pixel_z_max.astype(np.float32), **opts)
+    for name in ("rms_x", "rms_y", "loo_x", "loo_y", "sigma_x", "sigma_y"):
+        val = getattr(lut, name)
+        if val is not None:
+            q.create_dataset(name, data=val.astype(np.float32), **opts)
+    group.create_group("rig").attrs["toml"] = lut.rig_toml
 
 
 def save_lut(lut: Lut, path) -> None:
-    """Write ``ptp-lut/1`` (FORMATS.md) atomically."""
-    h, w = lut.shape
+    """Write ``ptp-lut/1`` (FORMATS.md) atomically.
+
+    A process killed during the write leaves the previous file (if any) intact.
+    """
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = LUT_FORMAT
-            f.attrs["software"] = f"ptpcore {__version__}"
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-            f.attrs["units"] = "mm"
-            f.create_group("camera").attrs.update({"width": w, "height": h})
-            m = f.create_group("model")
-            m.attrs.update({"kind": lut.kind, "z_center": lut.z_center, "z_scale": lut.z_scale,
-                            "z_min": lut.z_min, "z_max": lut.z_max})
-            if lut.kind == "poly":
-                m.attrs["degree"] = lut.degree
-            for key, val in lut.extra_attrs.items():
-                m.attrs[key] = val
-            opts = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
-            f.create_dataset("x", data=lut.x.astype(np.float64), **opts)
-            f.create_dataset("y", data=lut.y.astype(np.float64), **opts)
-            if lut.z_nodes is not None:
-                f["z_nodes"] = lut.z_nodes.astype(np.float64)
-            f.create_dataset("valid", data=lut.valid.astype(np.uint8), **opts)
-            q = f.create_group("quality")
-            q.create_dataset("n_positions", data=lut.n_positions.astype(np.uint16), **opts)
-            q.create_dataset("z_min", data=lut.pixel_z_min.astype(np.float32), **opts)
-            q.create_dataset("z_max", data=lut.pixel_z_max.astype(np.float32), **opts)
-            for name in ("rms_x", "rms_y", "loo_x", "loo_y", "sigma_x", "sigma_y"):
-                val = getattr(lut, name)
-                if val is not None:
-                    q.create_dataset(name, data=val.astype(np.float32), **opts)
-            f.create_group("rig").attrs["toml"] = lut.rig_toml
+            _lut_root_attrs(f)
+            _write_lut_group(f, lut)
+
+
+def _str_attr(value) -> str | None:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "SUO":
+        value = value[()]
+        return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+    return value if isinstance(value, str) else None
+
+
+def check_format(obj, where: str, expected: str) -> None:
+    """Check a ``format`` attribute ``"name/N"`` against ``expected``.
+
+    Raises
+    ------
+    FileFormatError
+        Missing or other format; a version newer than this software reads is
+        called "too new".
+    """
+    fmt = _str_attr(obj.attrs.get("format"))
+    if fmt == expected:
+        return
+    family, _, version = expected.rpartition("/")
+    if isinstance(fmt, str) and fmt.startswith(family + "/"):
+        tail = fmt[len(family) + 1:]
+        if tail.isdigit() and int(tail) > int(version):
+            raise FileFormatError(f"{where}: format {fmt!r} is newer than this software reads ({expected});"
+                                  " update PTP Studio")
+        raise FileFormatError(f"{where}: format {fmt!r} is not supported (this software reads {expected})")
+    raise FileFormatError(f"{where}: attribute 'format' is {fmt!r}, expected {expected!r}")
+
+
+def _read_lut_group(group, where: str) -> Lut:
+    """Read and check the ``ptp-lut/1`` content of an open HDF5 group.
+
+    Parameters
+    ----------
+    group : h5py.Group
+        The file's root (a ``*.lut.h5``) or a session's ``/lut`` group.
+    where : str
+        The file name, for messages; dataset names are given in full
+        (``/lut/x`` inside a session).
+
+    Raises
+    ------
+    FileFormatError
+        Naming ``where`` and the dataset or attribute that is wrong: missing,
+        wrong shape or type, NaN where a valid pixel needs a number, values out
+        of range.
+    """
+    base = "" if group.name == "/" else group.name
+
+    def name(rel):
+        return f"{base}/{rel}"
+
+    def fail(msg):
+        return FileFormatError(f"{where}: {msg}")
+
+    def array(rel, ndim, kinds="fiub"):
+        try:
+            obj = group[rel]
+        except KeyError:
+            raise fail(f"missing dataset {name(rel)}") from None
+        if not isinstance(obj, h5py.Dataset):
+            raise fail(f"{name(rel)} is not a dataset")
+        if obj.dtype.kind not in kinds:
+            raise fail(f"{name(rel)} has type {obj.dtype}, expected numbers")
+        if obj.ndim != ndim:
+            raise fail(f"{name(rel)} has {obj.ndim} dimensions {obj.shape}, expected {ndim}")
+        return obj[()]
+
+    def attr(obj_rel, key, kind):
+        if obj_rel and obj_rel not in group:
+            raise fail(f"missing group {name(obj_rel)}")
+        try:
+            obj = group[obj_rel] if obj_rel else group
+            val = obj.attrs[key]
+        except KeyError:
+            raise fail(f"missing attribute {key!r} of {name(obj_rel) if obj_rel else base or '/'}") from None
+        label = f"attribute {key!r} of {name(obj_rel)}"
+        if kind is str:
+            s = _str_attr(val)
+            if s is None:
+                raise fail(f"{label} must be text, got {val!r}")
+            return s
+        if isinstance(val, np.ndarray) and val.size == 1:
+            val = val.reshape(())[()]
+        if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, float, np.integer, np.floating)):
+            raise fail(f"{label} must be a number, got {val!r}"[:200])
+        if kind is int:
+            if float(val) != int(val):
+                raise fail(f"{label} must be an integer, got {val!r}")
+            return int(val)
+        val = float(val)
+        if not np.isfinite(val):
+            raise fail(f"{label} must be finite, got {val}")
+        return val
+
+    try:
+        h = attr("camera", "height", int)
+        w = attr("camera", "width", int)
+        if h < 1 or w < 1:
+            raise fail(f"{name('camera')} size {w}x{h} must be positive")
+        kind = attr("model", "kind", str)
+        if kind not in MODELS:
+            raise fail(f"attribute 'kind' of {name('model')} is {kind!r}, not one of {MODELS}")
+        degree = attr("model", "degree", int) if kind == "poly" else None
+        if degree is not None and not 1 <= degree <= _MAX_DEGREE:
+            raise fail(f"attribute 'degree' of {name('model')} must be 1 to {_MAX_DEGREE}, got {degree}")
+        mv = {k: attr("model", k, float) for k in ("z_center", "z_scale", "z_min", "z_max")}
+        known = {"kind", "degree", "z_center", "z_scale", "z_min", "z_max"}
+        extra = {k: v for k, v in group["model"].attrs.items() if k not in known}
+        x = array("x", 3, "f")
+        y = array("y", 3, "f")
+        z_nodes = array("z_nodes", 1, "f") if "z_nodes" in group else None
+        valid_raw = array("valid", 2, "uib")
+        q = {n: array(f"quality/{n}", 2) for n in _QUALITY}
+        sig = {n: (array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
+               for n in ("sigma_x", "sigma_y")}
+        rig_toml = ""
+        if "rig" in group:
+            rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
+    except OSError as exc:
+        raise fail(f"truncated or damaged ({exc})") from None
+    if mv["z_scale"] <= 0:
+        raise fail(f"attribute 'z_scale' of {name('model')} must be positive, got {mv['z_scale']}")
+    if mv["z_min"] > mv["z_max"]:
+        raise fail(f"attributes 'z_min' > 'z_max' of {name('model')} ({mv['z_min']} > {mv['z_max']})")
+    if kind != "poly":
+        if z_nodes is None:
+            raise fail(f"missing dataset {name('z_nodes')} (required for kind {kind!r})")
+        if z_nodes.size < 2 or not np.all(np.isfinite(z_nodes)) or np.any(np.diff(z_nodes) <= 0):
+            raise fail(f"{name('z_nodes')} must hold at least 2 finite, strictly ascending heights")
+    n_lead = degree + 1 if kind == "poly" else len(z_nodes)
+    for rel, arr, want in (("x", x, (n_lead, h, w)), ("y", y, (n_lead, h, w)), ("valid", valid_raw, (h, w))):
+        if arr.shape != want:
+            raise fail(f"{name(rel)} has shape {arr.shape}, expected {want}")
+    for rel, arr in [*((f"quality/{n}", a) for n, a in q.items()),
+                     *((f"quality/{n}", a) for n, a in sig.items() if a is not None)]:
+        if arr.shape != (h, w):
+            raise fail(f"{name(rel)} has shape {arr.shape}, expected {(h, w)}")
+    if np.any((valid_raw != 0) & (valid_raw != 1)):
+        raise fail(f"{name('valid')} must hold only 0 and 1")
+    valid = valid_raw.astype(bool)
+    for rel, arr in (("x", x), ("y", y)):
+        if kind == "poly":
+            if not np.all(np.isfinite(arr[:, valid])):
+                raise fail(f"{name(rel)} holds NaN or infinite coefficients for pixels marked valid")
+        else:
+            fin = np.isfinite(arr)
+            if np.any(np.isinf(arr)):
+                raise fail(f"{name(rel)} holds infinite values")
+            if np.any(fin.sum(axis=0)[valid] < 2):
+                raise fail(f"{name(rel)} has fewer than 2 finite nodes for pixels marked valid")
+    if np.any(q["n_positions"][valid] < 1):
+        raise fail(f"{name('quality/n_positions')} is 0 for pixels marked valid")
+    pz_min, pz_max = q["z_min"], q["z_max"]
+    if not (np.all(np.isfinite(pz_min[valid])) and np.all(np.isfinite(pz_max[valid]))):
+        raise fail(f"{name('quality/z_min')} or {name('quality/z_max')} holds NaN for pixels marked valid")
+    if np.any(pz_min[valid] > pz_max[valid]):
+        raise fail(f"{name('quality/z_min')} exceeds {name('quality/z_max')} for some valid pixels")
+    for n in ("rms_x", "rms_y", "loo_x", "loo_y"):
+        with np.errstate(invalid="ignore"):
+            if np.any(q[n] < 0):
+                raise fail(f"{name('quality/' + n)} holds negative values")
+    return Lut(
+        kind=kind, degree=degree, z_center=mv["z_center"], z_scale=mv["z_scale"],
+        z_min=mv["z_min"], z_max=mv["z_max"], x=x, y=y, z_nodes=z_nodes, valid=valid,
+        n_positions=q["n_positions"], pixel_z_min=pz_min, pixel_z_max=pz_max,
+        rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
+        sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
+    )
 
 
 def load_lut(path) -> Lut:
@@ -538,7 +808,9 @@ def load_lut(path) -> Lut:
     Raises
     ------
     FileFormatError
-        Naming the file and the dataset or attribute that is wrong.
+        Naming the file and the dataset or attribute that is wrong: not HDF5,
+        truncated, another format or a newer version, missing or wrongly shaped
+        datasets, NaN where a valid pixel needs a number, values out of range.
     """
     path = Path(path)
     where = str(path)
@@ -547,52 +819,7 @@ def load_lut(path) -> Lut:
     except FileNotFoundError:
         raise FileFormatError(f"{where}: file not found") from None
     except OSError as exc:
-        raise FileFormatError(f"{where}: not a readable HDF5 file ({exc})") from None
+        raise FileFormatError(f"{where}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
     with f:
-        fmt = f.attrs.get("format")
-        if isinstance(fmt, bytes):
-            fmt = fmt.decode()
-        if fmt != LUT_FORMAT:
-            if isinstance(fmt, str) and fmt.startswith("ptp-lut/"):
-                raise FileFormatError(f"{where}: format {fmt!r} is newer than this software reads ({LUT_FORMAT})")
-            raise FileFormatError(f"{where}: attribute 'format' is {fmt!r}, expected {LUT_FORMAT!r}")
-        try:
-            h = int(f["camera"].attrs["height"])
-            w = int(f["camera"].attrs["width"])
-            m = dict(f["model"].attrs)
-            kind = str(m["kind"])
-            if kind not in MODELS:
-                raise FileFormatError(f"{where}: /model kind {kind!r} is not one of {MODELS}")
-            x = f["x"][()]
-            y = f["y"][()]
-            z_nodes = f["z_nodes"][()] if "z_nodes" in f else None
-            valid = f["valid"][()].astype(bool)
-            q = f["quality"]
-            quality = {n: q[n][()] for n in _QUALITY}
-            sig = {n: (q[n][()] if n in q else None) for n in ("sigma_x", "sigma_y")}
-            rig_toml = f["rig"].attrs.get("toml", "") if "rig" in f else ""
-        except KeyError as exc:
-            raise FileFormatError(f"{where}: missing {exc.args[0]!r}") from None
-        except OSError as exc:
-            raise FileFormatError(f"{where}: truncated or damaged ({exc})") from None
-    degree = int(m["degree"]) if kind == "poly" else None
-    n_lead = degree + 1 if kind == "poly" else (len(z_nodes) if z_nodes is not None else -1)
-    if kind != "poly" and z_nodes is None:
-        raise FileFormatError(f"{where}: /z_nodes is required for kind {kind!r}")
-    for name, arr, want in (("/x", x, (n_lead, h, w)), ("/y", y, (n_lead, h, w)), ("/valid", valid, (h, w))):
-        if arr.shape != want:
-            raise FileFormatError(f"{where}: {name} has shape {arr.shape}, expected {want}")
-    for name, arr in quality.items():
-        if arr.shape != (h, w):
-            raise FileFormatError(f"{where}: /quality/{name} has shape {arr.shape}, expected {(h, w)}")
-    if kind == "poly" and not np.all(np.isfinite(x[:, valid])) or not np.all(np.isfinite(y[:, valid]) | (kind != "poly")):
-        raise FileFormatError(f"{where}: /x or /y holds NaN for pixels marked valid")
-    if isinstance(rig_toml, bytes):
-        rig_toml = rig_toml.decode()
-    return Lut(
-        kind=kind, degree=degree, z_center=float(m["z_center"]), z_scale=float(m["z_scale"]),
-        z_min=float(m["z_min"]), z_max=float(m["z_max"]), x=x, y=y, z_nodes=z_nodes, valid=valid,
-        n_positions=quality["n_positions"], pixel_z_min=quality["z_min"], pixel_z_max=quality["z_max"],
-        rms_x=quality["rms_x"], rms_y=quality["rms_y"], loo_x=quality["loo_x"], loo_y=quality["loo_y"],
-        sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml),
-    )
+        check_format(f, where, LUT_FORMAT)
+        return _read_lut_group(f, where)

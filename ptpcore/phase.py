@@ -3,16 +3,26 @@
 Image stacks use one axis order everywhere: ``(steps, H, W)``. Per-pixel
 maps are ``(H, W)`` indexed ``[row, col]``.
 
-Frames are consumed one at a time (:class:`PhaseAccumulator`), so decoding a
-position never holds more than a handful of ``(H, W)`` float32 maps.
+Two ways in, one result: :class:`PhaseAccumulator` consumes frames one at a
+time (a handful of ``(H, W)`` float32 maps, whatever N is), and
+:func:`wrapped_phase` reduces a whole ``(N, H, W)`` stack at once. The stack
+path is the fast one: it works in row tiles small enough that all N frames of
+a tile stay in the CPU cache, the tiles run on all cores (OpenCV and numpy
+release the GIL), and the N-step sums are OpenCV accumulations straight from
+the camera's integer frames (:func:`_nstep_chain`). Unwrapping and pixel
+classification run over the same row tiles.
 """
 
 from __future__ import annotations
 
+import functools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 from .rig import Rig
 
@@ -60,12 +70,16 @@ class WrappedPhase:
     modulation : (H, W) float32, grey levels (B)
     background : (H, W) float32, grey levels (A)
     saturated : (H, W) bool, any step at the sensor's maximum level
+    residual_var : (H, W) float32 or None
+        Variance of the samples about the fitted sinusoid (grey levels^2),
+        an unbiased noise estimate with N - 3 degrees of freedom; None for N = 3.
     """
 
     phase: np.ndarray
     modulation: np.ndarray
     background: np.ndarray
     saturated: np.ndarray
+    residual_var: np.ndarray | None = None
 
 
 class PhaseAccumulator:
@@ -81,6 +95,7 @@ class PhaseAccumulator:
         self.s = np.zeros(shape, np.float32)
         self.c = np.zeros(shape, np.float32)
         self.a = np.zeros(shape, np.float32)
+        self.sq = np.zeros(shape, np.float64)  # sum of I^2 for the noise estimate
         self.saturated = np.zeros(shape, bool)
         self._seen: set[int] = set()
         self._tmp = np.empty(shape, np.float32)
@@ -95,14 +110,17 @@ class PhaseAccumulator:
         delta = 2.0 * np.pi * step / self.n_steps
         tmp = self._tmp
         tmp[...] = frame
-        self.a += tmp
+        # OpenCV accumulations: one pass each, no temporaries (np.square and
+        # tmp * w would each allocate a full frame).
+        cv2.accumulate(tmp, self.a)
+        cv2.accumulateSquare(tmp, self.sq)  # float32 values squared exactly in float64
         if self.sat_level is not None:
             self.saturated |= frame >= self.sat_level
         sin_d, cos_d = np.float32(np.sin(delta)), np.float32(np.cos(delta))
         if sin_d != 0:
-            self.s += tmp * sin_d
+            cv2.scaleAdd(tmp, float(sin_d), self.s, dst=self.s)
         if cos_d != 0:
-            self.c += tmp * cos_d
+            cv2.scaleAdd(tmp, float(cos_d), self.c, dst=self.c)
 
     def result(self) -> WrappedPhase:
         """Wrapped phase, modulation, background once all N frames were added."""
@@ -111,26 +129,200 @@ class PhaseAccumulator:
         n = self.n_steps
         phase = np.arctan2(-self.s, self.c)
         modulation = (2.0 / n) * np.hypot(self.s, self.c)
-        return WrappedPhase(phase, modulation, self.a / n, self.saturated)
+        background = self.a / n
+        residual_var = None
+        if n > 3:
+            # sum (I - A - B cos(phi + delta))^2 = sum I^2 - N A^2 - (N/2) B^2
+            # for equally spaced steps; N - 3 degrees of freedom remain.
+            a64 = background.astype(np.float64)
+            b64 = modulation.astype(np.float64)
+            ssr = self.sq - n * a64 * a64 - 0.5 * n * b64 * b64
+            residual_var = np.maximum(ssr, 0.0).astype(np.float32) / np.float32(n - 3)
+        return WrappedPhase(phase, modulation, background, self.saturated, residual_var)
 
 
-def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None) -> WrappedPhase:
+def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
+                  photometry: bool = True, out: WrappedPhase | None = None) -> WrappedPhase:
     """N-step wrapped phase of a stack.
 
     Parameters
     ----------
     frames : (N, H, W) array_like
-        Frame ``n`` was shown with phase shift ``2*pi*n/N``.
+        Frame ``n`` was shown with phase shift ``2*pi*n/N``. Any real dtype;
+        uint8, uint16 and float32 are reduced without a conversion pass.
     saturation_level : float, optional
         Grey level at or above which a sample counts as saturated.
+    photometry : bool
+        Also compute ``background`` and ``residual_var``; without them (None)
+        the reduction is about a third cheaper (the pipeline needs them at the
+        finest period only).
+    out : WrappedPhase, optional
+        Arrays to fill instead of new ones (a streaming caller reuses them for
+        every position: fresh multi-megabyte arrays cost page faults each time).
+        Its ``background``/``residual_var`` decide what is computed.
+
+    Returns
+    -------
+    WrappedPhase
+        The same values as :class:`PhaseAccumulator` fed frame by frame, to
+        float32 rounding.
     """
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.shape[0] < 3:
         raise ValueError(f"frames must be (N>=3, H, W), got shape {frames.shape}")
-    acc = PhaseAccumulator(frames.shape[1:], frames.shape[0], saturation_level)
-    for n, frame in enumerate(frames):
-        acc.add(frame, n)
-    return acc.result()
+    n, h, w = frames.shape
+    if out is None:
+        out = WrappedPhase(np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+                           np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
+                           np.empty((h, w), np.float32) if photometry and n > 3 else None)
+    elif out.phase.shape != (h, w) or (out.residual_var is not None and n <= 3):
+        raise ValueError(f"out does not fit frames of shape {frames.shape}")
+    run_tiles(functools.partial(_nstep_rows, frames, saturation_level, out), h, w)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Row tiles over a shared thread pool
+
+TILE_PIXELS = 1 << 15
+"""Pixels per row tile: N uint8 frames of a tile plus its float32 sums fit in L2."""
+
+_pool_lock = threading.Lock()
+_pool_obj: ThreadPoolExecutor | None = None
+_in_worker = threading.local()
+
+
+def _worker_init() -> None:
+    _in_worker.flag = True
+
+
+def tile_workers() -> int:
+    """Threads used for row tiles: every core (``PTP_THREADS`` overrides)."""
+    env = os.environ.get("PTP_THREADS", "")
+    return max(1, int(env)) if env.isdigit() else max(1, os.cpu_count() or 1)
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _pool_obj
+    with _pool_lock:
+        if _pool_obj is None:
+            _pool_obj = ThreadPoolExecutor(tile_workers(), thread_name_prefix="ptp-tiles",
+                                           initializer=_worker_init)
+        return _pool_obj
+
+
+def row_tiles(h: int, w: int, tile_pixels: int = TILE_PIXELS) -> list[tuple[int, int]]:
+    """Row ranges ``[r0, r1)`` of about ``tile_pixels`` pixels each, covering ``h`` rows."""
+    rows = max(1, tile_pixels // max(int(w), 1))
+    return [(r, min(h, r + rows)) for r in range(0, h, rows)]
+
+
+def run_tiles(fn, h: int, w: int, tile_pixels: int = TILE_PIXELS) -> None:
+    """Call ``fn(r0, r1)`` for every row tile, in parallel on the tile pool.
+
+    Exceptions propagate. Called from inside a tile (nested), it runs serially
+    so the pool cannot deadlock on itself.
+    """
+    tiles = row_tiles(h, w, tile_pixels)
+    if len(tiles) == 1 or tile_workers() == 1 or getattr(_in_worker, "flag", False):
+        for r0, r1 in tiles:
+            fn(r0, r1)
+        return
+    for _ in _pool().map(lambda t: fn(*t), tiles):
+        pass
+
+
+# ---------------------------------------------------------------------------
+# The N-step kernel
+
+@functools.lru_cache(maxsize=None)
+def _nstep_chain(n: int, kind: str) -> tuple[tuple[tuple[int, float], ...], float]:
+    """``cv2.accumulateWeighted`` steps that leave ``lam * sum_n w_n I_n`` in the sum.
+
+    ``accumulateWeighted(I, acc, a)`` does ``acc = (1 - a) acc + a I`` in one
+    pass straight from uint8/uint16 frames. Chained over the frames with
+    non-zero weight, frame ``i`` ends up with coefficient
+    ``a_i * prod_{j > i} (1 - a_j)``; solving backwards for ``a_i`` makes that
+    ``lam * w_i``. ``lam`` keeps every ``|a|`` small (the factors near 1), so
+    the result is as precise as a plain float32 sum (tests check it).
+
+    Parameters
+    ----------
+    n : int
+        Steps N.
+    kind : {"s", "c"}
+        Weights ``-sin(delta_n)`` (so the sum is ``-S``, atan2's first
+        argument) or ``cos(delta_n)``.
+
+    Returns
+    -------
+    steps : tuple of (frame index, alpha)
+        In the order to apply them.
+    lam : float
+        The common scale of the result.
+    """
+    delta = 2.0 * np.pi * np.arange(n) / n
+    wts = -np.sin(delta) if kind == "s" else np.cos(delta)
+    nz = [i for i in range(n) if abs(wts[i]) > 1e-12]
+    lam = 0.25 / float(np.abs(wts).sum())
+    alphas = {}
+    later = 1.0
+    for i in reversed(nz):
+        a = lam * wts[i] / later
+        alphas[i] = a
+        later *= 1.0 - a
+    return tuple((i, alphas[i]) for i in nz), lam
+
+
+_CV_SRC = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+
+
+def _nstep_rows(frames: np.ndarray, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+    """N-step reduction of rows ``[r0, r1)`` of a stack into ``out`` (see :func:`wrapped_phase`)."""
+    n = frames.shape[0]
+    raw = frames[:, r0:r1]
+    fr = raw if raw.dtype in _CV_SRC and raw.strides[-1] == raw.itemsize else raw.astype(np.float32)
+    rows = fr.shape[1:]
+    photometry = out.background is not None
+    acc = np.zeros((3 if photometry else 2, *rows), np.float32)
+    for k, kind in enumerate("sc"):
+        steps, lam = _nstep_chain(n, kind)
+        for i, alpha in steps:
+            cv2.accumulateWeighted(fr[i], acc[k], alpha)
+        np.multiply(acc[k], np.float32(1.0 / lam), out=acc[k])
+    neg_s, c = acc[0], acc[1]
+    np.arctan2(neg_s, c, out=out.phase[r0:r1])
+    zz = cv2.magnitude(neg_s, c)  # |Z| = hypot(S, C)
+    np.multiply(zz, 2.0 / n, out=out.modulation[r0:r1])
+    if saturation_level is not None:
+        np.greater_equal(np.max(raw, axis=0), saturation_level, out=out.saturated[r0:r1])
+    else:
+        out.saturated[r0:r1] = False
+    if not photometry:
+        return
+    a = acc[2]
+    for i in range(n):
+        cv2.accumulate(fr[i], a)
+    np.divide(a, n, out=out.background[r0:r1])
+    if out.residual_var is None:
+        return
+    # sum (I - A - B cos(phi + delta))^2 = sum I^2 - N A^2 - (N/2) B^2
+    #   = (N sum I^2 - (sum I)^2 - 2 |Z|^2) / N   (equally spaced steps),
+    # with N - 3 degrees of freedom. For uint8 frames (N <= 16) the first two
+    # terms are integers below 2^24, exact in float32; otherwise float64.
+    exact32 = fr.dtype == np.uint8 and n <= 16
+    work = np.float32 if exact32 else np.float64
+    sq = np.zeros(rows, work)
+    for i in range(n):
+        cv2.accumulateSquare(fr[i], sq)
+    sq *= n
+    a2 = np.multiply(a, a, dtype=work)
+    sq -= a2
+    np.multiply(zz, zz, out=a2, dtype=work)
+    a2 *= 2.0
+    sq -= a2
+    np.maximum(sq, 0.0, out=sq)
+    np.multiply(sq, 1.0 / (n * (n - 3)), out=out.residual_var[r0:r1], casting="same_kind")
 
 
 def unwrap_hierarchical(phases, periods) -> tuple[np.ndarray, np.ndarray]:
@@ -153,17 +345,54 @@ def unwrap_hierarchical(phases, periods) -> tuple[np.ndarray, np.ndarray]:
     """
     if len(phases) != len(periods) or not phases:
         raise ValueError("need one wrapped phase per period")
+    phases = [np.asarray(p) for p in phases]
+    shape = phases[0].shape
+    coord = np.empty(shape, np.float64)
+    disagreement = np.zeros(shape, bool)
+    if len(shape) != 2:
+        _unwrap_rows(phases, periods, 0.0, coord, disagreement, slice(None))
+    else:
+        run_tiles(lambda r0, r1: _unwrap_rows(phases, periods, 0.0, coord, disagreement, slice(r0, r1)),
+                  *shape)
+    return coord, disagreement
+
+
+def _unwrap_rows(phases, periods, shift: float, coord: np.ndarray, disagreement: np.ndarray, rows) -> None:
+    """:func:`unwrap_hierarchical` of ``rows``, minus a carrier ``shift``, into ``coord``/``disagreement``.
+
+    The arithmetic is the reference's, operation for operation, in float64.
+    """
     two_pi = 2.0 * np.pi
-    # Coarsest level: its phase in [0, 2*pi) is absolute by design.
-    unwrapped = np.mod(np.asarray(phases[0], dtype=np.float64), two_pi)
-    disagreement = np.zeros(unwrapped.shape, bool)
+    # Coarsest level: its phase in [0, 2*pi) is absolute by design. For
+    # phases in [-2pi, 2pi) (atan2's are) mod is one conditional add, the same
+    # numbers as np.mod, which is ten times slower.
+    unwrapped = np.array(phases[0][rows], dtype=np.float64)
+    if unwrapped.size and np.min(unwrapped) >= -two_pi and np.max(unwrapped) < two_pi:
+        np.add(unwrapped, two_pi, out=unwrapped, where=unwrapped < 0)
+        unwrapped += 0.0  # -0.0 -> +0.0, as np.mod gives
+    else:
+        np.mod(unwrapped, two_pi, out=unwrapped)
+    dis = disagreement[rows]
+    tmp = np.empty_like(unwrapped)
+    step = np.empty_like(unwrapped)
     for j in range(1, len(periods)):
-        predicted = unwrapped * (periods[j - 1] / periods[j])
-        phi = np.asarray(phases[j], dtype=np.float64)
-        order = np.rint((predicted - phi) / two_pi)
-        unwrapped = phi + two_pi * order
-        disagreement |= np.abs(unwrapped - predicted) > (np.pi / 2)
-    return unwrapped * (periods[-1] / two_pi), disagreement
+        predicted = unwrapped
+        predicted *= periods[j - 1] / periods[j]
+        phi = phases[j][rows]
+        order = np.subtract(predicted, phi, out=tmp, dtype=np.float64)
+        # x (1/2pi) instead of / 2pi: the orders differ only where the
+        # residual is +-pi, which the quarter-period test flags either way.
+        order *= 1.0 / two_pi
+        np.rint(order, out=order)
+        np.multiply(order, two_pi, out=step)
+        unwrapped = np.add(phi, step, dtype=np.float64)
+        np.subtract(unwrapped, predicted, out=tmp)
+        np.abs(tmp, out=tmp)
+        dis |= tmp > (np.pi / 2)
+    out = coord[rows]
+    np.multiply(unwrapped, periods[-1] / two_pi, out=out)
+    if shift:
+        out -= shift
 
 
 @dataclass
@@ -228,14 +457,108 @@ class DecodedPosition:
         return self.reasons == 0
 
 
-def decode_direction(wrapped, periods, carrier_shift_px: float) -> DirectionDecode:
-    """Unwrap one direction and remove the carrier displacement ``s_k`` (LCD px)."""
-    coord, disagreement = unwrap_hierarchical([w.phase for w in wrapped], periods)
-    coord -= carrier_shift_px
+def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None) -> DirectionDecode:
+    """Unwrap one direction and remove the carrier displacement ``s_k`` (LCD px).
+
+    ``out``: optional ``(coord, disagreement)`` arrays to fill (reused by a streaming caller).
+    """
+    phases = [w.phase for w in wrapped]
+    shape = np.shape(phases[0])
+    if out is None:
+        coord = np.empty(shape, np.float64)
+        disagreement = np.zeros(shape, bool)
+    else:
+        coord, disagreement = out
+        disagreement[...] = False
+    if len(shape) != 2:
+        _unwrap_rows(phases, periods, carrier_shift_px, coord, disagreement, slice(None))
+    else:
+        run_tiles(lambda r0, r1: _unwrap_rows(phases, periods, carrier_shift_px, coord, disagreement,
+                                              slice(r0, r1)), *shape)
     return DirectionDecode(coord, list(wrapped), disagreement)
 
 
-def finish_position(rig: Rig, index: int, decoded: dict, options: DecodeOptions = DecodeOptions()) -> DecodedPosition:
+def _flag(reasons: np.ndarray, cond: np.ndarray, bit: int) -> None:
+    """``reasons[cond] |= bit`` without a gather/scatter (cond is bool, same shape)."""
+    np.bitwise_or(reasons, cond.view(np.uint8) * np.uint8(bit), out=reasons)
+
+
+def _gradient_at(coord: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.gradient(coord)`` at some pixels: central differences ``/ 2.0`` inside,
+    one-sided at the image's edges (numpy's ``edge_order=1``), the same numbers."""
+    h, w = coord.shape
+    up, dn = np.maximum(rows - 1, 0), np.minimum(rows + 1, h - 1)
+    lf, rt = np.maximum(cols - 1, 0), np.minimum(cols + 1, w - 1)
+    gr = (coord[dn, cols] - coord[up, cols]) / (dn - up).astype(float)
+    gc = (coord[rows, rt] - coord[rows, lf]) / (rt - lf).astype(float)
+    return gr, gc
+
+
+def _near_edge(coord: np.ndarray, r0: int, r1: int, extent: int, margin: int) -> np.ndarray:
+    """Rows ``[r0, r1)`` of the reference test
+
+    ``reach = margin * hypot(*np.gradient(coord))``,
+    ``(coord < -0.5 + reach) | (coord > extent - 0.5 - reach)``,
+
+    with the same result, but the gradient only where the test is in doubt: a
+    tile-wide bound ``reach <= margin * (max|row step| + max|column step|)``
+    (``hypot(a, b) <= |a| + |b|``, and a central difference is at most the
+    larger of its two steps) leaves that to pixels near the LCD's edges.
+    """
+    h, w = coord.shape
+    c = coord[r0:r1]
+    lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
+    block = coord[lo:hi]
+    with np.errstate(invalid="ignore"):
+        bound = 0.0
+        if hi - lo > 1:
+            d = np.subtract(block[1:], block[:-1])
+            bound += max(float(np.max(d)), -float(np.min(d)))
+        if w > 1:
+            d = np.subtract(c[:, 1:], c[:, :-1])
+            bound += max(float(np.max(d)), -float(np.min(d)))
+        if not np.isfinite(bound):  # NaN coordinates: test every pixel
+            doubt = np.ones(c.shape, bool)
+        else:
+            bound = margin * bound * (1 + 1e-9) + 1e-9
+            doubt = (c < -0.5 + bound) | (c > (extent - 0.5) - bound)
+        n_doubt = int(np.count_nonzero(doubt))
+        if n_doubt > doubt.size // 16:  # e.g. noise in the bezel: the whole tile, exactly
+            gr, gc = _gradient_rows(coord, r0, r1)
+            reach = np.hypot(gr, gc)
+            reach *= margin
+            return (c < -0.5 + reach) | (c > extent - 0.5 - reach)
+        near = np.zeros(c.shape, bool)
+        if n_doubt:
+            ii, jj = np.nonzero(doubt)
+            gr, gc = _gradient_at(coord, ii + r0, jj)
+            reach = np.hypot(gr, gc) * margin
+            cc = c[ii, jj]
+            near[ii, jj] = (cc < -0.5 + reach) | (cc > extent - 0.5 - reach)
+    return near
+
+
+def _gradient_rows(coord: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.gradient(coord)`` on rows ``[r0, r1)`` (one halo row each side: the same numbers)."""
+    h, w = coord.shape
+    lo, hi = max(r0 - 1, 0), min(r1 + 1, h)
+    f = coord[lo:hi]
+    gr = np.empty(f.shape)
+    gr[1:-1] = f[2:] - f[:-2]
+    gr[1:-1] /= 2.0
+    gr[0] = f[1] - f[0]
+    gr[-1] = f[-1] - f[-2]
+    gc = np.empty(f.shape)
+    gc[:, 1:-1] = f[:, 2:] - f[:, :-2]
+    gc[:, 1:-1] /= 2.0
+    gc[:, 0] = f[:, 1] - f[:, 0]
+    gc[:, -1] = f[:, -1] - f[:, -2]
+    sl = slice(r0 - lo, r1 - lo)
+    return gr[sl], gc[sl]
+
+
+def finish_position(rig: Rig, index: int, decoded: dict, options: DecodeOptions = DecodeOptions(), *,
+                    out: np.ndarray | None = None) -> DecodedPosition:
     """Combine the decoded directions of one position and classify every pixel.
 
     Parameters
@@ -244,34 +567,55 @@ def finish_position(rig: Rig, index: int, decoded: dict, options: DecodeOptions 
     index : int
         Position index k.
     decoded : dict of str -> DirectionDecode
+        Only ``modulation`` and ``saturated`` of the wrapped levels are read.
     options : DecodeOptions
+    out : (H, W) uint8, optional
+        The array to hold ``reasons`` (reused by a streaming caller).
     """
     shape = rig.camera.shape
-    reasons = np.zeros(shape, np.uint8)
+    h, w = shape
+    if out is None:
+        reasons = np.zeros(shape, np.uint8)
+    else:
+        reasons = out
+        reasons[...] = 0
     min_mod = options.min_modulation * rig.camera.max_level
-    for d, dec in decoded.items():
-        extent = rig.lcd.width if d == "x" else rig.lcd.height
-        for w in dec.wrapped:
-            reasons[w.modulation < min_mod] |= Reason.LOW_MODULATION
-            reasons[w.saturated] |= Reason.SATURATED
-        reasons[dec.disagreement] |= Reason.UNWRAP
-        outside = ~((dec.coord >= -0.5) & (dec.coord <= extent - 0.5))
-        reasons[outside] |= Reason.OUTSIDE_LCD
-        if options.border_margin_px > 0:
-            # Within the margin of the LCD edge in LCD px, scaled by the local
-            # footprint (LCD px per camera px): this also catches an LCD edge
-            # that lies just beyond the sensor's edge, where no bezel is seen.
-            with np.errstate(invalid="ignore"):
-                gr, gc = np.gradient(dec.coord)
-                reach = options.border_margin_px * np.hypot(gr, gc)
-                near_edge = (dec.coord < -0.5 + reach) | (dec.coord > extent - 0.5 - reach)
-            reasons[near_edge & ~outside] |= Reason.BORDER
     m = options.border_margin_px
+    items = [(dec, rig.lcd.width if d == "x" else rig.lcd.height) for d, dec in decoded.items()]
+
+    def rows(r0: int, r1: int) -> None:
+        rs = reasons[r0:r1]
+        low = np.empty(rs.shape, bool)
+        for dec, extent in items:
+            for wp in dec.wrapped:
+                np.less(wp.modulation[r0:r1], min_mod, out=low)
+                _flag(rs, low, Reason.LOW_MODULATION)
+                _flag(rs, wp.saturated[r0:r1], Reason.SATURATED)
+            _flag(rs, dec.disagreement[r0:r1], Reason.UNWRAP)
+            coord = dec.coord[r0:r1]
+            outside = ~((coord >= -0.5) & (coord <= extent - 0.5))
+            _flag(rs, outside, Reason.OUTSIDE_LCD)
+            if m > 0:
+                # Within the margin of the LCD edge in LCD px, scaled by the local
+                # footprint (LCD px per camera px): this also catches an LCD edge
+                # that lies just beyond the sensor's edge, where no bezel is seen.
+                near_edge = _near_edge(dec.coord, r0, r1, extent, m)
+                _flag(rs, near_edge & ~outside, Reason.BORDER)
+
+    run_tiles(rows, h, w)
     if m > 0:
-        bezel = (reasons & (Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)) != 0
+        bezel = np.bitwise_and(reasons, Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)
         if bezel.any():
-            near = ndimage.binary_dilation(bezel, structure=np.ones((2 * m + 1, 2 * m + 1), bool))
-            reasons[near & ~bezel] |= Reason.BORDER
+            # A square dilation (scipy's binary_dilation with a full square
+            # structure, outside the image False) as OpenCV's separable one.
+            near = cv2.dilate(bezel, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
+
+            def border(r0: int, r1: int) -> None:
+                nb = np.greater(near[r0:r1], 0)
+                nb &= bezel[r0:r1] == 0
+                _flag(reasons[r0:r1], nb, Reason.BORDER)
+
+            run_tiles(border, h, w)
     u = decoded["x"].coord if "x" in decoded else None
     v = decoded["y"].coord if "y" in decoded else None
     return DecodedPosition(index, float(rig.stage.z_mm[index]), u, v, reasons, dict(decoded))

@@ -8,6 +8,7 @@ exists, the numerics downstream can trust it.
 from __future__ import annotations
 
 import math
+import re
 import string
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -36,6 +37,11 @@ __all__ = [
 DATASET_FORMAT = "ptp-dataset/1"
 TEMPLATE_FIELDS = ("pos", "dir", "period", "step", "steps")
 DEFAULT_TEMPLATE = "z{pos:03d}/{dir}_T{period}_n{step:02d}.png"
+MAX_POSITIONS = 10_000
+MAX_PERIOD_PX = 10_000_000
+MAX_STEPS = 1000
+# A plain format spec: [[fill]align][sign][#][0][width][,_][.precision][type], widths <= 3 digits.
+_SPEC = re.compile(r"(?:[^{}]?[<>=^])?[+\- ]?#?0?(?:\d{1,3})?[,_]?(?:\.\d{1,3})?[bdoxXs]?")
 
 
 @dataclass(frozen=True)
@@ -162,7 +168,7 @@ class _Section:
         unknown = sorted(set(self.table) - self.used)
         if unknown:
             raise ConfigError(
-                f"{self.source}: unknown key '{self._key(unknown[0])}'"
+                f"{self.source}: unknown key {_short_repr(self._key(unknown[0]))}"
                 f" (allowed: {', '.join(sorted(self.used))})"
             )
 
@@ -172,16 +178,31 @@ def _tname(v: Any) -> str:
             int: "an integer", float: "a float"}.get(type(v), type(v).__name__)
 
 
+def _short_repr(v: Any, limit: int = 60) -> str:
+    """``repr`` cut to ``limit`` characters (and safe for integers too long to print)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**limit:
+        return f"{'-' if v < 0 else ''}<integer of about {int(abs(v).bit_length() * 0.30103)} digits>"
+    try:
+        text = repr(v)
+    except ValueError:
+        text = f"<{type(v).__name__}>"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def _convert(value: Any, kind: str, where: str):
     def bad(expected: str):
-        return ConfigError(f"{where} must be {expected}, got {_tname(value)} {value!r}"[:300])
+        return ConfigError(f"{where} must be {expected}, got {_tname(value)} {_short_repr(value)}")
 
     def number(v):
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise bad("a number")
-        if not math.isfinite(v):
+        try:
+            f = float(v)
+        except OverflowError:
+            raise bad("a finite number") from None
+        if not math.isfinite(f):
             raise bad("a finite number")
-        return float(v)
+        return f
 
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
@@ -212,6 +233,8 @@ def validate_template(template: str, source: str = "rig.toml") -> str:
     text and must never reach into Python objects.
     """
     where = f"{source}: key 'images.template'"
+    if any(ord(c) < 32 or ord(c) == 127 for c in template):
+        raise ConfigError(f"{where} must not contain control characters (got {_short_repr(template)})")
     try:
         parsed = list(string.Formatter().parse(template))
     except ValueError as exc:
@@ -227,7 +250,7 @@ def validate_template(template: str, source: str = "rig.toml") -> str:
             )
         if conversion:
             raise ConfigError(f"{where}: conversion '!{conversion}' in '{{{name}}}' is not allowed")
-        if spec and ("{" in spec or not all(c.isalnum() or c in "<>=^+- #0,._" for c in spec)):
+        if spec and ("{" in spec or not _SPEC.fullmatch(spec)):
             raise ConfigError(f"{where}: format spec '{spec}' of '{{{name}}}' is not a plain format spec")
         seen.add(name)
     for needed in ("pos", "dir", "period", "step"):
@@ -252,17 +275,17 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     """
     try:
         doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, ValueError) as exc:  # ValueError: e.g. an integer too long to read
         raise ConfigError(f"{source}: not valid TOML ({exc})") from None
     fmt = doc.get("format")
     if fmt != DATASET_FORMAT:
         if fmt is None:
             raise ConfigError(f"{source}: missing key 'format' (expected \"{DATASET_FORMAT}\")")
-        raise ConfigError(f"{source}: key 'format' is {fmt!r}, expected \"{DATASET_FORMAT}\"")
+        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected \"{DATASET_FORMAT}\"")
     known = {"format", "camera", "lcd", "stage", "fringes", "images"}
     for key in doc:
         if key not in known:
-            raise ConfigError(f"{source}: unknown key '{key}' (allowed: {', '.join(sorted(known))})")
+            raise ConfigError(f"{source}: unknown key {_short_repr(key)} (allowed: {', '.join(sorted(known))})")
 
     s = _Section(doc, "camera", source)
     camera = Camera(s.get("width", "int"), s.get("height", "int"), s.get("bit_depth", "int", 8))
@@ -278,9 +301,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     pitch = s.get("pitch_mm", "list[float]")
     s.finish()
     if len(pitch) != 2 or min(pitch) <= 0:
-        raise ConfigError(f"{source}: key 'lcd.pitch_mm' must be two positive numbers [x, y], got {pitch}")
-    if lcd_w < 1 or lcd_h < 1:
-        raise ConfigError(f"{source}: keys 'lcd.width' and 'lcd.height' must be positive")
+        raise ConfigError(f"{source}: key 'lcd.pitch_mm' must be two positive numbers [x, y],"
+                          f" got {_short_repr(pitch)}")
+    for key, v in (("width", lcd_w), ("height", lcd_h)):
+        if not 1 <= v <= 1_000_000:
+            raise ConfigError(f"{source}: key 'lcd.{key}' must be between 1 and 1000000, got {_short_repr(v)}")
     lcd = Lcd(lcd_w, lcd_h, (pitch[0], pitch[1]))
 
     s = _Section(doc, "stage", source)
@@ -289,6 +314,8 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     s.finish()
     if len(z) < 2:
         raise ConfigError(f"{source}: key 'stage.z_mm' needs at least 2 positions, got {len(z)}")
+    if len(z) > MAX_POSITIONS:
+        raise ConfigError(f"{source}: key 'stage.z_mm' lists {len(z)} positions, at most {MAX_POSITIONS}")
     dz = [b - a for a, b in zip(z, z[1:])]
     if not (all(d > 0 for d in dz) or all(d < 0 for d in dz)):
         i = next(i for i, d in enumerate(dz) if d == 0 or (d > 0) != (dz[0] > 0))
@@ -298,7 +325,7 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
             f" ({z[i]} -> {z[i + 1]})"
         )
     if len(direction) != 3 or direction[2] != 1.0:
-        raise ConfigError(f"{source}: key 'stage.direction' must be [a, b, 1.0], got {direction}")
+        raise ConfigError(f"{source}: key 'stage.direction' must be [a, b, 1.0], got {_short_repr(direction)}")
     stage = Stage(tuple(z), (direction[0], direction[1], 1.0))
 
     s = _Section(doc, "fringes", source)
@@ -316,19 +343,23 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     gamma = s.get("gamma", "float", 1.0)
     s.finish()
     if not directions or len(set(directions)) != len(directions) or any(d not in ("x", "y") for d in directions):
-        raise ConfigError(f"{source}: key 'fringes.directions' must list 'x' and/or 'y' once each, got {directions}")
-    if not periods or any(p < 2 for p in periods):
-        raise ConfigError(f"{source}: key 'fringes.periods_px' must list periods of at least 2 px, got {periods}")
+        raise ConfigError(f"{source}: key 'fringes.directions' must list 'x' and/or 'y' once each,"
+                          f" got {_short_repr(directions)}")
+    if not periods or any(not 2 <= p <= MAX_PERIOD_PX for p in periods):
+        raise ConfigError(f"{source}: key 'fringes.periods_px' must list periods of 2 to {MAX_PERIOD_PX} px,"
+                          f" got {_short_repr(periods)}")
     if any(b >= a for a, b in zip(periods, periods[1:])):
-        raise ConfigError(f"{source}: key 'fringes.periods_px' must decrease strictly (coarse to fine), got {periods}")
+        raise ConfigError(f"{source}: key 'fringes.periods_px' must decrease strictly (coarse to fine),"
+                          f" got {_short_repr(periods)}")
     if len(steps) != len(periods):
         raise ConfigError(
             f"{source}: key 'fringes.steps' has {len(steps)} entries for {len(periods)} periods"
         )
-    if any(n < 3 for n in steps):
-        raise ConfigError(f"{source}: key 'fringes.steps' must be at least 3 per period, got {steps}")
+    if any(not 3 <= n <= MAX_STEPS for n in steps):
+        raise ConfigError(f"{source}: key 'fringes.steps' must be 3 to {MAX_STEPS} per period,"
+                          f" got {_short_repr(steps)}")
     if len(carrier) != 2:
-        raise ConfigError(f"{source}: key 'fringes.carrier_px_per_mm' must be [x, y], got {carrier}")
+        raise ConfigError(f"{source}: key 'fringes.carrier_px_per_mm' must be [x, y], got {_short_repr(carrier)}")
     if amplitude <= 0 or offset - amplitude < -0.5 or offset + amplitude > 255.5:
         raise ConfigError(
             f"{source}: keys 'fringes.offset' ± 'fringes.amplitude' must stay within 0..255"

@@ -209,9 +209,13 @@ def scaled_preset(name: str, width: int, height: int | None = None,
     s = replace(s, lens=lens, blur_sigma_px=s.blur_sigma_px * scale, blur_per_mm=s.blur_per_mm * scale)
     rig = replace(rig, camera=Camera(width, height, rig.camera.bit_depth))
     if scale < 1:
-        # Keep the finer fringes at the same number of camera pixels per period.
+        # Keep the finest fringe at the same number of camera pixels per period;
+        # the levels between it and the (unchanged) coarsest period are spaced
+        # geometrically so every unwrapping step keeps the same ratio.
         f = rig.fringes
-        periods = (f.periods_px[0],) + tuple(int(round(p / scale)) for p in f.periods_px[1:])
+        fine = min(f.periods_px[-1] / scale, f.periods_px[0] / 2 ** (len(f.periods_px) - 1))
+        ratios = (f.periods_px[0] / fine) ** (1.0 / (len(f.periods_px) - 1))
+        periods = tuple(int(round(f.periods_px[0] / ratios ** j)) for j in range(len(f.periods_px)))
         rig = replace(rig, fringes=replace(f, periods_px=periods))
     if positions is not None:
         rig = rig.with_z(np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), positions))
@@ -361,8 +365,11 @@ class VirtualRig:
 
     def _lcd_uv(self, k: int, cols: np.ndarray, rows: np.ndarray):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at position k."""
+        return self._lcd_uv_at(self.z_true[k], cols, rows)
+
+    def _lcd_uv_at(self, z: float, cols: np.ndarray, rows: np.ndarray):
+        """LCD coordinates (u, v), LCD px, where image points see the LCD at true height ``z`` (mm)."""
         o, d = self.rays(cols, rows)
-        z = self.z_true[k]
         t = (z - o[..., 2]) / d[..., 2]
         xw = o[..., 0] + t * d[..., 0]
         yw = o[..., 1] + t * d[..., 1]
@@ -412,8 +419,12 @@ class VirtualRig:
 
     def blur_sigma(self, k: int) -> float:
         """Gaussian defocus blur (camera px) at position ``k``."""
+        return self.blur_sigma_at(self.z_true[k])
+
+    def blur_sigma_at(self, z: float) -> float:
+        """Gaussian defocus blur (camera px) with the LCD at true height ``z`` (mm)."""
         s = self.settings
-        return s.blur_sigma_px + s.blur_per_mm * abs(self.z_true[k] - s.focus_z_mm)
+        return s.blur_sigma_px + s.blur_per_mm * abs(z - s.focus_z_mm)
 
     def render(self, k: int, direction: str, period: int, step: int, n_steps: int) -> np.ndarray:
         """One camera frame.
@@ -459,15 +470,70 @@ class VirtualRig:
                 g = 255.0 * (g / 255.0) ** (1.0 / f.gamma)
             lum = np.where(inside, self._luminance(g), 0.0)
             irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
+        return self._expose(irr, self.blur_sigma(k), (2, k, "xy".index(direction), period, step))
+
+    def render_image(self, image, z_mm: float, noise_key=(3,)) -> np.ndarray:
+        """One camera frame of any LCD image, with the LCD at true height ``z_mm``.
+
+        Unlike :meth:`render` (which knows the pattern and integrates each LCD
+        pixel exactly), this point-samples the displayed image: every camera
+        pixel averages ``supersample**2`` samples of the LCD pixel each one
+        hits (the dark bezel outside the screen). Meant for what a live
+        capture shows besides its fringes (exposure test images, a pattern
+        shown at the wrong height), not for calibration frames.
+
+        Parameters
+        ----------
+        image : (lcd.height, lcd.width) uint8
+            Displayed levels.
+        z_mm : float
+            True height of the LCD (mm).
+        noise_key : tuple of int
+            Selects the noise stream (with the seed); frames of :meth:`render`
+            use keys starting with 2.
+
+        Returns
+        -------
+        (H, W) uint8 or uint16, like :meth:`render`.
+        """
+        rig = self.rig
+        image = np.asarray(image)
+        if image.shape != (rig.lcd.height, rig.lcd.width):
+            raise ValueError(f"LCD image must be {rig.lcd.height}x{rig.lcd.width} (rows x columns),"
+                             f" got shape {image.shape}")
+        ss = self.settings.supersample
+        m = self.margin
+        h, w = rig.camera.height + 2 * m, rig.camera.width + 2 * m
+        cached = getattr(self, "_image_uv", None)
+        if cached is None or cached[0] != float(z_mm):
+            # The LCD pixel each sample hits, kept for the next frame at the same height.
+            offs = (np.arange(ss) + 0.5) / ss - 0.5
+            sub_r = (np.arange(h)[:, None] + offs[None, :]).ravel() - m
+            sub_c = (np.arange(w)[:, None] + offs[None, :]).ravel() - m
+            u, v = self._lcd_uv_at(float(z_mm), sub_c[None, :], sub_r[:, None])
+            inside = (u >= -0.5) & (u < rig.lcd.width - 0.5) & (v >= -0.5) & (v < rig.lcd.height - 0.5)
+            iu = np.clip(np.floor(u + 0.5), 0, rig.lcd.width - 1).astype(np.intp)
+            iv = np.clip(np.floor(v + 0.5), 0, rig.lcd.height - 1).astype(np.intp)
+            self._image_uv = cached = (float(z_mm), inside, iv * rig.lcd.width + iu)
+        _z, inside, flat = cached
+        table = self._luminance(np.arange(256, dtype=float))
+        lum = np.where(inside, table[np.ravel(image)[flat]], 0.0)
+        irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
+        return self._expose(irr, self.blur_sigma_at(float(z_mm)), tuple(int(v) for v in noise_key))
+
+    def _expose(self, irr: np.ndarray, sigma: float, noise_key: tuple) -> np.ndarray:
+        """Irradiance with margin (fraction of white) -> blurred, cropped, noisy grey levels."""
+        rig, s = self.rig, self.settings
+        m = self.margin
         irr = np.ascontiguousarray(irr)
-        sigma = self.blur_sigma(k)
+        h, w = irr.shape
         if sigma > 0:
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
         # Drop the margin: the blur near the sensor edge saw the scene beyond it.
         irr = irr[m:h - m, m:w - m]
         electrons = (irr * self._vignetting() * s.exposure + s.ambient) * s.full_well_e
         if s.noise:
-            rng = np.random.default_rng([self.seed, 2, k, "xy".index(direction), period, step])
+            rng = np.random.default_rng([self.seed, *noise_key])
             electrons = electrons + rng.standard_normal(electrons.shape) * np.sqrt(
                 np.maximum(electrons, 0.0) + s.read_noise_e ** 2)
         dn = np.clip(np.rint(electrons / s.e_per_dn(rig.camera)), 0, rig.camera.max_level)

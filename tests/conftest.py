@@ -22,3 +22,9 @@ def _simulated(name: str, width: int = 320, seed: int = 3):
 def rough_rig():
     """(VirtualRig, SampleStack) of the rough preset at 320x240, all 11 positions decoded."""
     return _simulated("rough")
+
+
+@pytest.fixture(scope="session")
+def mild_rig():
+    """(VirtualRig, SampleStack) of the mild (Brown-exact lens) preset at 320x240."""
+    return _simulated("mild")

@@ -1,0 +1,86 @@
+"""``ptp-studio``: start the calibration wizard (or ``--tour OUTDIR`` it offscreen)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 320x240, got {text!r}") from None
+    if w < 16 or h < 16:
+        raise argparse.ArgumentTypeError("camera size must be at least 16x16")
+    return w, h
+
+
+def _quiet_offscreen_warnings() -> None:
+    """Drop the offscreen platform's "does not support propagateSizeHints()" noise; keep the rest."""
+    from PySide6.QtCore import qInstallMessageHandler
+
+    def handler(_mode, _context, message):
+        if "propagateSizeHints" not in message:
+            print(message, file=sys.stderr)
+
+    qInstallMessageHandler(handler)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from ptpcore.simulate import PRESETS
+
+    from . import __version__
+
+    p = argparse.ArgumentParser(prog="ptp-studio", description="PTP Studio: the point-to-point calibration wizard.")
+    p.add_argument("--version", action="version", version=f"ptp-studio {__version__}")
+    p.add_argument("--preset", default="realistic", choices=list(PRESETS),
+                   help="simulated rig to start with (default realistic)")
+    p.add_argument("--camera", type=_size, metavar="WxH", help="simulated camera size (default: the preset's)")
+    p.add_argument("--tour", metavar="OUTDIR",
+                   help="walk every page offscreen on a small simulated rig, write one PNG per page to OUTDIR, exit")
+    p.add_argument("--tour-camera", type=_size, default=(320, 240), metavar="WxH",
+                   help="camera size of the tour (default 320x240)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.tour:
+        os.environ["QT_QPA_PLATFORM"] = "offscreen"
+    from PySide6.QtWidgets import QApplication
+
+    from .wizard import StudioWizard, configure_app
+
+    if args.tour:
+        _quiet_offscreen_warnings()
+    app = QApplication.instance() or QApplication(sys.argv[:1])
+    configure_app(app)
+    if args.tour:
+        from .tour import run_tour
+
+        try:
+            run_tour(args.tour, *args.tour_camera)
+        except (RuntimeError, OSError, TimeoutError) as exc:
+            print(f"ptp-studio: tour failed: {exc}", file=sys.stderr)
+            return 1
+        return 0
+
+    from dataclasses import replace
+
+    from ptpcore.rig import Camera
+
+    from .session import Session
+
+    session = Session.from_preset(args.preset)
+    if args.camera:
+        session.rig = replace(session.rig, camera=Camera(*args.camera, session.rig.camera.bit_depth))
+    session.reset_positions()
+    wiz = StudioWizard(session)
+    wiz.show()
+    return app.exec()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The wizard's pages, in order: rig, fringes, acquire, phase maps, calibrate, compare, export."""

@@ -1,0 +1,362 @@
+"""Page 3, Acquire: run the simulated capture, the import or the live capture, position by position."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from PySide6.QtGui import QColor
+from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView,
+                               QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
+
+from ptpcore.dataset import DatasetSource
+from ptpcore.pipeline import collect_samples
+from ptpcore.simulate import simulate_dataset
+from ptpcore.views import REASON_ORDER, mask_rgba, reason_counts
+from ptpcore.phase import REASON_NAMES
+
+from ..session import PositionStatus
+from ..widgets.maps import MapView
+from ..worker import Job
+from .base import StudioPage
+
+__all__ = ["AcquirePage", "TappedSource", "acquisition_job"]
+
+SATURATION_RGBA = (255, 30, 30, 220)
+
+
+class TappedSource:
+    """A frame source that lets frames through and shows some of them to the GUI.
+
+    At most one frame every ``interval`` seconds is copied and sent, with its
+    saturation overlay computed here on the worker thread.
+    """
+
+    def __init__(self, source, ctx, interval: float = 0.12):
+        self.source = source
+        self.rig = source.rig
+        self.ctx = ctx
+        self.interval = interval
+        self._last = 0.0
+
+    def frames(self, k: int):
+        self.ctx.emit(("start", k))
+        max_level = self.rig.camera.max_level
+        for spec, img in self.source.frames(k):
+            self.ctx.check()
+            now = time.monotonic()
+            if now - self._last >= self.interval:
+                self._last = now
+                sat = img >= max_level
+                self.ctx.emit(("frame", k, spec, img.copy(), mask_rgba(sat, SATURATION_RGBA), float(sat.mean())))
+            yield spec, img
+
+
+def acquisition_job(session, write_folder: Path | None = None) -> Job:
+    """The acquisition as one job: (optionally write the simulated dataset,) decode every position.
+
+    Everything the worker needs is captured here, on the GUI thread.
+    Returns ``(samples, truth)``.
+    """
+    source = session.make_source()
+    rig, settings, seed = session.rig, session.sim_settings, session.seed
+    kind = session.source_kind
+    folder = session.dataset_folder
+
+    def run(ctx):
+        src = source
+        split = 0.0
+        if kind == "simulated" and write_folder is not None:
+            split = 0.5
+            simulate_dataset(write_folder, rig, settings, seed,
+                             progress=lambda f, m: ctx.progress(split * f, m))
+            src = DatasetSource(write_folder)
+
+        def on_position(pos):
+            counts = reason_counts(pos.reasons)
+            status = PositionStatus(pos.index, pos.z_mm, "done", counts[0] / pos.reasons.size, counts)
+            ctx.emit(("position", status, pos))
+
+        samples = collect_samples(TappedSource(src, ctx),
+                                  progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
+                                  on_position=on_position)
+        ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
+        truth = session_truth(kind, rig, settings, seed, folder if kind == "folder" else write_folder)
+        return samples, truth
+
+    return Job(run, "acquisition")
+
+
+def session_truth(kind, rig, settings, seed, folder):
+    from ptpcore.simulate import VirtualRig, load_truth
+
+    if kind == "simulated":
+        return VirtualRig(rig, settings, seed).truth()
+    if folder is not None and (Path(folder) / "truth.h5").is_file():
+        return load_truth(folder)[0]
+    return None
+
+
+class AcquirePage(StudioPage):
+    key = "acquire"
+    heading = "Acquire"
+    subheading = ("Capture (or import) every position: the frames stream through the decoder one "
+                  "position at a time. Watch the latest frame, its saturated pixels and each position's status.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        grid = QGridLayout(self.body)
+        grid.setColumnStretch(0, 3)
+        grid.setColumnStretch(1, 2)
+
+        top = QGroupBox("Run")
+        tl = QVBoxLayout(top)
+        self.source_label = QLabel()
+        self.source_label.setWordWrap(True)
+        tl.addWidget(self.source_label)
+        wl = QHBoxLayout()
+        self.write_check = QCheckBox("Also write the simulated images to a dataset folder:")
+        self.write_edit = QLineEdit()
+        self.write_edit.setPlaceholderText("folder (created if needed)")
+        self.write_browse = QPushButton("Browse…")
+        wl.addWidget(self.write_check)
+        wl.addWidget(self.write_edit, 1)
+        wl.addWidget(self.write_browse)
+        tl.addLayout(wl)
+        from ..live import LivePanel
+
+        self.live = LivePanel(model)
+        tl.addWidget(self.live)
+        bl = QHBoxLayout()
+        self.start_button = QPushButton("Start acquisition")
+        self.start_button.setObjectName("primary")
+        bl.addWidget(self.start_button)
+        bl.addWidget(self.make_job_panel(), 1)
+        tl.addLayout(bl)
+        grid.addWidget(top, 0, 0, 1, 2)
+
+        frame_box = QGroupBox("Latest frame")
+        fl = QVBoxLayout(frame_box)
+        self.frame_label = QLabel("no frame yet")
+        self.frame_label.setObjectName("panelTitle")
+        fl.addWidget(self.frame_label)
+        self.frame_view = MapView(colour_bar=True)
+        fl.addWidget(self.frame_view, 1)
+        self.sat_check = QCheckBox("Show saturated pixels (red)")
+        self.sat_check.setChecked(True)
+        fl.addWidget(self.sat_check)
+        grid.addWidget(frame_box, 1, 0)
+
+        pos_box = QGroupBox("Positions")
+        pl = QVBoxLayout(pos_box)
+        self.table = QTableWidget(0, 5)
+        self.table.setHorizontalHeaderLabels(["#", "z (mm)", "status", "valid", "main rejection"])
+        self.table.verticalHeader().hide()
+        self.table.setEditTriggers(QTableWidget.NoEditTriggers)
+        hh = self.table.horizontalHeader()
+        for c in range(4):
+            hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
+        hh.setSectionResizeMode(4, QHeaderView.Stretch)
+        pl.addWidget(self.table)
+        self.summary = QLabel()
+        self.summary.setWordWrap(True)
+        pl.addWidget(self.summary)
+        grid.addWidget(pos_box, 1, 1)
+        grid.setRowStretch(1, 1)
+
+        self._overlay = None
+        self._outcome: str | None = None
+        self.start_button.clicked.connect(self.start)
+        self.write_browse.clicked.connect(self._browse)
+        self.sat_check.toggled.connect(self._overlay_toggled)
+        model.positionsChanged.connect(self._show_positions)
+        model.sourceChanged.connect(self._show_source)
+        model.rigChanged.connect(self._show_source)
+        model.samplesChanged.connect(self.update_complete)
+        self.live.changed.connect(self._show_source)
+        self._show_source()
+        self._show_positions()
+
+    def on_enter(self) -> None:
+        self._show_source()
+
+    def _show_source(self) -> None:
+        s = self.model.session
+        self.source_label.setText(f"<b>Source:</b> {s.describe_source()} "
+                                  f"— {s.rig.stage.n_positions} positions × {s.rig.fringes.frames_per_position}"
+                                  " frames (change it on the Rig page)")
+        sim = s.source_kind == "simulated"
+        for w in (self.write_check, self.write_edit, self.write_browse):
+            w.setVisible(sim)
+        self.live.setVisible(s.source_kind == "live")
+        self.start_button.setText("Start live capture" if s.source_kind == "live" else "Start acquisition")
+        if self.frame_view.data is None:
+            h, w = s.rig.camera.shape
+            self.frame_view.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
+        if not s.positions or len(s.positions) != s.rig.stage.n_positions:
+            s.reset_positions()
+            self._show_positions()
+        self.update_complete()
+
+    def _browse(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Write the simulated dataset to")
+        if folder:
+            self.write_edit.setText(folder)
+            self.write_check.setChecked(True)
+
+    # ---- running ---------------------------------------------------------------
+    def start(self) -> Job | None:
+        """Start the acquisition (the Start button)."""
+        if self.jobs.busy:
+            return None
+        if self.model.session.source_kind == "live":
+            return self._start_live()
+        write = None
+        if self.write_check.isChecked() and self.model.session.source_kind == "simulated":
+            text = self.write_edit.text().strip()
+            if not text:
+                self.jobs.error.setText("Choose the folder to write the simulated images to.")
+                self.jobs.error.show()
+                return None
+            write = Path(text)
+        self.model.start_acquisition()
+        gen = self.model.generation
+        try:
+            job = acquisition_job(self.model.session, write)
+        except Exception as exc:  # noqa: BLE001 - a bad folder must reach the user
+            from ..worker import error_message
+
+            self._outcome = "errored"
+            self.jobs.error.setText(error_message(exc))
+            self.jobs.error.show()
+            self.update_complete()
+            return None
+        self._outcome = None
+        job.partial.connect(self._partial)
+        job.finished.connect(lambda result: self._finished(result, gen))
+        job.done.connect(lambda: self._ended(job))
+        return self.run_job(job)
+
+    def _partial(self, payload) -> None:
+        kind = payload[0]
+        s = self.model.session
+        if kind == "start":
+            k = payload[1]
+            if k < len(s.positions):
+                st = s.positions[k]
+                self.model.update_position(PositionStatus(k, st.z_mm, "running"))
+        elif kind == "frame":
+            _, k, spec, img, overlay, sat_frac = payload
+            d, j, t, n, big_n = spec
+            self.frame_view.set_map(img, levels=(0, s.rig.camera.max_level), cmap="CET-L1", label="grey level")
+            self._overlay = overlay
+            self._overlay_toggled()
+            self.frame_label.setText(
+                f"position {k + 1} (z = {s.rig.stage.z_mm[k]:g} mm), direction {d}, period {t} px,"
+                f" step {n + 1}/{big_n} — {100 * sat_frac:.2f} % saturated")
+        elif kind in ("captured", "kept"):
+            k = payload[1]
+            if k < len(s.positions):
+                self.model.update_position(PositionStatus(k, s.positions[k].z_mm, kind))
+        elif kind == "exposure":
+            self.live.show_exposure(payload[1], payload[2])
+        elif kind == "position":
+            _, status, decoded = payload
+            self.model.update_position(status)
+            self.model.set_decoded(decoded)
+
+    def _start_live(self) -> Job | None:
+        """Build the devices (GUI thread), then capture and decode in one job."""
+        from ..live import build_devices, live_capture_job
+        from ..worker import error_message
+
+        s = self.model.session
+        s.live = self.live.settings()
+        self.model.start_acquisition()
+        gen = self.model.generation
+        try:
+            camera, stage, display, asker = build_devices(s, self)
+            job = live_capture_job(s, camera, stage, display, asker)
+        except Exception as exc:  # noqa: BLE001 - a bad setting must reach the user
+            self._outcome = "errored"
+            self.jobs.error.setText(error_message(exc))
+            self.jobs.error.show()
+            self.update_complete()
+            return None
+        self._live_devices = (camera, stage, display, asker)
+        self.asker = asker
+        self._outcome = None
+        job.partial.connect(self._partial)
+        job.finished.connect(lambda result: self._finished(result, gen))
+        job.done.connect(lambda: self._ended(job))
+        job.done.connect(self.live.load)
+        return self.run_job(job)
+
+    def _overlay_toggled(self, *_):
+        self.frame_view.set_overlay(self._overlay if self.sat_check.isChecked() else None)
+
+    def _finished(self, result, gen) -> None:
+        if gen != self.model.generation:
+            return  # the rig changed meanwhile: these samples are stale
+        samples, truth = result[:2]
+        if len(result) > 2 and result[2] != self.model.session.rig:
+            # A live capture records the stage readings: the dataset's rig is what it says.
+            statuses = list(self.model.session.positions)
+            self.model.set_rig(result[2])
+            for st, z in zip(statuses, result[2].stage.z_mm):
+                st.z_mm = float(z)
+            self.model.session.positions = statuses
+            self.model.positionsChanged.emit()
+        self.model.set_samples(samples, truth)
+
+    def _ended(self, job) -> None:
+        self._outcome = job.outcome
+        if job.outcome != "finished":
+            s = self.model.session
+            for st in s.positions:
+                if st.state in ("running", "pending"):
+                    st.state = "cancelled" if job.outcome == "cancelled" else "not reached"
+            self._show_positions()
+        self.update_complete()
+
+    # ---- status ------------------------------------------------------------------
+    def _show_positions(self) -> None:
+        s = self.model.session
+        self.table.setRowCount(len(s.positions))
+        colours = {"done": "#1b7f4c", "running": "#2b6cb0", "cancelled": "#c0392b", "not reached": "#c0392b"}
+        for i, st in enumerate(s.positions):
+            cells = [str(st.index + 1), f"{st.z_mm:g}", st.state,
+                     "" if st.valid_fraction is None else f"{100 * st.valid_fraction:.1f} %",
+                     self._main_reason(st)]
+            for c, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                if c == 2 and st.state in colours:
+                    item.setForeground(QColor(colours[st.state]))
+                self.table.setItem(i, c, item)
+        done = [st for st in s.positions if st.state == "done"]
+        if done:
+            vf = [st.valid_fraction for st in done]
+            self.summary.setText(f"{len(done)}/{len(s.positions)} positions decoded; valid pixels "
+                                 f"{100 * min(vf):.1f} … {100 * max(vf):.1f} % per position.")
+        else:
+            self.summary.setText("")
+
+    @staticmethod
+    def _main_reason(st: PositionStatus) -> str:
+        if not st.counts:
+            return ""
+        rejected = [(st.counts.get(f, 0), f) for f in REASON_ORDER if st.counts.get(f, 0)]
+        if not rejected:
+            return "none"
+        n, f = max(rejected)
+        return f"{REASON_NAMES[f]} ({n} px)"
+
+    def blocker(self) -> str | None:
+        s = self.model.session
+        if s.samples is not None:
+            return None
+        if self._outcome == "cancelled":
+            return "The acquisition was cancelled: press Start acquisition to run it again."
+        if self._outcome == "errored":
+            return "The acquisition failed (see the message above): fix the cause and press Start again."
+        return "Acquire the images first: press Start acquisition."

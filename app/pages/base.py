@@ -1,0 +1,101 @@
+"""What every page shares: the session model, "why can't I go on?", and a job panel."""
+
+from __future__ import annotations
+
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QIcon
+from PySide6.QtWidgets import QLabel, QVBoxLayout, QWidget, QWizardPage
+
+from ..assets import icon_path
+from ..session import SessionModel
+from ..widgets.jobpanel import JobPanel
+from ..worker import Job
+
+__all__ = ["StudioPage"]
+
+
+class StudioPage(QWizardPage):
+    """A wizard page over the session model.
+
+    Subclasses fill :attr:`body`, implement :meth:`blocker` and call
+    :meth:`update_complete` whenever its answer may have changed.
+
+    Class attributes
+    ----------------
+    key : str
+        Short name (file names of the tour, icons).
+    heading, subheading : str
+    """
+
+    key = "page"
+    heading = ""
+    subheading = ""
+
+    def __init__(self, model: SessionModel, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.model = model
+        self.setTitle(self.heading)
+        self.setSubTitle(self.subheading)
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(4, 4, 4, 4)
+        self.body = QWidget(self)
+        outer.addWidget(self.body, 1)
+        self.why = QLabel(self)
+        self.why.setObjectName("whyBlocked")
+        self.why.setWordWrap(True)
+        self.why.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        outer.addWidget(self.why)
+        self.jobs: JobPanel | None = None
+        self._last_reason: str | None | bool = False
+
+    @property
+    def icon(self) -> QIcon:
+        return QIcon(str(icon_path(self.key)))
+
+    def make_job_panel(self) -> JobPanel:
+        """The page's job panel; a running job blocks Next."""
+        self.jobs = JobPanel(self)
+        self.jobs.started.connect(self.update_complete)
+        self.jobs.ended.connect(lambda _o: self.update_complete())
+        return self.jobs
+
+    def run_job(self, job: Job) -> Job:
+        assert self.jobs is not None
+        return self.jobs.run(job)
+
+    # ---- "why can't I go on?" ---------------------------------------------
+    def blocker(self) -> str | None:
+        """None if Next may be pressed, else the reason in words."""
+        return None
+
+    def reason(self) -> str | None:
+        if self.jobs is not None and self.jobs.busy:
+            return f"Wait for '{self.jobs.job.name}' to finish, or cancel it."
+        return self.blocker()
+
+    def isComplete(self) -> bool:  # noqa: N802 - Qt API
+        return self.reason() is None
+
+    def update_complete(self) -> None:
+        r = self.reason()
+        if r is None:
+            self.why.setText("")
+            self.why.hide()
+        else:
+            self.why.setText(f"Next is disabled: {r}")
+            self.why.show()
+        self.setToolTip(r or "")
+        if r != self._last_reason:
+            self._last_reason = r
+        self.completeChanged.emit()
+
+    def initializePage(self) -> None:  # noqa: N802 - Qt API
+        self.on_enter()
+        self.update_complete()
+
+    def cleanupPage(self) -> None:  # noqa: N802 - Qt API
+        # Going Back keeps what this page holds (QWizard would reset fields).
+        pass
+
+    def on_enter(self) -> None:
+        """Called when the page is shown (going forward)."""

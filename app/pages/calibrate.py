@@ -1,0 +1,283 @@
+"""Page 5, Calibrate: fit the per-pixel LUT and inspect its quality, down to one pixel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtWidgets import (QButtonGroup, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
+                               QPushButton, QSpinBox, QVBoxLayout)
+
+from ptpcore.models import describe_lut, fit_model
+from ptpcore.views import pixel_series, reason_text
+
+from ..widgets.maps import HeatmapPanel
+from ..worker import Job
+from .base import StudioPage
+
+__all__ = ["CalibratePage", "quality_maps"]
+
+MODELS = {"poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
+          "linear": "Linear interpolation of the table",
+          "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
+DEGREE_MODELS = ("poly", "smooth")
+
+
+def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
+    """The heatmaps of a LUT in display units: key -> (title, (H, W) array, unit, colour map, integer)."""
+    um = np.float32(1000.0)
+    return {
+        "rms_x": ("Fit residual RMS, X", lut.rms_x * um, "µm", "viridis", False),
+        "rms_y": ("Fit residual RMS, Y", lut.rms_y * um, "µm", "viridis", False),
+        "loo_x": ("Leave-one-position-out RMS, X", lut.loo_x * um, "µm", "viridis", False),
+        "loo_y": ("Leave-one-position-out RMS, Y", lut.loo_y * um, "µm", "viridis", False),
+        "n_positions": ("Positions used per pixel", lut.n_positions, "positions", "CET-L4", True),
+        "valid": ("Validity: 1 where the pixel has a usable LUT", lut.valid.astype(np.uint8), "valid", "CET-L15", True),
+        **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (from the phase noise)",
+                          getattr(lut, f"sigma_{a}") * um, "µm", "viridis", False)
+           for a in "xy" if getattr(lut, f"sigma_{a}", None) is not None},
+    }
+
+
+class CalibratePage(StudioPage):
+    key = "calibrate"
+    heading = "Calibrate"
+    subheading = ("Fit every pixel's look-up table Z → (X, Y). The heatmaps show its quality over the whole "
+                  "sensor; click a pixel to see its samples, fitted curves and residuals.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        grid = QGridLayout(self.body)
+        grid.setColumnStretch(0, 3)
+        grid.setColumnStretch(1, 2)
+
+        ctl = QGroupBox("Model")
+        cl = QHBoxLayout(ctl)
+        self.model_combo = QComboBox()
+        for k, label in MODELS.items():
+            self.model_combo.addItem(label, k)
+        self.degree = QSpinBox()
+        self.degree.setRange(1, 5)
+        self.degree.setValue(3)
+        self.degree.setPrefix("degree ")
+        self.positions_combo = QComboBox()
+        self.positions_combo.addItem("all positions", "all")
+        self.positions_combo.addItem("every second position (hold out the others)", "half")
+        self.fit_button = QPushButton("Fit LUT")
+        self.fit_button.setObjectName("primary")
+        cl.addWidget(self.model_combo)
+        cl.addWidget(self.degree)
+        cl.addWidget(self.positions_combo)
+        cl.addWidget(self.fit_button)
+        cl.addWidget(self.make_job_panel(), 1)
+        grid.addWidget(ctl, 0, 0, 1, 2)
+
+        maps_box = QGroupBox("Quality over the sensor")
+        ml = QVBoxLayout(maps_box)
+        bl = QHBoxLayout()
+        self.map_buttons = QButtonGroup(self)
+        self.map_buttons.setExclusive(True)
+        self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y"]
+        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions used", "validity", "σ X", "σ Y"]
+        for i, (key, lab) in enumerate(zip(self._map_keys, labels)):
+            b = QPushButton(lab)
+            b.setCheckable(True)
+            b.setObjectName("segment")
+            self.map_buttons.addButton(b, i)
+            bl.addWidget(b)
+        self.map_buttons.button(0).setChecked(True)
+        for key in ("sigma_x", "sigma_y"):  # shown when the LUT carries predicted uncertainty maps
+            b = self.map_buttons.button(self._map_keys.index(key))
+            b.setToolTip("Predicted 1σ uncertainty of the LUT, propagated from each sample's phase noise")
+            b.setVisible(False)
+        bl.addStretch(1)
+        ml.addLayout(bl)
+        self.heatmap = HeatmapPanel()
+        ml.addWidget(self.heatmap, 1)
+        self.stats = QLabel()
+        self.stats.setWordWrap(True)
+        ml.addWidget(self.stats)
+        grid.addWidget(maps_box, 1, 0)
+
+        px_box = QGroupBox("Pixel")
+        pl = QVBoxLayout(px_box)
+        self.pixel_label = QLabel("click a pixel in the heatmap")
+        self.pixel_label.setWordWrap(True)
+        pl.addWidget(self.pixel_label)
+        self.plot_x = self._curve_plot("X", pl)
+        self.plot_y = self._curve_plot("Y", pl)
+        self.plot_r = pg.PlotWidget()
+        self.plot_r.setTitle("Residual per position (sample − LUT)")
+        self.plot_r.setLabel("left", "residual", units="µm")
+        self.plot_r.setLabel("bottom", "z", units="mm")
+        self.plot_r.addLegend(offset=(5, 5))
+        self.bars_x = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#2b6cb0", name="X")
+        self.bars_y = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#e69f00", name="Y")
+        self.plot_r.addItem(self.bars_x)
+        self.plot_r.addItem(self.bars_y)
+        pl.addWidget(self.plot_r, 1)
+        grid.addWidget(px_box, 1, 1)
+        grid.setRowStretch(1, 1)
+
+        self.maps: dict = {}
+        self.series = None
+        self.selected: tuple[int, int] | None = None
+        self._outcome = None
+        self.model_combo.currentIndexChanged.connect(lambda _i: self.degree.setEnabled(
+            self.model_combo.currentData() in DEGREE_MODELS))
+        self.fit_button.clicked.connect(self.fit)
+        self.map_buttons.idClicked.connect(lambda _i: self._show_map())
+        self.heatmap.pixelClicked.connect(self.select_pixel)
+        model.lutChanged.connect(self._lut_changed)
+        model.samplesChanged.connect(self.update_complete)
+
+    def _curve_plot(self, axis: str, layout) -> pg.PlotWidget:
+        p = pg.PlotWidget()
+        p.setTitle(f"{axis}(z): samples and fitted LUT")
+        p.setLabel("left", axis, units="mm")
+        p.setLabel("bottom", "z", units="mm")
+        p.addLegend(offset=(5, 5))
+        p.curve = p.plot(pen=pg.mkPen("#2b6cb0", width=2), name="LUT")
+        p.used = p.plot(pen=None, symbol="o", symbolSize=8, symbolBrush="#1b7f4c", symbolPen="#1b7f4c",
+                        name="sample (fitted)")
+        p.held = p.plot(pen=None, symbol="o", symbolSize=8, symbolBrush=None, symbolPen=pg.mkPen("#c0392b", width=1.5),
+                        name="sample (held out)")
+        layout.addWidget(p, 1)
+        return p
+
+    def on_enter(self) -> None:
+        if self.model.session.lut is None and not self.jobs.busy and self._outcome is None:
+            self.heatmap.title.setText("Choose a model and press Fit LUT.")
+
+    # ---- fitting --------------------------------------------------------------------
+    def configure(self, model: str = "poly", degree: int = 3, positions: str = "all") -> None:
+        """Set the model controls (the tour and tests use it)."""
+        self.model_combo.setCurrentIndex(self.model_combo.findData(model))
+        self.degree.setValue(degree)
+        self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
+
+    def fit(self) -> Job | None:
+        s = self.model.session
+        if self.jobs.busy or s.samples is None:
+            return None
+        model = self.model_combo.currentData()
+        degree = self.degree.value()
+        k = s.rig.stage.n_positions
+        positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
+        samples, rig = s.samples, s.rig
+        gen = self.model.generation
+        job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress),
+                  f"fitting the {model} LUT")
+        job.finished.connect(lambda lut: gen == self.model.generation and self.model.set_lut(lut, positions))
+        job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
+        return self.run_job(job)
+
+    def _lut_changed(self) -> None:
+        lut = self.model.session.lut
+        self.selected = None
+        if lut is None:
+            self.maps = {}
+            self.update_complete()
+            return
+        self.maps = quality_maps(lut)
+        for key in ("sigma_x", "sigma_y"):
+            self.map_buttons.button(self._map_keys.index(key)).setVisible(key in self.maps)
+        if self.current_map not in self.maps:
+            self.map_buttons.button(0).setChecked(True)
+        self._show_map()
+        v = lut.valid
+        rms = self.maps["rms_x"][1][v]
+        loo = self.maps["loo_x"][1][v]
+        text = (f"<b>{describe_lut(lut)}</b>: {v.sum()} of {v.size} pixels valid ({100 * v.mean():.1f} %), "
+                f"z {lut.z_min:g} … {lut.z_max:g} mm.")
+        if rms.size:
+            text += (f" Median residual RMS X {np.nanmedian(rms):.2f} µm, Y {np.nanmedian(self.maps['rms_y'][1][v]):.2f} µm;"
+                     f" median LOO RMS X {np.nanmedian(loo):.2f} µm.")
+        if "sigma_x" in self.maps and rms.size:
+            text += (f" Predicted 1σ (median) X {np.nanmedian(self.maps['sigma_x'][1][v]):.2f} µm,"
+                     f" Y {np.nanmedian(self.maps['sigma_y'][1][v]):.2f} µm.")
+        self.stats.setText(text)
+        # Start with the valid pixel nearest the sensor's centre.
+        if v.any():
+            rows, cols = np.nonzero(v)
+            h, w = v.shape
+            i = int(np.argmin((rows - h / 2) ** 2 + (cols - w / 2) ** 2))
+            self.select_pixel(int(rows[i]), int(cols[i]))
+        self.update_complete()
+
+    # ---- maps ---------------------------------------------------------------------------
+    def show_map(self, key: str) -> None:
+        self.map_buttons.button(self._map_keys.index(key)).setChecked(True)
+        self._show_map()
+
+    @property
+    def current_map(self) -> str:
+        return self._map_keys[self.map_buttons.checkedId()]
+
+    def _show_map(self) -> None:
+        if not self.maps:
+            return
+        key = self.current_map
+        title, data, unit, cmap, integer = self.maps[key]
+        samples = self.model.session.samples
+
+        def value_text(row, col, data=data, unit=unit):
+            v = data[row, col]
+            if self.model.session.lut is not None and not self.model.session.lut.valid[row, col]:
+                n = int((samples.reasons[:, row, col] == 0).sum()) if samples is not None else 0
+                return f"no LUT ({n} valid samples; too few for this model)"
+            return f"{v:.4g} {unit}"
+
+        self.heatmap.set_map(data, title=title, unit=unit, cmap=cmap, integer=integer, value_text=value_text)
+        if self.selected:
+            self.heatmap.view.set_marker(*self.selected)
+
+    # ---- one pixel ------------------------------------------------------------------------
+    def select_pixel(self, row: int, col: int) -> None:
+        s = self.model.session
+        if s.lut is None or s.samples is None:
+            return
+        self.selected = (row, col)
+        self.heatmap.view.set_marker(row, col)
+        ps = pixel_series(s.lut, s.samples, row, col, s.lut_positions)
+        self.series = ps
+        for plot, vals, curve in ((self.plot_x, ps.x, ps.x_curve), (self.plot_y, ps.y, ps.y_curve)):
+            plot.curve.setData(ps.z_curve, curve, connect="finite")
+            used = ps.used
+            held = (ps.reasons == 0) & ~ps.used
+            plot.used.setData(ps.z[used], vals[used])
+            plot.held.setData(ps.z[held], vals[held])
+        dz = float(np.min(np.abs(np.diff(ps.z)))) if ps.z.size > 1 else 1.0
+        w = 0.35 * dz
+        ok_x = np.isfinite(ps.resid_x)
+        ok_y = np.isfinite(ps.resid_y)
+        self.bars_x.setOpts(x=ps.z[ok_x] - w / 2, height=ps.resid_x[ok_x] * 1e3, width=w)
+        self.bars_y.setOpts(x=ps.z[ok_y] + w / 2, height=ps.resid_y[ok_y] * 1e3, width=w)
+        lut = s.lut
+        if ps.lut_valid:
+            text = (f"<b>pixel row {row}, col {col}</b>: {int(ps.used.sum())} positions fitted, "
+                    f"z {lut.pixel_z_min[row, col]:g} … {lut.pixel_z_max[row, col]:g} mm; "
+                    f"RMS X {1e3 * lut.rms_x[row, col]:.2f} µm, Y {1e3 * lut.rms_y[row, col]:.2f} µm; "
+                    f"LOO X {1e3 * lut.loo_x[row, col]:.2f} µm, Y {1e3 * lut.loo_y[row, col]:.2f} µm")
+            if lut.sigma_x is not None and lut.sigma_y is not None:
+                text += (f"; predicted 1σ X {1e3 * lut.sigma_x[row, col]:.2f} µm,"
+                         f" Y {1e3 * lut.sigma_y[row, col]:.2f} µm")
+        else:
+            bad = [reason_text(r) for r in ps.reasons if r]
+            text = (f"<b>pixel row {row}, col {col}</b>: no usable LUT "
+                    f"({int((ps.reasons == 0).sum())} valid samples; rejections: "
+                    f"{', '.join(sorted(set(bad))) or 'none'})")
+        self.pixel_label.setText(text)
+
+    def blocker(self) -> str | None:
+        s = self.model.session
+        if s.samples is None:
+            return "Acquire the images first (Acquire page)."
+        if s.lut is None:
+            if self._outcome == "errored":
+                return "Fitting failed (see the message above): change the model and press Fit LUT again."
+            if self._outcome == "cancelled":
+                return "Fitting was cancelled: press Fit LUT to run it again."
+            return "Fit the LUT first: choose a model and press Fit LUT."
+        if not s.lut.valid.any():
+            return "The LUT has no valid pixel: use a model that needs fewer positions, or acquire more."
+        return None

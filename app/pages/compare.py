@@ -1,0 +1,295 @@
+"""Page 6, Compare: the point-to-point LUTs (plain and smooth) against 3DSTC on held-out heights."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
+                               QPushButton, QSpinBox, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+
+from ptpcore.compare import METHOD_LABELS, METHODS, compare
+from ptpcore.views import histogram, robust_levels
+
+from ..widgets.maps import PEN, MapView, colormap
+from ..worker import Job
+from .base import StudioPage
+
+__all__ = ["ComparePage"]
+
+COLOURS = {"ptp": "#1b7f4c", "smooth": "#2b6cb0", "3dstc": "#c0392b"}
+REF_LABELS = {"truth": "the simulator's exact truth", "measured": "the measured held-out samples"}
+
+
+def _fmt(v: float, digits: int = 3) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else f"{v:.{digits}g}"
+
+
+class ComparePage(StudioPage):
+    key = "compare"
+    heading = "Compare"
+    subheading = ("The traditional 3D-target pinhole calibration (3DSTC) against the point-to-point LUT and "
+                  "the smooth LUT (regularised across pixels), all calibrated on the same positions and judged "
+                  "at the held-out heights.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        grid = QGridLayout(self.body)
+        grid.setColumnStretch(0, 3)
+        grid.setColumnStretch(1, 7)
+
+        ctl = QGroupBox("Run")
+        cl = QHBoxLayout(ctl)
+        self.split = QComboBox()
+        self.split.addItem("every second position held out", "alternate")
+        self.split.addItem("leave one position out", "loo")
+        self.points = QSpinBox()
+        self.points.setRange(20, 1_000_000)
+        self.points.setValue(2000)
+        self.points.setPrefix("M = ")
+        self.points.setSuffix(" feature points")
+        self.rational = QCheckBox("rational k4..k6")
+        self.with_smooth = QCheckBox("PTP smooth")
+        self.with_smooth.setChecked(True)
+        self.with_smooth.setToolTip("Also compare the smooth LUT: a global pinhole + Brown model plus a per-pixel "
+                                    "correction smoothed across pixels")
+        self.seed = QSpinBox()
+        self.seed.setRange(0, 2 ** 31 - 1)
+        self.seed.setPrefix("seed ")
+        self.run_button = QPushButton("Run comparison")
+        self.run_button.setObjectName("primary")
+        for w in (self.split, self.points, self.rational, self.with_smooth, self.seed, self.run_button):
+            cl.addWidget(w)
+        cl.addWidget(self.make_job_panel(), 1)
+        grid.addWidget(ctl, 0, 0, 1, 2)
+
+        self.verdict = QLabel()
+        self.verdict.setObjectName("verdict")
+        self.verdict.setWordWrap(True)
+        grid.addWidget(self.verdict, 1, 0, 1, 2)
+
+        left = QVBoxLayout()
+        rl = QHBoxLayout()
+        rl.addWidget(QLabel("Reference"))
+        self.reference = QComboBox()
+        rl.addWidget(self.reference, 1)
+        left.addLayout(rl)
+        par_box = QGroupBox("3DSTC camera (pinhole + Brown)")
+        pl = QVBoxLayout(par_box)
+        self.reproj = QLabel()
+        self.reproj.setWordWrap(True)
+        pl.addWidget(self.reproj)
+        self.params = QTableWidget(0, 3)
+        self.params.setHorizontalHeaderLabels(["parameter", "value", "± 1σ"])
+        self.params.verticalHeader().hide()
+        self.params.verticalHeader().setDefaultSectionSize(20)
+        self.params.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.params.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
+        pl.addWidget(self.params)
+        left.addWidget(par_box, 3)
+        st_box = QGroupBox("Errors at the held-out heights (µm)")
+        sl = QVBoxLayout(st_box)
+        self.stats = QTableWidget(0, 5)
+        self.stats.setHorizontalHeaderLabels(["", "RMS", "mean", "p95", "max"])
+        self.stats.verticalHeader().hide()
+        self.stats.verticalHeader().setDefaultSectionSize(20)
+        self.stats.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.stats.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
+        self.stats.horizontalHeader().setSectionResizeMode(0, QHeaderView.Stretch)
+        sl.addWidget(self.stats)
+        self.coverage = QLabel()
+        self.coverage.setWordWrap(True)
+        self.coverage.setObjectName("hint")
+        sl.addWidget(self.coverage)
+        left.addWidget(st_box, 2)
+        grid.addLayout(left, 2, 0)
+
+        right = QVBoxLayout()
+        heat_box = QGroupBox("Coordinate error |(dX, dY)| per pixel, RMS over held-out heights — one colour scale")
+        hl = QHBoxLayout(heat_box)
+        self.heat = {}
+        for m in METHODS:
+            v = MapView(colour_bar=False, title=METHOD_LABELS[m])
+            self.heat[m] = v
+            hl.addWidget(v, 1)
+        self.heat_bar = pg.ColorBarItem(values=(0, 1), colorMap=colormap("inferno"), width=16, pen=PEN,
+                                        interactive=True, colorMapMenu=False, label="µm")
+        self.heat_bar.setImageItem([self.heat[m].image for m in METHODS], insert_in=self.heat[METHODS[-1]].plot)
+        for m in METHODS[:-1]:
+            self.heat[m].plot.setYLink(self.heat[METHODS[-1]].plot)
+            self.heat[m].plot.setXLink(self.heat[METHODS[-1]].plot)
+        right.addWidget(heat_box, 3)
+        plots = QHBoxLayout()
+        self.vs_dist = pg.PlotWidget(title="Distance error vs distance")
+        self.vs_dist.setLabel("left", "RMS error", units="µm")
+        self.vs_dist.setLabel("bottom", "distance", units="mm")
+        self.vs_dist.addLegend(offset=(5, 5))
+        self.hist = pg.PlotWidget(title="Distance errors (all pairs)")
+        self.hist.setLabel("left", "pairs")
+        self.hist.setLabel("bottom", "error", units="µm")
+        self.hist.addLegend(offset=(5, 5))
+        self.per_pos = pg.PlotWidget(title="Coordinate RMS per held-out z")
+        self.per_pos.setLabel("left", "RMS", units="µm")
+        self.per_pos.setLabel("bottom", "z", units="mm")
+        self.per_pos.addLegend(offset=(5, 5))
+        for p in (self.vs_dist, self.hist, self.per_pos):
+            p.setMinimumHeight(180)
+            plots.addWidget(p, 1)
+        right.addLayout(plots, 2)
+        grid.addLayout(right, 2, 1)
+        grid.setRowStretch(2, 1)
+
+        self._outcome = None
+        self.run_button.clicked.connect(self.run)
+        self.reference.currentIndexChanged.connect(lambda _i: self._show())
+        model.compareChanged.connect(self._result_changed)
+        model.samplesChanged.connect(self.update_complete)
+
+    @property
+    def plot_widgets(self) -> dict[str, QWidget]:
+        """The report's plots by file stem (the Export page saves them as PNG)."""
+        return {"compare_heatmaps": self.heat["ptp"].parentWidget(), "distance_vs_distance": self.vs_dist,
+                "distance_histogram": self.hist, "per_position": self.per_pos}
+
+    # ---- running -------------------------------------------------------------------
+    def run(self) -> Job | None:
+        s = self.model.session
+        if self.jobs.busy or s.samples is None:
+            return None
+        lut = s.lut
+        model = lut.kind if lut is not None else "poly"
+        degree = (lut.degree or 3) if lut is not None else 3
+        args = dict(truth=s.truth, seed=self.seed.value(), split=self.split.currentData(),
+                    n_points=self.points.value(), rational=self.rational.isChecked(), model=model, degree=degree,
+                    with_smooth=self.with_smooth.isChecked())
+        samples, rig = s.samples, s.rig
+        gen = self.model.generation
+        what = "PTP, PTP smooth and 3DSTC" if args["with_smooth"] else "PTP with 3DSTC"
+        job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), f"comparing {what}")
+        job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
+        job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
+        return self.run_job(job)
+
+    def _result_changed(self) -> None:
+        r = self.model.session.compare
+        self.reference.blockSignals(True)
+        self.reference.clear()
+        if r is not None:
+            for ref in ("truth", "measured"):
+                if ref in r.references:
+                    self.reference.addItem(f"against {REF_LABELS[ref]}", ref)
+        self.reference.blockSignals(False)
+        self._show()
+        self.update_complete()
+
+    # ---- drawing ---------------------------------------------------------------------
+    def _show(self) -> None:
+        r = self.model.session.compare
+        for p in (self.vs_dist, self.hist, self.per_pos):
+            p.clear()
+        if r is None:
+            self.verdict.setText("")
+            return
+        ref = self.reference.currentData() or "measured"
+        rr = r.references[ref]
+        self.verdict.setText(f"<b>Verdict against {REF_LABELS[ref]}:</b> {rr.verdict.text}")
+        fit = r.pinhole
+        self.reproj.setText(f"Reprojection RMS <b>{fit.reprojection_rms_px:.3g} px</b> per coordinate, "
+                            f"from {fit.n_points} feature points" +
+                            (f" (fold 1 of {len(r.folds)})" if len(r.folds) > 1 else ""))
+        names = [n for n in fit.param_names]
+        self.params.setRowCount(len(names))
+        for i, (n, v, sd) in enumerate(zip(names, fit.param_values, fit.param_std)):
+            for c, text in enumerate((n, f"{v:.6g}", _fmt(sd, 2))):
+                item = QTableWidgetItem(text)
+                if c:
+                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                self.params.setItem(i, c, item)
+        methods = r.methods
+        rows = []
+        for m in methods:
+            mr = rr.methods[m]
+            lab = METHOD_LABELS[m]
+            rows.append((f"{lab} coordinate", mr.coordinate))
+            rows.append((f"{lab} distance, same z", mr.distance["same_height"].stats))
+            rows.append((f"{lab} distance, across z", mr.distance["across_heights"].stats))
+        self.stats.setRowCount(len(rows))
+        for i, (label, s) in enumerate(rows):
+            for c, text in enumerate((label, _fmt(s.rms_um), _fmt(s.mean_um), _fmt(s.p95_um), _fmt(s.max_um))):
+                item = QTableWidgetItem(text)
+                if c:
+                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                self.stats.setItem(i, c, item)
+        c = r.coverage
+        nm = max(int(c.n_measured.sum()), 1)
+        noise = ""
+        if r.reference_noise is not None and ref == "measured":
+            noise = f" The measured reference carries its own noise: {r.reference_noise.rms_um:.3g} µm RMS."
+        smooth = ""
+        if "smooth" in methods:
+            scales = sorted({f.smooth_scale_px for f in r.folds})
+            scale = f"{scales[0]:g}" if len(scales) == 1 else f"{scales[0]:g} … {scales[-1]:g}"
+            smooth = f" PTP smooth: poly degree {r.smooth_degree}, smoothing scale {scale} px (cross-validated)."
+        notes = "".join(f" {n}." for n in r.notes)
+        self.coverage.setText(
+            f"Held-out positions {', '.join(str(int(k) + 1) for k in r.held_positions)}; pixels compared"
+            f" {100 * c.n_compared.sum() / nm:.1f} % of the valid held-out samples; pairs "
+            f"{len(r.pairs['same_height'])} same height, {len(r.pairs['across_heights'])} across heights."
+            f"{smooth}{notes}{noise}")
+
+        # heatmaps on one shared scale across every method
+        maps = {m: (rr.methods[m].heatmap_mm * 1e3).astype(np.float32) for m in methods}
+        every = np.concatenate([v[np.isfinite(v)].ravel()[:: max(1, v.size // 200_000)] for v in maps.values()])
+        levels = robust_levels(every, 0.0, 99.0) if every.size else (0.0, 1.0)
+        levels = (0.0, levels[1])
+        self.heat_maps = maps
+        for m in METHODS:
+            self.heat[m].setVisible(m in methods)
+        for m in methods:
+            self.heat[m].set_map(maps[m], levels=levels, cmap="inferno")
+            self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]}: RMS {_fmt(rr.methods[m].coordinate.rms_um)} µm")
+        self.heat_bar.setLevels(levels)
+        self.heat_bar.rounding = max(levels[1] / 1000, 1e-9)
+
+        # distance error against distance, histogram, per position
+        errs = {}
+        for m in methods:
+            pen_style = {"same_height": Qt.SolidLine, "across_heights": Qt.DashLine}
+            for kind, d in rr.methods[m].distance.items():
+                cv = d.curve
+                if cv.edges_mm.size < 2:
+                    continue
+                centres = 0.5 * (cv.edges_mm[1:] + cv.edges_mm[:-1])
+                self.vs_dist.plot(centres, cv.rms_um, connect="finite", symbol="o", symbolSize=5,
+                                  symbolBrush=COLOURS[m], symbolPen=COLOURS[m],
+                                  pen=pg.mkPen(COLOURS[m], width=2, style=pen_style[kind]),
+                                  name=f"{METHOD_LABELS[m]}, {kind.replace('_', ' ')}")
+            errs[m] = np.concatenate([d.error_mm for d in rr.methods[m].distance.values()]) * 1e3
+        allv = np.concatenate(list(errs.values())) if errs else np.zeros(0)
+        if allv.size:
+            lo, hi = robust_levels(allv, 0.5, 99.5)
+            edges = None
+            for m in methods:
+                edges, counts = histogram(errs[m], (lo, hi), bins=60)
+                self.hist.plot(edges, counts, stepMode="center", pen=pg.mkPen(COLOURS[m], width=2),
+                               name=METHOD_LABELS[m])
+        z = r.z_held
+        dz = float(np.min(np.diff(np.unique(r.z_mm)))) if r.z_mm.size > 1 else 1.0
+        w = 0.7 * dz / len(methods)
+        for i, m in enumerate(methods):
+            vals = np.array([s.rms_um for s in rr.methods[m].per_position], float)
+            bars = pg.BarGraphItem(x=z + (i - (len(methods) - 1) / 2) * w, height=np.nan_to_num(vals), width=w,
+                                   brush=COLOURS[m], name=METHOD_LABELS[m])
+            self.per_pos.addItem(bars)
+
+    def on_enter(self) -> None:
+        if self.model.session.compare is None:
+            self.verdict.setText("Optional: run the comparison to see how 3DSTC does on the same data and to "
+                                 "include it in the report. Next works without it.")
+
+    def blocker(self) -> str | None:
+        if self.model.session.samples is None:
+            return "Acquire the images first (Acquire page)."
+        return None

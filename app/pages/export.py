@@ -1,0 +1,228 @@
+"""Page 7, Export: the LUT file, the comparison report (JSON + PNG plots) and the session."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
+                               QPushButton, QVBoxLayout)
+
+from ptpcore.atomic import atomic_path, write_text_atomic
+from ptpcore.lut import save_lut
+from ptpcore.models import describe_lut, lut_model
+from ptpcore.rig import rig_to_toml
+
+from ..worker import Job
+from .base import StudioPage
+
+__all__ = ["ExportPage", "LUT_NAME", "REPORT_NAME", "SESSION_NAME"]
+
+LUT_NAME = "calibration.lut.h5"
+REPORT_NAME = "comparison.json"
+SESSION_NAME = "session.ptps.h5"
+
+try:  # session files come from ptpcore.session (ptp-session/1)
+    from ptpcore import session as _session_mod
+except ImportError:  # pragma: no cover - depends on the engine version
+    _session_mod = None
+
+
+def _save_png(image, path: Path) -> None:
+    """Write a QImage as PNG atomically (QImage is safe to use off the GUI thread)."""
+    with atomic_path(path) as tmp:
+        if not image.save(str(tmp), "PNG"):
+            raise OSError(f"{path}: could not write the PNG")
+
+
+class ExportPage(StudioPage):
+    key = "export"
+    heading = "Export"
+    subheading = ("Write what this session produced: the LUT a scanner loads (ptp-lut/1), the comparison "
+                  "report (JSON plus PNG plots) and the session itself, to resume later.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        self.compare_page = None  # set by the wizard: the plots to save
+        self.calibrate_page = None
+        grid = QGridLayout(self.body)
+        box = QGroupBox("Output folder")
+        bl = QHBoxLayout(box)
+        self.folder = QLineEdit(str(Path.cwd() / f"ptp-calibration-{_dt.datetime.now():%Y%m%d-%H%M}"))
+        browse = QPushButton("Browse…")
+        browse.clicked.connect(self._browse)
+        bl.addWidget(self.folder, 1)
+        bl.addWidget(browse)
+        grid.addWidget(box, 0, 0, 1, 2)
+
+        what = QGroupBox("What to write")
+        wl = QVBoxLayout(what)
+        self.do_lut = QCheckBox(f"LUT file  {LUT_NAME}  (ptp-lut/1, HDF5)")
+        self.do_lut.setChecked(True)
+        self.do_lut.setEnabled(False)  # the product of the session: always written
+        self.do_report = QCheckBox(f"Comparison report  {REPORT_NAME}  plus PNG plots")
+        self.do_quality = QCheckBox("LUT quality heatmap  lut_quality.png  (and the predicted uncertainty"
+                                    "  lut_sigma_x.png when the LUT has it)")
+        self.do_session = QCheckBox(f"Session  {SESSION_NAME}  (ptp-session/1: rig, samples, LUT, comparison)")
+        self.do_rig = QCheckBox("rig.toml")
+        for w in (self.do_report, self.do_quality, self.do_session, self.do_rig):
+            w.setChecked(True)
+        for w in (self.do_lut, self.do_report, self.do_quality, self.do_session, self.do_rig):
+            wl.addWidget(w)
+        row = QHBoxLayout()
+        self.export_button = QPushButton("Export")
+        self.export_button.setObjectName("primary")
+        row.addWidget(self.export_button)
+        row.addWidget(self.make_job_panel(), 1)
+        wl.addLayout(row)
+        grid.addWidget(what, 1, 0)
+
+        done = QGroupBox("Written")
+        dl = QVBoxLayout(done)
+        self.written = QLabel("nothing yet")
+        self.written.setWordWrap(True)
+        self.written.setObjectName("written")
+        dl.addWidget(self.written)
+        dl.addStretch(1)
+        grid.addWidget(done, 1, 1)
+        self.summary = QLabel()
+        self.summary.setWordWrap(True)
+        grid.addWidget(self.summary, 2, 0, 1, 2)
+        grid.setRowStretch(3, 1)
+        self.files: list[Path] = []
+        self._outcome = None
+        self.export_button.clicked.connect(self.export)
+        model.lutChanged.connect(self._reset)
+        model.compareChanged.connect(self.on_enter)
+
+    def _browse(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Export to", self.folder.text())
+        if folder:
+            self.folder.setText(folder)
+
+    def _reset(self) -> None:
+        self.files = []
+        self.written.setText("nothing yet")
+        self.update_complete()
+
+    def on_enter(self) -> None:
+        s = self.model.session
+        has_cmp = s.compare is not None
+        self.do_report.setEnabled(has_cmp)
+        self.do_report.setToolTip("" if has_cmp else "No comparison was run (Compare page).")
+        if not has_cmp:
+            self.do_report.setChecked(False)
+        self.do_session.setEnabled(_session_mod is not None)
+        if _session_mod is None:
+            self.do_session.setChecked(False)
+            self.do_session.setToolTip("This engine version cannot write session files.")
+        lut = s.lut
+        if lut is not None:
+            self.summary.setText(f"LUT: {describe_lut(lut)}, {lut.shape[1]}x{lut.shape[0]} px, "
+                                 f"{100 * lut.valid.mean():.1f} % of pixels valid, z {lut.z_min:g} … {lut.z_max:g} mm."
+                                 f" Source: {s.describe_source()}.")
+
+    # ---- export ----------------------------------------------------------------------
+    def set_folder(self, folder) -> None:
+        self.folder.setText(str(folder))
+
+    def export(self) -> Job | None:
+        s = self.model.session
+        if self.jobs.busy or s.lut is None:
+            return None
+        out = Path(self.folder.text().strip())
+        if not str(out):
+            self.jobs.error.setText("Choose the output folder.")
+            self.jobs.error.show()
+            return None
+        # Everything the worker writes is captured now, on the GUI thread
+        # (widget grabs included: QImages are safe to save from a worker).
+        lut, rig, result = s.lut, s.rig, s.compare
+        images = {}
+        if self.do_report.isChecked() and result is not None and self.compare_page is not None:
+            for stem, widget in self.compare_page.plot_widgets.items():
+                images[out / f"comparison_{stem}.png"] = widget.grab().toImage()
+        if self.do_quality.isChecked() and self.calibrate_page is not None:
+            cal = self.calibrate_page
+            images[out / "lut_quality.png"] = cal.heatmap.grab().toImage()
+            if "sigma_x" in cal.maps:
+                shown = cal.current_map
+                cal.show_map("sigma_x")
+                images[out / "lut_sigma_x.png"] = cal.heatmap.grab().toImage()
+                cal.show_map(shown)
+        report = result.to_json_dict() if (self.do_report.isChecked() and result is not None) else None
+        session_obj = self._session_object(out) if self.do_session.isChecked() and _session_mod else None
+        write_rig = self.do_rig.isChecked()
+
+        def run(ctx):
+            written = []
+            steps = 1 + len(images) + (report is not None) + (session_obj is not None) + write_rig
+            done = 0
+
+            def step(msg):
+                nonlocal done
+                ctx.progress(done / steps, msg)
+                done += 1
+
+            out.mkdir(parents=True, exist_ok=True)
+            step(f"writing {LUT_NAME}")
+            save_lut(lut, out / LUT_NAME)
+            written.append(out / LUT_NAME)
+            if report is not None:
+                step(f"writing {REPORT_NAME}")
+                write_text_atomic(out / REPORT_NAME, json.dumps(report, indent=1))
+                written.append(out / REPORT_NAME)
+            for path, image in images.items():
+                step(f"writing {path.name}")
+                _save_png(image, path)
+                written.append(path)
+            if write_rig:
+                step("writing rig.toml")
+                write_text_atomic(out / "rig.toml", rig_to_toml(rig))
+                written.append(out / "rig.toml")
+            if session_obj is not None:
+                step(f"writing {SESSION_NAME}")
+                _session_mod.save_session(session_obj, out / SESSION_NAME)
+                written.append(out / SESSION_NAME)
+            ctx.progress(1.0, f"wrote {len(written)} files to {out}")
+            return written
+
+        job = Job(run, "exporting")
+        job.finished.connect(self._written)
+        job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
+        return self.run_job(job)
+
+    def _session_object(self, out: Path):
+        s = self.model.session
+        sim = None
+        if s.source_kind == "simulated":
+            sim = json.dumps({"seed": s.seed, **asdict(s.sim_settings)})
+        lut = s.lut
+        return _session_mod.Session(
+            rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None,
+            model=lut_model(lut), degree=int(lut.degree or 3),
+            positions=None if s.lut_positions is None else tuple(s.lut_positions),
+            out=str(out / LUT_NAME), sim_settings=sim, samples=s.samples, lut=lut,
+            comparison=s.compare.to_json_dict() if s.compare is not None else None)
+
+    def _written(self, files) -> None:
+        self.files = list(files)
+        for f in self.files:
+            self.model.add_export(f.name, f)
+        lines = []
+        for f in self.files:
+            size = f.stat().st_size if f.exists() else 0
+            lines.append(f"✔ {f}  ({size / 1e6:.2f} MB)" if size > 1e5 else f"✔ {f}  ({size / 1e3:.1f} kB)")
+        self.written.setText("\n".join(lines))
+        self.update_complete()
+
+    def blocker(self) -> str | None:
+        if self.model.session.lut is None:
+            return "There is no LUT to export: fit one on the Calibrate page."
+        if not any(f.name == LUT_NAME for f in self.files):
+            if self._outcome == "errored":
+                return "The export failed (see the message above): choose another folder and press Export."
+            return "Export the LUT file (press Export) before finishing."
+        return None

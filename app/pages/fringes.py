@@ -1,0 +1,310 @@
+"""Page 2, Fringes: the fringe design, a preview of the LCD patterns, the design check."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QColor
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout, QGroupBox,
+                               QHBoxLayout, QHeaderView, QLabel, QLineEdit, QSlider, QTableWidget,
+                               QTableWidgetItem, QVBoxLayout, QWidget)
+
+from ptpcore.patterns import design_check, fringe_image, fringe_profile
+from ptpcore.rig import FringeDesign, rig_from_toml, rig_to_toml
+from ptpcore.views import predicted_signal
+
+from ..widgets.maps import MapView
+from .base import StudioPage
+from .rig import parse_numbers
+
+__all__ = ["FringesPage"]
+
+OK_COLOUR = QColor("#1b7f4c")
+BAD_COLOUR = QColor("#c0392b")
+
+
+def _dspin(lo, hi, value, decimals=2, step=1.0):
+    s = QDoubleSpinBox()
+    s.setRange(lo, hi)
+    s.setDecimals(decimals)
+    s.setSingleStep(step)
+    s.setValue(value)
+    s.setKeyboardTracking(False)
+    return s
+
+
+def _slider(maximum: int) -> QSlider:
+    s = QSlider(Qt.Horizontal)
+    s.setRange(0, max(0, maximum))
+    s.setPageStep(1)
+    return s
+
+
+class FringesPage(StudioPage):
+    key = "fringes"
+    heading = "Fringes"
+    subheading = ("What the LCD shows at every position: directions, periods (coarse to fine), steps, "
+                  "carrier and gamma. Scrub through the patterns; the design check says whether "
+                  "unwrapping will be unambiguous and what noise floor to expect.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        self._error: str | None = None
+        self._loading = False
+        self.report = None
+        grid = QGridLayout(self.body)
+        grid.setColumnStretch(0, 0)
+        grid.setColumnStretch(1, 3)
+
+        # ---- design form
+        form_box = QGroupBox("Design")
+        form = QFormLayout(form_box)
+        dirs = QWidget()
+        dl = QHBoxLayout(dirs)
+        dl.setContentsMargins(0, 0, 0, 0)
+        self.dir_x = QCheckBox("x (varies along columns)")
+        self.dir_y = QCheckBox("y (along rows)")
+        dl.addWidget(self.dir_x)
+        dl.addWidget(self.dir_y)
+        self.periods = QLineEdit()
+        self.periods.setToolTip("LCD pixels, coarse to fine; the coarsest must span the LCD plus the carrier")
+        self.steps = QLineEdit()
+        self.steps.setToolTip("N per period (one number: the same for all)")
+        self.offset = _dspin(0, 255, 127.5, 1, 1)
+        self.amplitude = _dspin(0.1, 127.5, 100.0, 1, 1)
+        self.carrier_x = _dspin(-100, 100, 0.0, 3, 0.1)
+        self.carrier_y = _dspin(-100, 100, 0.0, 3, 0.1)
+        self.gamma = _dspin(0.1, 5.0, 1.0, 2, 0.1)
+        form.addRow("Directions", dirs)
+        form.addRow("Periods (px)", self.periods)
+        form.addRow("Steps N", self.steps)
+        form.addRow("Offset (grey level)", self.offset)
+        form.addRow("Amplitude (grey levels)", self.amplitude)
+        form.addRow("Carrier x (px/mm)", self.carrier_x)
+        form.addRow("Carrier y (px/mm)", self.carrier_y)
+        form.addRow("Gamma pre-compensation", self.gamma)
+        self.frames_label = QLabel()
+        self.frames_label.setObjectName("hint")
+        form.addRow(self.frames_label)
+        grid.addWidget(form_box, 0, 0)
+
+        # ---- design check
+        check_box = QGroupBox("Design check")
+        cl = QVBoxLayout(check_box)
+        self.verdict = QLabel()
+        self.verdict.setObjectName("verdict")
+        self.verdict.setWordWrap(True)
+        cl.addWidget(self.verdict)
+        self.table = QTableWidget(0, 3)
+        self.table.setHorizontalHeaderLabels(["", "Check", "Result"])
+        self.table.verticalHeader().hide()
+        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeToContents)
+        self.table.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeToContents)
+        self.table.horizontalHeader().setSectionResizeMode(2, QHeaderView.Stretch)
+        self.table.setWordWrap(True)
+        self.table.setEditTriggers(QTableWidget.NoEditTriggers)
+        cl.addWidget(self.table, 2)
+        self.floor_plot = pg.PlotWidget()
+        self.floor_plot.setMinimumHeight(120)
+        self.floor_plot.setLabel("left", "noise floor", units="µm")
+        self.floor_plot.setLabel("bottom", "z", units="mm")
+        self.floor_plot.setTitle("Predicted 1σ coordinate noise per position")
+        self.floor_bars = pg.BarGraphItem(x=[0], height=[0], width=1, brush="#2b6cb0")
+        self.floor_plot.addItem(self.floor_bars)
+        cl.addWidget(self.floor_plot, 1)
+        grid.addWidget(check_box, 1, 0)
+
+        # ---- preview
+        prev_box = QGroupBox("LCD pattern preview")
+        pl = QVBoxLayout(prev_box)
+        scrub = QGridLayout()
+        self.s_dir = QComboBox()
+        self.s_pos = _slider(0)
+        self.s_level = _slider(0)
+        self.s_step = _slider(0)
+        scrub.addWidget(QLabel("Direction"), 0, 0)
+        scrub.addWidget(self.s_dir, 0, 1)
+        scrub.addWidget(QLabel("Position"), 0, 2)
+        scrub.addWidget(self.s_pos, 0, 3)
+        scrub.addWidget(QLabel("Period"), 1, 0)
+        scrub.addWidget(self.s_level, 1, 1)
+        scrub.addWidget(QLabel("Step"), 1, 2)
+        scrub.addWidget(self.s_step, 1, 3)
+        pl.addLayout(scrub)
+        self.preview_label = QLabel()
+        self.preview_label.setObjectName("panelTitle")
+        pl.addWidget(self.preview_label)
+        self.preview = MapView(colour_bar=True)
+        self.preview.plot.setLabel("bottom", "LCD column u", units="px")
+        self.preview.plot.setLabel("left", "LCD row v", units="px")
+        pl.addWidget(self.preview, 3)
+        self.profile = pg.PlotWidget()
+        self.profile.setMinimumHeight(130)
+        self.profile.setLabel("left", "displayed level")
+        self.profile.setTitle("Displayed levels along the pattern axis (first two coarse... fine periods)")
+        self.profile_curve = self.profile.plot(pen=pg.mkPen("#2b6cb0", width=1.5), stepMode=None)
+        pl.addWidget(self.profile, 1)
+        grid.addWidget(prev_box, 0, 1, 2, 1)
+
+        for w in (self.dir_x, self.dir_y):
+            w.toggled.connect(self._edited)
+        for w in (self.periods, self.steps):
+            w.editingFinished.connect(self._edited)
+        for w in (self.offset, self.amplitude, self.carrier_x, self.carrier_y, self.gamma):
+            w.valueChanged.connect(self._edited)
+        for w in (self.s_pos, self.s_level, self.s_step):
+            w.valueChanged.connect(self._scrubbed)
+        self.s_dir.currentIndexChanged.connect(self._scrubbed)
+        model.rigChanged.connect(self._show_rig)
+        model.sourceChanged.connect(self._show_rig)
+        self._show_rig()
+
+    # ---- model -> widgets -------------------------------------------------
+    @property
+    def editable(self) -> bool:
+        # A live capture shows the patterns it designs; an imported dataset's are fixed.
+        return self.model.session.source_kind in ("simulated", "live")
+
+    def _show_rig(self) -> None:
+        rig = self.model.session.rig
+        f = rig.fringes
+        self._loading = True
+        try:
+            self.dir_x.setChecked("x" in f.directions)
+            self.dir_y.setChecked("y" in f.directions)
+            self.periods.setText(", ".join(str(p) for p in f.periods_px))
+            # One number when every period has the same N: it follows the period list.
+            self.steps.setText(str(f.steps[0]) if len(set(f.steps)) == 1 else ", ".join(str(n) for n in f.steps))
+            self.offset.setValue(f.offset)
+            self.amplitude.setValue(f.amplitude)
+            self.carrier_x.setValue(f.carrier_px_per_mm[0])
+            self.carrier_y.setValue(f.carrier_px_per_mm[1])
+            self.gamma.setValue(f.gamma)
+            for w in (self.dir_x, self.dir_y, self.periods, self.steps, self.offset, self.amplitude,
+                      self.carrier_x, self.carrier_y, self.gamma):
+                w.setEnabled(self.editable)
+            cur_dir = self.s_dir.currentText()
+            self.s_dir.clear()
+            self.s_dir.addItems(list(f.directions))
+            if cur_dir in f.directions:
+                self.s_dir.setCurrentText(cur_dir)
+            self.s_pos.setMaximum(rig.stage.n_positions - 1)
+            self.s_level.setMaximum(len(f.periods_px) - 1)
+        finally:
+            self._loading = False
+        self._error = None
+        self._refresh()
+
+    def _refresh(self) -> None:
+        rig = self.model.session.rig
+        f = rig.fringes
+        self.frames_label.setText(
+            f"{f.frames_per_position} frames per position, "
+            f"{f.frames_per_position * rig.stage.n_positions} in all")
+        s = self.model.session
+        if s.source_kind == "simulated":
+            mod, noise = predicted_signal(rig, s.sim_settings)
+            self.report = design_check(rig, modulation_dn=mod, noise_dn=noise)
+            basis = f"predicted for the simulated rig: modulation {mod[0]:.0f}, noise {noise:.1f} grey levels"
+        else:
+            self.report = design_check(rig)
+            basis = "default signal assumptions (half range modulation, 1 % noise)"
+        self._show_report(basis)
+        self._scrubbed()
+        self.update_complete()
+
+    def _show_report(self, basis: str) -> None:
+        rep = self.report
+        self.table.setRowCount(len(rep.items))
+        for i, item in enumerate(rep.items):
+            mark = QTableWidgetItem("✔ pass" if item.ok else "✘ FAIL")
+            mark.setForeground(OK_COLOUR if item.ok else BAD_COLOUR)
+            font = mark.font()
+            font.setBold(True)
+            mark.setFont(font)
+            self.table.setItem(i, 0, mark)
+            name = QTableWidgetItem(item.name)
+            name.setToolTip(item.requirement)
+            self.table.setItem(i, 1, name)
+            res = QTableWidgetItem(item.message)
+            res.setToolTip(item.requirement)
+            self.table.setItem(i, 2, res)
+        self.table.resizeRowsToContents()
+        fails = rep.failures()
+        if not fails:
+            self.verdict.setText(f"<b style='color:#1b7f4c'>Design OK</b> — every check passes ({basis}).")
+        else:
+            self.verdict.setText(f"<b style='color:#c0392b'>{len(fails)} check(s) fail</b> — "
+                                 + "; ".join(i.message for i in fails))
+        z = np.asarray(self.model.session.rig.stage.z_mm)
+        width = float(np.min(np.abs(np.diff(z)))) * 0.7 if z.size > 1 else 1.0
+        self.floor_bars.setOpts(x=z, height=rep.noise_floor_um, width=width)
+
+    # ---- preview ------------------------------------------------------------
+    def _scrubbed(self, *_):
+        if self._loading:
+            return
+        rig = self.model.session.rig
+        f = rig.fringes
+        d = self.s_dir.currentText() or f.directions[0]
+        j = min(self.s_level.value(), len(f.periods_px) - 1)
+        n_steps = f.steps[j]
+        self.s_step.setMaximum(n_steps - 1)
+        step = min(self.s_step.value(), n_steps - 1)
+        k = min(self.s_pos.value(), rig.stage.n_positions - 1)
+        z = rig.stage.z_mm[k]
+        period = f.periods_px[j]
+        img = fringe_image(rig.lcd, f, d, period, step, n_steps, z)
+        self.preview.set_map(img, levels=(0, 255), cmap="CET-L1", label="level")
+        shift = f.carrier(d) * z
+        self.preview_label.setText(
+            f"{d}, T = {period} px ({j + 1}/{len(f.periods_px)}), step {step + 1}/{n_steps},"
+            f" position {k + 1}/{rig.stage.n_positions}: z = {z:g} mm, carrier shift {shift:.1f} px")
+        prof = fringe_profile(rig.lcd, f, d, period, step, n_steps, z)
+        span = min(prof.size, max(2 * period, 256))
+        self.profile_curve.setData(np.arange(span), prof[:span].astype(float))
+        self.profile.setLabel("bottom", "LCD column u" if d == "x" else "LCD row v", units="px")
+        self.profile.setTitle(f"Displayed levels along {'u' if d == 'x' else 'v'} (first {span} px)")
+
+    def scrub(self, direction: str, level: int, step: int, position: int) -> None:
+        """Set the preview scrubbers (the tour and tests use it)."""
+        self.s_dir.setCurrentText(direction)
+        self.s_level.setValue(level)
+        self.s_step.setValue(step)
+        self.s_pos.setValue(position)
+
+    # ---- widgets -> model ---------------------------------------------------
+    def _edited(self, *_):
+        if self._loading or not self.editable:
+            return
+        try:
+            directions = tuple(d for d, w in (("x", self.dir_x), ("y", self.dir_y)) if w.isChecked())
+            periods = parse_numbers(self.periods.text(), int)
+            steps = parse_numbers(self.steps.text(), int)
+            if len(steps) == 1:
+                steps = steps * len(periods)
+            design = FringeDesign(directions, tuple(periods), tuple(steps), self.offset.value(),
+                                  self.amplitude.value(), (self.carrier_x.value(), self.carrier_y.value()),
+                                  self.gamma.value())
+            rig = replace(self.model.session.rig, fringes=design)
+            rig = rig_from_toml(rig_to_toml(rig), "fringes")
+        except ValueError as exc:
+            self._error = str(exc).replace("fringes: key 'fringes.", "'")
+            self.update_complete()
+            return
+        self._error = None
+        self.model.set_rig(rig)
+
+    def blocker(self) -> str | None:
+        if self._error:
+            return f"The design is invalid: {self._error}"
+        rig = self.model.session.rig
+        if set(rig.fringes.directions) != {"x", "y"}:
+            return "Calibration needs fringes in both directions x and y."
+        if self.report is not None and not self.report.ok and self.editable:
+            return "The design check fails: " + "; ".join(i.name for i in self.report.failures()) + \
+                   ". Fix the design (see the check's advice)."
+        return None

@@ -1,0 +1,301 @@
+"""Page 4, Phase maps: per position and direction, every map the decoder made."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, QLabel, QVBoxLayout)
+
+from ptpcore.phase import REASON_NAMES
+from ptpcore.pipeline import decode_position
+from ptpcore.views import REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba, reason_text
+
+from ..widgets.maps import Legend, MapView, line_profile
+from ..worker import Job
+from .base import StudioPage
+
+__all__ = ["PhaseMapsPage", "MAP_KINDS"]
+
+MAP_KINDS = {
+    "wrapped": "Wrapped phase",
+    "coord": "Unwrapped LCD coordinate",
+    "modulation": "Modulation",
+    "background": "Background",
+    "validity": "Validity mask (rejection reasons)",
+}
+_PER_LEVEL = ("wrapped", "modulation", "background")
+
+
+class _CountingSource:
+    """Passes frames through, reporting progress per frame and honouring cancel."""
+
+    def __init__(self, source, ctx):
+        self.source = source
+        self.rig = source.rig
+        self.ctx = ctx
+
+    def frames(self, k):
+        total = self.rig.fringes.frames_per_position
+        for i, (spec, img) in enumerate(self.source.frames(k)):
+            self.ctx.progress(i / total, f"decoding position {k + 1}: frame {i + 1}/{total}")
+            yield spec, img
+
+
+class PhaseMapsPage(StudioPage):
+    key = "phase"
+    heading = "Phase maps"
+    subheading = ("Per position and direction: wrapped phase, unwrapped LCD coordinate, modulation, "
+                  "background and the validity mask coloured by rejection reason. Hover for values; "
+                  "drag the red line for a profile.")
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        grid = QGridLayout(self.body)
+        grid.setColumnStretch(0, 0)
+        grid.setColumnStretch(1, 1)
+
+        ctl = QGroupBox("Show")
+        cf = QFormLayout(ctl)
+        self.pos_combo = QComboBox()
+        self.dir_combo = QComboBox()
+        self.kind_combo = QComboBox()
+        for k, label in MAP_KINDS.items():
+            self.kind_combo.addItem(label, k)
+        self.level_combo = QComboBox()
+        cf.addRow("Position", self.pos_combo)
+        cf.addRow("Direction", self.dir_combo)
+        cf.addRow("Map", self.kind_combo)
+        cf.addRow("Period", self.level_combo)
+        cf.addRow(self.make_job_panel())
+        left = QVBoxLayout()
+        left.addWidget(ctl)
+        leg_box = QGroupBox("Validity legend (this position)")
+        ll = QVBoxLayout(leg_box)
+        self.legend = Legend()
+        ll.addWidget(self.legend)
+        note = QLabel("A pixel with several reasons takes the colour of the first one listed; "
+                      "hovering it lists them all.")
+        note.setWordWrap(True)
+        note.setObjectName("hint")
+        ll.addWidget(note)
+        left.addWidget(leg_box)
+        left.addStretch(1)
+        grid.addLayout(left, 0, 0, 2, 1)
+
+        self.title = QLabel()
+        self.title.setObjectName("panelTitle")
+        grid.addWidget(self.title, 0, 1)
+        right = QVBoxLayout()
+        self.view = MapView(colour_bar=True)
+        right.addWidget(self.view, 3)
+        self.readout = QLabel("move the cursor over the map")
+        self.readout.setObjectName("readout")
+        right.addWidget(self.readout)
+        self.profile = pg.PlotWidget()
+        self.profile.setMinimumHeight(140)
+        self.profile.setLabel("bottom", "distance along the line", units="px")
+        self.profile.setTitle("Line profile")
+        self.profile_curve = self.profile.plot(pen=pg.mkPen("#c0392b", width=1.5))
+        right.addWidget(self.profile, 1)
+        grid.addLayout(right, 1, 1)
+        grid.setRowStretch(1, 1)
+
+        self.roi = pg.LineSegmentROI([[0, 0], [10, 10]], pen=pg.mkPen("#e8333a", width=2))
+        self.roi.setZValue(20)
+        self.view.plot.addItem(self.roi)
+        self.roi.sigRegionChanged.connect(self._update_profile)
+        self._roi_placed_for = None
+
+        self.decoded = None
+        self.current = None  # (k, d, kind, level)
+        self.shown: np.ndarray | None = None  # the map shown, display units
+        self.unit = ""
+        for c in (self.pos_combo, self.dir_combo, self.kind_combo, self.level_combo):
+            c.currentIndexChanged.connect(self._selection_changed)
+        self.view.hovered.connect(self._hovered)
+        model.samplesChanged.connect(self._fill_choices)
+        model.decodedChanged.connect(self._decoded_arrived)
+        model.rigChanged.connect(self._fill_choices)
+        self._fill_choices()
+
+    # ---- choices ----------------------------------------------------------------
+    def _fill_choices(self) -> None:
+        rig = self.model.session.rig
+        for c in (self.pos_combo, self.dir_combo, self.level_combo):
+            c.blockSignals(True)
+        k_prev = self.pos_combo.currentIndex()
+        self.pos_combo.clear()
+        for k, z in enumerate(rig.stage.z_mm):
+            self.pos_combo.addItem(f"{k + 1}: z = {z:g} mm", k)
+        self.dir_combo.clear()
+        for d in rig.fringes.directions:
+            self.dir_combo.addItem(f"{d} ({'u, columns' if d == 'x' else 'v, rows'})", d)
+        self.level_combo.clear()
+        for j, t in enumerate(rig.fringes.periods_px):
+            self.level_combo.addItem(f"T = {t} px" + (" (finest)" if j == len(rig.fringes.periods_px) - 1 else ""), j)
+        self.level_combo.setCurrentIndex(len(rig.fringes.periods_px) - 1)
+        if 0 <= k_prev < self.pos_combo.count():
+            self.pos_combo.setCurrentIndex(k_prev)
+        for c in (self.pos_combo, self.dir_combo, self.level_combo):
+            c.blockSignals(False)
+        self.decoded = None
+
+    def on_enter(self) -> None:
+        # Start on the most recently decoded position (the acquisition's last).
+        if self.model.session.decoded:
+            k = next(reversed(self.model.session.decoded))
+            self.pos_combo.setCurrentIndex(k)
+        self._selection_changed()
+
+    def select(self, position: int | None = None, direction: str | None = None, kind: str | None = None,
+               level: int | None = None) -> None:
+        """Choose what to show (the tour and tests use it)."""
+        if position is not None:
+            self.pos_combo.setCurrentIndex(position)
+        if direction is not None:
+            self.dir_combo.setCurrentIndex(self.dir_combo.findData(direction))
+        if kind is not None:
+            self.kind_combo.setCurrentIndex(self.kind_combo.findData(kind))
+        if level is not None:
+            self.level_combo.setCurrentIndex(level)
+        self._selection_changed()
+
+    def _selection_changed(self, *_):
+        k = self.pos_combo.currentData()
+        if k is None:
+            return
+        self.level_combo.setEnabled(self.kind_combo.currentData() in _PER_LEVEL)
+        cached = self.model.session.decoded.get(k)
+        if cached is None:
+            self._decode(k)
+            return
+        self.decoded = cached
+        self._show()
+
+    def _decode(self, k: int) -> None:
+        if self.jobs.busy:
+            if self._decoding == k:
+                return
+            self.jobs.job.cancel()
+            self.jobs.job.done.connect(lambda: self._selection_changed())
+            return
+        try:
+            source = self.model.session.make_source()
+        except Exception as exc:  # noqa: BLE001
+            self.jobs.error.setText(str(exc))
+            self.jobs.error.show()
+            return
+        self._decoding = k
+        job = Job(lambda ctx: decode_position(_CountingSource(source, ctx), k), f"decoding position {k + 1}")
+        job.finished.connect(self.model.set_decoded)
+        self.run_job(job)
+
+    _decoding = None
+
+    def _decoded_arrived(self, k: int) -> None:
+        if self.isVisible() and k == self.pos_combo.currentData():
+            self.decoded = self.model.session.decoded[k]
+            self._show()
+
+    # ---- drawing ------------------------------------------------------------------
+    def _show(self) -> None:
+        pos = self.decoded
+        if pos is None:
+            return
+        rig = self.model.session.rig
+        d = self.dir_combo.currentData() or rig.fringes.directions[0]
+        kind = self.kind_combo.currentData()
+        j = self.level_combo.currentData()
+        j = len(rig.fringes.periods_px) - 1 if j is None else j
+        dec = pos.directions[d]
+        period = rig.fringes.periods_px[j]
+        where = f"position {pos.index + 1} (z = {pos.z_mm:g} mm), direction {d}"
+        self.current = (pos.index, d, kind, j)
+        self._reasons = pos.reasons
+        self.view.set_overlay(None)
+        if kind == "validity":
+            self.view.set_rgba(reason_rgba(pos.reasons))
+            self.shown = pos.reasons
+            self.unit = ""
+            self.title.setText(f"Validity mask — {where} (both directions)")
+            self.view.bar.hide()
+        else:
+            self.view.bar.show()
+            if kind == "wrapped":
+                data, unit, cmap = dec.wrapped[j].phase, "rad", "CET-C6"
+                levels = (-np.pi, np.pi)
+                label = f"Wrapped phase, T = {period} px"
+            elif kind == "coord":
+                data, unit, cmap, levels = dec.coord, "LCD px", "viridis", None
+                valid = pos.reasons == 0
+                data = np.where(valid, dec.coord, np.nan)
+                label = f"Unwrapped LCD coordinate {'u' if d == 'x' else 'v'} (carrier removed; invalid pixels blank)"
+            elif kind == "modulation":
+                data, unit, cmap, levels = dec.wrapped[j].modulation, "grey levels", "CET-L3", None
+                label = f"Modulation B, T = {period} px"
+            else:
+                data, unit, cmap, levels = dec.wrapped[j].background, "grey levels", "CET-L1", None
+                label = f"Background A, T = {period} px"
+            self.shown = data
+            self.unit = unit
+            self.view.set_map(data, levels=levels, cmap=cmap, label=unit)
+            self.title.setText(f"{label} — {where}")
+        self._show_legend(pos.reasons)
+        self._place_roi()
+        self._update_profile()
+
+    def _show_legend(self, reasons) -> None:
+        counts = reason_counts(reasons)
+        n = reasons.size
+        entries = [("valid", VALID_COLOUR, f"{100 * counts[0] / n:.1f} %")]
+        for f in REASON_ORDER:
+            entries.append((REASON_NAMES[f], REASON_COLOURS[f], f"{100 * counts[f] / n:.1f} %"))
+        self.legend.set_entries(entries)
+
+    def _place_roi(self) -> None:
+        h, w = self.decoded.reasons.shape
+        if self._roi_placed_for == (h, w):
+            return
+        self._roi_placed_for = (h, w)
+        self.set_line((0.1 * w, 0.5 * h), (0.9 * w, 0.5 * h))
+
+    def set_line(self, p0, p1) -> None:
+        """Put the profile line from ``p0`` to ``p1`` ((col, row) pixel coordinates)."""
+        h0, h1 = self.roi.getHandles()
+        self.roi.movePoint(h0, pg.Point(*p0), finish=False, coords="parent")
+        self.roi.movePoint(h1, pg.Point(*p1), finish=True, coords="parent")
+        self._update_profile()
+
+    def line_endpoints(self):
+        """The profile line's ends in (col, row) pixel coordinates."""
+        pts = [self.roi.mapToParent(h.pos()) for h in self.roi.getHandles()]
+        return (pts[0].x(), pts[0].y()), (pts[1].x(), pts[1].y())
+
+    def _update_profile(self, *_):
+        if self.shown is None:
+            return
+        p0, p1 = self.line_endpoints()
+        if self.current and self.current[2] == "validity":
+            dist, vals = line_profile((self.shown != 0).astype(float), p0, p1)
+            self.profile.setLabel("left", "rejected (1) / valid (0)")
+        else:
+            dist, vals = line_profile(self.shown, p0, p1)
+            self.profile.setLabel("left", self.unit)
+        self.profile_x, self.profile_y = dist, vals
+        self.profile_curve.setData(dist, vals, connect="finite")
+
+    def _hovered(self, row: int, col: int) -> None:
+        if row < 0 or self.shown is None:
+            return
+        why = reason_text(self._reasons[row, col])
+        if self.current[2] == "validity":
+            text = why
+        else:
+            v = float(self.shown[row, col])
+            text = (f"{v:.5g} {self.unit}" if np.isfinite(v) else "no value") + f"  ({why})"
+        self.readout.setText(f"row {row}, col {col}: {text}")
+
+    def blocker(self) -> str | None:
+        if self.model.session.samples is None:
+            return "Acquire the images first (Acquire page)."
+        return None

@@ -1,0 +1,420 @@
+"""Page 1, Rig: camera, LCD, stage positions, and where the images come from."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QFileDialog, QFormLayout,
+                               QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
+                               QRadioButton, QSpinBox, QVBoxLayout, QWidget)
+
+from ptpcore.errors import PtpError
+from ptpcore.rig import Camera, Lcd, Rig, Stage, load_rig, rig_from_toml, rig_to_toml, save_rig
+from ptpcore.simulate import PRESETS, preset
+
+from ..assets import default_rigs
+from .base import StudioPage
+
+__all__ = ["RigPage", "parse_numbers"]
+
+PRESET_NOTES = {
+    "ideal": "noise-free, continuous fringes: decoding is exact",
+    "mild": "a lens Brown describes exactly, light noise",
+    "realistic": "strong distortion, non-central pupil, gamma, noise, stage errors",
+    "rough": "stronger still, 8-bit, near saturation",
+}
+
+
+def parse_numbers(text: str, kind=float) -> list:
+    """``"1, 2 3;4"`` -> numbers; ValueError naming the bad item."""
+    items = [t for t in text.replace(";", " ").replace(",", " ").split() if t]
+    out = []
+    for t in items:
+        try:
+            out.append(kind(t))
+        except ValueError:
+            raise ValueError(f"'{t}' is not {'an integer' if kind is int else 'a number'}") from None
+    return out
+
+
+def _dspin(lo, hi, value, decimals=3, step=0.1, suffix=""):
+    s = QDoubleSpinBox()
+    s.setRange(lo, hi)
+    s.setDecimals(decimals)
+    s.setSingleStep(step)
+    s.setValue(value)
+    if suffix:
+        s.setSuffix(suffix)
+    s.setKeyboardTracking(False)
+    return s
+
+
+def _ispin(lo, hi, value, suffix=""):
+    s = QSpinBox()
+    s.setRange(lo, hi)
+    s.setValue(value)
+    if suffix:
+        s.setSuffix(suffix)
+    s.setKeyboardTracking(False)
+    return s
+
+
+class RigPage(StudioPage):
+    key = "rig"
+    heading = "Rig"
+    subheading = "The camera, the LCD on its stage, the stage positions, and where the images come from."
+
+    def __init__(self, model, parent=None):
+        super().__init__(model, parent)
+        self._error: str | None = None
+        self._loading = False
+        cols = QHBoxLayout(self.body)
+        left, right = QVBoxLayout(), QVBoxLayout()
+        cols.addLayout(left, 1)
+        cols.addLayout(right, 1)
+
+        # ---- source of images
+        src = QGroupBox("Source of images")
+        sl = QVBoxLayout(src)
+        self.src_sim = QRadioButton("Simulated rig (virtual camera with exact ground truth)")
+        self.src_folder = QRadioButton("Import a ptp-dataset/1 folder")
+        self.src_live = QRadioButton("Live capture: LCD, camera and stage (devices chosen on the Acquire page)")
+        self.src_live.setToolTip("Show the patterns on the LCD, move the stage, photograph every pattern and write"
+                                 " a ptp-dataset/1 folder; simulated devices need no hardware.")
+        self.src_group = QButtonGroup(self)
+        for i, b in enumerate((self.src_sim, self.src_folder, self.src_live)):
+            self.src_group.addButton(b, i)
+            sl.addWidget(b)
+        fl = QHBoxLayout()
+        self.folder_edit = QLineEdit()
+        self.folder_edit.setPlaceholderText("folder holding rig.toml and the images")
+        self.browse = QPushButton("Browse…")
+        fl.addWidget(self.folder_edit, 1)
+        fl.addWidget(self.browse)
+        sl.addLayout(fl)
+        left.addWidget(src)
+
+        # ---- simulator
+        self.sim_box = QGroupBox("Simulator")
+        sf = QFormLayout(self.sim_box)
+        self.preset = QComboBox()
+        for name in PRESETS:
+            self.preset.addItem(f"{name} — {PRESET_NOTES.get(name, '')}", name)
+        self.seed = _ispin(0, 2 ** 31 - 1, 0)
+        off = QWidget()
+        ol = QHBoxLayout(off)
+        ol.setContentsMargins(0, 0, 0, 0)
+        self.off_x = _dspin(-500, 500, 0.0, 1, 5.0, " mm")
+        self.off_y = _dspin(-500, 500, 0.0, 1, 5.0, " mm")
+        ol.addWidget(QLabel("x"))
+        ol.addWidget(self.off_x)
+        ol.addWidget(QLabel("y"))
+        ol.addWidget(self.off_y)
+        self.off_x.setToolTip("Shift the camera's view across the LCD (e.g. to see its corner and bezel)")
+        self.off_y.setToolTip(self.off_x.toolTip())
+        sf.addRow("Preset", self.preset)
+        sf.addRow("Seed", self.seed)
+        sf.addRow("View offset", off)
+        left.addWidget(self.sim_box)
+
+        # ---- rig templates
+        tpl = QGroupBox("Rig description (rig.toml)")
+        tl = QHBoxLayout(tpl)
+        self.template = QComboBox()
+        self.template.addItem("— start from a shipped rig —", None)
+        for name, path in default_rigs().items():
+            self.template.addItem(name, str(path))
+        self.load_button = QPushButton("Load rig.toml…")
+        self.save_button = QPushButton("Save rig.toml…")
+        tl.addWidget(self.template, 1)
+        tl.addWidget(self.load_button)
+        tl.addWidget(self.save_button)
+        left.addWidget(tpl)
+        left.addStretch(1)
+
+        # ---- camera and LCD
+        hw = QGroupBox("Camera and LCD")
+        hf = QFormLayout(hw)
+        self.cam_w = _ispin(1, 100_000, 640, " px")
+        self.cam_h = _ispin(1, 100_000, 480, " px")
+        self.cam_bits = _ispin(8, 16, 8, " bit")
+        self.lcd_w = _ispin(1, 100_000, 3840, " px")
+        self.lcd_h = _ispin(1, 100_000, 2160, " px")
+        self.pitch_x = _dspin(0.0001, 10.0, 0.05, 5, 0.001, " mm")
+        self.pitch_y = _dspin(0.0001, 10.0, 0.05, 5, 0.001, " mm")
+        hf.addRow("Camera width", self.cam_w)
+        hf.addRow("Camera height", self.cam_h)
+        hf.addRow("Camera bit depth", self.cam_bits)
+        hf.addRow("LCD width", self.lcd_w)
+        hf.addRow("LCD height", self.lcd_h)
+        hf.addRow("LCD pitch x (columns)", self.pitch_x)
+        hf.addRow("LCD pitch y (rows)", self.pitch_y)
+        right.addWidget(hw)
+
+        # ---- stage
+        st = QGroupBox("Stage positions")
+        sv = QVBoxLayout(st)
+        self.stage_regular = QRadioButton("Regular: start, step, count")
+        self.stage_list = QRadioButton("List of readings (mm)")
+        self.stage_group = QButtonGroup(self)
+        self.stage_group.addButton(self.stage_regular, 0)
+        self.stage_group.addButton(self.stage_list, 1)
+        sv.addWidget(self.stage_regular)
+        rl = QHBoxLayout()
+        self.z_start = _dspin(-1000, 1000, 0.0, 3, 1.0, " mm")
+        self.z_step = _dspin(-1000, 1000, 4.0, 3, 0.5, " mm")
+        self.z_count = _ispin(2, 1000, 11)
+        for lab, w in (("start", self.z_start), ("step", self.z_step), ("count", self.z_count)):
+            rl.addWidget(QLabel(lab))
+            rl.addWidget(w, 1)
+        sv.addLayout(rl)
+        sv.addWidget(self.stage_list)
+        self.z_list = QLineEdit()
+        self.z_list.setPlaceholderText("e.g. 0, 4, 8, 12")
+        sv.addWidget(self.z_list)
+        sk = QHBoxLayout()
+        self.skew_a = _dspin(-1, 1, 0.0, 5, 0.001)
+        self.skew_b = _dspin(-1, 1, 0.0, 5, 0.001)
+        sk.addWidget(QLabel("Travel skew a"))
+        sk.addWidget(self.skew_a, 1)
+        sk.addWidget(QLabel("b"))
+        sk.addWidget(self.skew_b, 1)
+        sv.addLayout(sk)
+        self.stage_summary = QLabel()
+        self.stage_summary.setObjectName("hint")
+        sv.addWidget(self.stage_summary)
+        right.addWidget(st)
+        right.addStretch(1)
+
+        # ---- wiring
+        self.src_group.idToggled.connect(self._source_toggled)
+        self.folder_edit.editingFinished.connect(self._folder_edited)
+        self.browse.clicked.connect(self._browse)
+        self.preset.currentIndexChanged.connect(self._preset_chosen)
+        for w in (self.seed, self.off_x, self.off_y):
+            w.valueChanged.connect(self._sim_edited)
+        self.template.activated.connect(self._template_chosen)
+        self.load_button.clicked.connect(self._load_dialog)
+        self.save_button.clicked.connect(self._save_dialog)
+        for w in (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
+                  self.z_start, self.z_step, self.z_count, self.skew_a, self.skew_b):
+            w.valueChanged.connect(self._edited)
+        self.z_list.editingFinished.connect(self._edited)
+        self.stage_group.idToggled.connect(lambda _i, on: on and self._edited())
+        model.rigChanged.connect(self._show_rig)
+        model.sourceChanged.connect(self._show_source)
+        self._show_source()
+        self._show_rig()
+
+    # ---- model -> widgets ---------------------------------------------------
+    def _show_source(self) -> None:
+        s = self.model.session
+        self._loading = True
+        try:
+            {"simulated": self.src_sim, "folder": self.src_folder, "live": self.src_live}[s.source_kind].setChecked(True)
+            self.folder_edit.setText(str(s.dataset_folder) if s.dataset_folder and s.source_kind == "folder" else "")
+            i = self.preset.findData(s.preset_name)
+            if i >= 0:
+                self.preset.setCurrentIndex(i)
+            self.seed.setValue(s.seed)
+            self.off_x.setValue(s.sim_settings.offset_mm[0])
+            self.off_y.setValue(s.sim_settings.offset_mm[1])
+        finally:
+            self._loading = False
+        # A live capture describes its hardware here; its simulated camera uses the simulator settings.
+        sim = s.source_kind in ("simulated", "live")
+        self.sim_box.setEnabled(sim)
+        self.folder_edit.setEnabled(s.source_kind == "folder")
+        self.browse.setEnabled(s.source_kind == "folder")
+        # A dataset's rig is what its rig.toml says.
+        for w in self._rig_widgets():
+            w.setEnabled(sim)
+        self.template.setEnabled(sim)
+        self.load_button.setEnabled(sim)
+
+    def _rig_widgets(self):
+        return (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
+                self.stage_regular, self.stage_list, self.z_start, self.z_step, self.z_count, self.z_list,
+                self.skew_a, self.skew_b)
+
+    def _show_rig(self) -> None:
+        rig = self.model.session.rig
+        self._loading = True
+        try:
+            c, lcd, st = rig.camera, rig.lcd, rig.stage
+            self.cam_w.setValue(c.width)
+            self.cam_h.setValue(c.height)
+            self.cam_bits.setValue(c.bit_depth)
+            self.lcd_w.setValue(lcd.width)
+            self.lcd_h.setValue(lcd.height)
+            self.pitch_x.setValue(lcd.pitch_mm[0])
+            self.pitch_y.setValue(lcd.pitch_mm[1])
+            z = np.asarray(st.z_mm)
+            steps = np.diff(z)
+            regular = len(z) >= 2 and np.allclose(steps, steps[0], rtol=0, atol=1e-9)
+            self.z_list.setText(", ".join(f"{v:g}" for v in z))
+            if regular:
+                self.z_start.setValue(z[0])
+                self.z_step.setValue(steps[0])
+                self.z_count.setValue(len(z))
+            (self.stage_regular if regular else self.stage_list).setChecked(True)
+            self.skew_a.setValue(st.direction[0])
+            self.skew_b.setValue(st.direction[1])
+        finally:
+            self._loading = False
+        self._error = None
+        self._update_stage_summary()
+        self.update_complete()
+
+    def _update_stage_summary(self) -> None:
+        z = self.model.session.rig.stage.z_mm
+        self.stage_summary.setText(f"{len(z)} positions, z = {min(z):g} … {max(z):g} mm")
+
+    # ---- widgets -> model ---------------------------------------------------
+    def _source_toggled(self, idx: int, on: bool) -> None:
+        if self._loading or not on:
+            return
+        kind = ("simulated", "folder", "live")[idx]
+        folder = self.folder_edit.text().strip() or None
+        if kind == "folder" and folder:
+            self._import_folder(folder)
+        else:
+            self._error = None
+            self.model.set_source(kind, folder if kind == "folder" else None)
+            if kind == "simulated":
+                self._preset_chosen()
+        self._show_source()
+        self.update_complete()
+
+    def _browse(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Dataset folder (holding rig.toml)",
+                                                  self.folder_edit.text())
+        if folder:
+            self.folder_edit.setText(folder)
+            self._import_folder(folder)
+
+    def _folder_edited(self) -> None:
+        if self.src_folder.isChecked():
+            self._import_folder(self.folder_edit.text().strip())
+
+    def _import_folder(self, folder: str) -> None:
+        """Read the dataset's rig.toml; its rig replaces the form."""
+        if not folder:
+            self._error = "Choose the dataset folder to import."
+            self.update_complete()
+            return
+        try:
+            if not Path(folder).is_dir():
+                raise PtpError(f"{folder}: folder not found")
+            rig = load_rig(folder)
+        except PtpError as exc:
+            self.model.set_source("folder", Path(folder))
+            self._error = f"Cannot import this folder: {exc}"
+            self.update_complete()
+            return
+        self.model.set_source("folder", Path(folder))
+        self.model.set_rig(rig)
+        self._error = None
+        self._show_rig()
+        self._show_source()
+
+    def import_folder(self, folder) -> None:
+        """Choose 'Import a folder' with ``folder`` (as the user would)."""
+        self.folder_edit.setText(str(folder))
+        self.src_folder.setChecked(True)
+        self._import_folder(str(folder))
+
+    def _preset_chosen(self, *_):
+        if self._loading:
+            return
+        name = self.preset.currentData()
+        rig, settings = preset(name)
+        s = self.model.session
+        settings = replace(settings, offset_mm=(self.off_x.value(), self.off_y.value()))
+        # Keep the camera size the user chose; the rest of the rig is the preset's.
+        cam = Camera(self.cam_w.value(), self.cam_h.value(), rig.camera.bit_depth)
+        self.model.set_simulator(name, settings, self.seed.value())
+        self.model.set_rig(replace(rig, camera=cam))
+        self._show_rig()
+        del s
+
+    def _sim_edited(self, *_):
+        if self._loading:
+            return
+        s = self.model.session
+        settings = replace(s.sim_settings, offset_mm=(self.off_x.value(), self.off_y.value()))
+        self.model.set_simulator(s.preset_name, settings, self.seed.value())
+
+    def _template_chosen(self, *_):
+        path = self.template.currentData()
+        if path:
+            self._load_rig_file(path)
+
+    def _load_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Load rig.toml", "", "rig files (*.toml)")
+        if path:
+            self._load_rig_file(path)
+
+    def _load_rig_file(self, path) -> None:
+        try:
+            rig = load_rig(path)
+        except PtpError as exc:
+            self._error = str(exc)
+            self.update_complete()
+            return
+        self._error = None
+        self.model.set_rig(rig)
+        self._show_rig()
+
+    def _save_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save rig.toml", "rig.toml", "rig files (*.toml)")
+        if path:
+            save_rig(self.model.session.rig, path)
+
+    def form_rig(self) -> Rig:
+        """The rig the form describes, validated like a loaded rig.toml.
+
+        Raises
+        ------
+        ValueError
+            (ConfigError) naming the field at fault.
+        """
+        old = self.model.session.rig
+        if self.stage_regular.isChecked():
+            z = self.z_start.value() + self.z_step.value() * np.arange(self.z_count.value())
+            if self.z_step.value() == 0:
+                raise ValueError("stage step must not be 0")
+        else:
+            z = parse_numbers(self.z_list.text())
+        rig = replace(
+            old,
+            camera=Camera(self.cam_w.value(), self.cam_h.value(), self.cam_bits.value()),
+            lcd=Lcd(self.lcd_w.value(), self.lcd_h.value(), (self.pitch_x.value(), self.pitch_y.value())),
+            stage=Stage(tuple(float(v) for v in z), (self.skew_a.value(), self.skew_b.value(), 1.0)),
+        )
+        # The same validation as a rig.toml on disk, with the same messages.
+        return rig_from_toml(rig_to_toml(rig), "rig")
+
+    def _edited(self, *_):
+        if self._loading or not (self.src_sim.isChecked() or self.src_live.isChecked()):
+            return
+        try:
+            rig = self.form_rig()
+        except ValueError as exc:
+            self._error = str(exc)
+        else:
+            self._error = None
+            self.model.set_rig(rig)
+            self._update_stage_summary()
+        self.update_complete()
+
+    # ---- why can't I go on? -------------------------------------------------
+    def blocker(self) -> str | None:
+        s = self.model.session
+        if s.source_kind == "folder" and not s.dataset_folder:
+            return "Choose the dataset folder to import."
+        if self._error:
+            return self._error
+        return None

@@ -1,0 +1,284 @@
+"""The one session model every page of the wizard sees.
+
+:class:`Session` is a plain Python object (engine dataclasses and arrays, no
+Qt): the rig, the simulator settings or the dataset folder, the decoded
+samples, the LUT and the comparison. :class:`SessionModel` is a thin
+``QObject`` around it that performs every change and emits a signal for it, so
+views subscribe instead of polling.
+
+Changing something upstream drops what was computed from it: a new rig drops
+the samples, new samples drop the LUT and the comparison.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PySide6.QtCore import QObject, Signal
+
+from ptpcore.dataset import DatasetSource, SimulatedSource
+from ptpcore.rig import Camera, Rig
+from ptpcore.simulate import SimSettings, VirtualRig, preset
+
+__all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
+
+SOURCE_KINDS = ("simulated", "folder", "live")
+_DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
+
+
+@dataclass
+class PositionStatus:
+    """What the acquisition knows about one stage position.
+
+    ``state`` is ``pending``, ``running``, ``done`` or ``cancelled``;
+    ``counts`` maps 0 (valid) and every Reason flag to a pixel count.
+    """
+
+    index: int
+    z_mm: float
+    state: str = "pending"
+    valid_fraction: float | None = None
+    counts: dict = field(default_factory=dict)
+
+
+@dataclass
+class LiveSettings:
+    """The devices of a live capture, chosen on the Acquire page (``ptp_studio.live``).
+
+    ``camera``: ``sim`` (the virtual rig of the Rig page), ``opencv`` or
+    ``genicam``; ``camera_source``: the OpenCV index, file or URL, or the
+    GenTL producer (``.cti``); ``stage``: ``sim``, ``manual`` or ``serial``
+    (protocol from the ``capture.toml`` in ``config``); ``screen``: the LCD
+    window's screen index, ``None`` for the simulated display. The capture
+    folder is the session's ``dataset_folder``.
+    """
+
+    camera: str = "sim"
+    camera_source: str = "0"
+    exposure_us: float | None = None
+    stage: str = "sim"
+    config: Path | None = None
+    screen: int | None = None
+    settle_ms: float = 100.0
+    resume: bool = False
+    accept_exposure: bool = False
+
+
+@dataclass
+class Session:
+    """Everything one calibration session holds (plain data, no Qt).
+
+    Attributes
+    ----------
+    rig : Rig
+    source_kind : {"simulated", "folder", "live"}
+    preset_name : str
+        The simulator preset the settings came from.
+    sim_settings : SimSettings
+    seed : int
+    dataset_folder : Path or None
+        The ``ptp-dataset/1`` folder to import (``source_kind == "folder"``).
+    samples : SampleStack or None
+    positions : list of PositionStatus
+    decoded : dict int -> DecodedPosition
+        A small cache of fully decoded positions (phase maps).
+    lut : Lut or None
+    lut_positions : list of int or None
+        Positions the LUT was fitted on (None: all).
+    compare : object or None
+        The comparison result (``ptpcore.compare``).
+    truth : GroundTruth or None
+        Exact rays when the data are simulated.
+    exports : dict str -> Path
+    """
+
+    rig: Rig
+    sim_settings: SimSettings
+    preset_name: str = "realistic"
+    source_kind: str = "simulated"
+    seed: int = 0
+    dataset_folder: Path | None = None
+    samples: Any = None
+    positions: list = field(default_factory=list)
+    decoded: dict = field(default_factory=dict)
+    lut: Any = None
+    lut_positions: list | None = None
+    compare: Any = None
+    truth: Any = None
+    exports: dict = field(default_factory=dict)
+    live: LiveSettings = field(default_factory=LiveSettings)
+
+    @classmethod
+    def from_preset(cls, name: str = "realistic", camera: Camera | None = None) -> "Session":
+        rig, settings = preset(name)
+        if camera is not None:
+            rig = replace(rig, camera=camera)
+        return cls(rig=rig, sim_settings=settings, preset_name=name)
+
+    # ---- sources -------------------------------------------------------
+    def make_source(self):
+        """A frame source for the current choice.
+
+        Raises
+        ------
+        ptpcore.errors.PtpError
+            If the dataset folder is unusable.
+        """
+        if self.source_kind == "simulated":
+            return SimulatedSource(VirtualRig(self.rig, self.sim_settings, self.seed))
+        if self.source_kind == "folder":
+            if self.dataset_folder is None:
+                raise ValueError("no dataset folder chosen")
+            return DatasetSource(self.dataset_folder)
+        if self.source_kind == "live":
+            # What the live capture wrote (Acquire page); complete once its rig.toml is there.
+            if self.dataset_folder is None or not (Path(self.dataset_folder) / "rig.toml").is_file():
+                raise ValueError("nothing captured yet: run the live capture on the Acquire page")
+            return DatasetSource(self.dataset_folder)
+        raise ValueError(f"source {self.source_kind!r} is not available")
+
+    def describe_source(self) -> str:
+        if self.source_kind == "simulated":
+            c = self.rig.camera
+            return (f"simulated rig, preset '{self.preset_name}', seed {self.seed},"
+                    f" camera {c.width}x{c.height} {c.bit_depth}-bit")
+        if self.source_kind == "folder":
+            return f"dataset folder {self.dataset_folder}"
+        lv = self.live
+        screen = "simulated display" if lv.screen is None else f"LCD window on screen {lv.screen + 1}"
+        folder = self.dataset_folder or "(choose the capture folder below)"
+        return f"live capture into {folder}: {lv.camera} camera, {lv.stage} stage, {screen}"
+
+    def reset_positions(self) -> None:
+        self.positions = [PositionStatus(k, float(z)) for k, z in enumerate(self.rig.stage.z_mm)]
+
+    def cache_decoded(self, decoded) -> None:
+        self.decoded[decoded.index] = decoded
+        while len(self.decoded) > _DECODED_CACHE:
+            self.decoded.pop(next(iter(self.decoded)))
+
+
+class SessionModel(QObject):
+    """Qt wrapper of a :class:`Session`: every change goes through it and is signalled.
+
+    Signals
+    -------
+    rigChanged, sourceChanged, samplesChanged, positionsChanged, lutChanged, compareChanged
+    """
+
+    rigChanged = Signal()
+    sourceChanged = Signal()
+    samplesChanged = Signal()
+    positionsChanged = Signal()
+    decodedChanged = Signal(int)
+    lutChanged = Signal()
+    compareChanged = Signal()
+    exportsChanged = Signal()
+
+    def __init__(self, session: Session, parent: QObject | None = None):
+        super().__init__(parent)
+        self.session = session
+        # Bumped whenever the samples are dropped: a job that started under an
+        # older generation finishes into the void instead of overwriting newer state.
+        self.generation = 0
+
+    # Upstream changes drop what was computed from them.
+    def _drop_samples(self) -> None:
+        s = self.session
+        self.generation += 1
+        s.samples = None
+        s.truth = None
+        s.decoded.clear()
+        s.reset_positions()
+        self.samplesChanged.emit()
+        self.positionsChanged.emit()
+        self._drop_lut()
+        self._drop_compare()
+
+    def _drop_lut(self) -> None:
+        if self.session.lut is not None:
+            self.session.lut = None
+            self.session.lut_positions = None
+            self.lutChanged.emit()
+
+    def _drop_compare(self) -> None:
+        if self.session.compare is not None:
+            self.session.compare = None
+            self.compareChanged.emit()
+
+    def set_rig(self, rig: Rig) -> None:
+        if rig == self.session.rig:
+            return
+        self.session.rig = rig
+        self.rigChanged.emit()
+        self._drop_samples()
+
+    def set_simulator(self, preset_name: str, settings: SimSettings, seed: int) -> None:
+        s = self.session
+        if (preset_name, settings, seed) == (s.preset_name, s.sim_settings, s.seed):
+            return
+        s.preset_name, s.sim_settings, s.seed = preset_name, settings, int(seed)
+        self.sourceChanged.emit()
+        self._drop_samples()
+
+    def set_source(self, kind: str, folder: Path | None = None) -> None:
+        if kind not in SOURCE_KINDS:
+            raise ValueError(f"source must be one of {SOURCE_KINDS}, got {kind!r}")
+        s = self.session
+        folder = Path(folder) if folder else None
+        if (kind, folder) == (s.source_kind, s.dataset_folder):
+            return
+        s.source_kind, s.dataset_folder = kind, folder
+        self.sourceChanged.emit()
+        self._drop_samples()
+
+    def start_acquisition(self) -> None:
+        self._drop_samples()
+
+    def update_position(self, status: PositionStatus) -> None:
+        self.session.positions[status.index] = status
+        self.positionsChanged.emit()
+
+    def set_decoded(self, decoded) -> None:
+        self.session.cache_decoded(decoded)
+        self.decodedChanged.emit(decoded.index)
+
+    def set_samples(self, samples, truth=None) -> None:
+        self.session.samples = samples
+        self.session.truth = truth
+        self._drop_lut()
+        self._drop_compare()
+        self.samplesChanged.emit()
+
+    def set_lut(self, lut, positions=None) -> None:
+        self.session.lut = lut
+        self.session.lut_positions = None if positions is None else list(positions)
+        self.lutChanged.emit()
+
+    def set_compare(self, result) -> None:
+        self.session.compare = result
+        self.compareChanged.emit()
+
+    def add_export(self, what: str, path: Path) -> None:
+        self.session.exports[what] = Path(path)
+        self.exportsChanged.emit()
+
+
+def tour_session(width: int = 320, height: int = 240, positions: int = 11,
+                 view_offset_mm=(75.0, 35.0), preset_name: str = "realistic") -> Session:
+    """A small simulated session whose view includes a corner of the LCD.
+
+    With the view offset the camera sees the LCD's corner and bezel, so the
+    validity masks show every kind of rejection, not only valid pixels.
+    """
+    s = Session.from_preset(preset_name)
+    s.rig = replace(s.rig, camera=Camera(width, height, s.rig.camera.bit_depth))
+    if positions != s.rig.stage.n_positions:
+        z = s.rig.stage.z_mm
+        s.rig = s.rig.with_z(np.linspace(min(z), max(z), positions))
+    s.sim_settings = replace(s.sim_settings, offset_mm=tuple(float(v) for v in view_offset_mm))
+    s.reset_positions()
+    return s

@@ -1,0 +1,1 @@
+"""Reusable widgets: map and heatmap views, the job panel."""

@@ -1,0 +1,335 @@
+"""Image and heatmap views over per-pixel maps (pyqtgraph).
+
+Every map is an ``(H, W)`` array indexed ``[row, col]`` (pyqtgraph runs in
+row-major mode) drawn so that view coordinates are camera pixel coordinates
+with pixel centres at integers (METHOD.md section 2). Large maps stay fluid:
+``ImageItem(autoDownsample=True)``, colour levels computed once with numpy on
+a subsample (:func:`ptpcore.views.robust_levels`), histograms likewise; no
+per-pixel Python anywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import QPointF, QRectF, Qt, Signal
+from PySide6.QtWidgets import QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
+from scipy import ndimage
+
+from ptpcore import views
+
+__all__ = ["MapView", "HeatmapPanel", "line_profile", "colormap"]
+
+PEN = "#3a3f44"
+
+# Every map in PTP Studio is indexed [row, col] (METHOD.md section 2).
+pg.setConfigOptions(imageAxisOrder="row-major")
+
+
+def colormap(name: str) -> pg.ColorMap:
+    """A named pyqtgraph colour map (bundled; no network)."""
+    return pg.colormap.get(name)
+
+
+def line_profile(data: np.ndarray, p0, p1) -> tuple[np.ndarray, np.ndarray]:
+    """Values along a segment, one sample per pixel of length (nearest pixel).
+
+    Parameters
+    ----------
+    data : (H, W) array
+    p0, p1 : (x, y) = (col, row) camera pixel coordinates
+
+    Returns
+    -------
+    distance : (n,) float64, camera px from ``p0``
+    values : (n,) float64 (NaN outside the map)
+    """
+    (x0, y0), (x1, y1) = p0, p1
+    length = math.hypot(x1 - x0, y1 - y0)
+    n = max(2, int(math.ceil(length)) + 1)
+    t = np.linspace(0.0, 1.0, n)
+    cols = x0 + t * (x1 - x0)
+    rows = y0 + t * (y1 - y0)
+    vals = ndimage.map_coordinates(np.asarray(data, dtype=np.float64), [rows, cols], order=0,
+                                   mode="constant", cval=np.nan)
+    return t * length, vals
+
+
+class MapView(pg.GraphicsLayoutWidget):
+    """One ``(H, W)`` map with an optional colour bar, overlay, cursor readout and pixel picking.
+
+    Signals
+    -------
+    hovered(int, int)
+        Camera pixel (row, col) under the cursor, (-1, -1) when outside.
+    pixelClicked(int, int)
+        Camera pixel (row, col) clicked.
+    """
+
+    hovered = Signal(int, int)
+    pixelClicked = Signal(int, int)
+
+    def __init__(self, parent: QWidget | None = None, colour_bar: bool = True, title: str = ""):
+        super().__init__(parent)
+        self.setMinimumSize(260, 200)
+        self.plot = self.addPlot(row=0, col=0, title=title or None)
+        self.plot.setAspectLocked(True)
+        self.plot.invertY(True)
+        self.plot.setLabel("bottom", "column", units="px")
+        self.plot.setLabel("left", "row", units="px")
+        self.plot.showGrid(False, False)
+        self.image = pg.ImageItem(autoDownsample=True)
+        self.plot.addItem(self.image)
+        self.overlay = pg.ImageItem(autoDownsample=True)
+        self.overlay.setZValue(5)
+        self.plot.addItem(self.overlay)
+        self.marker = pg.ScatterPlotItem(size=14, symbol="+", pen=pg.mkPen("#e8333a", width=2), brush=None)
+        self.marker.setZValue(10)
+        self.plot.addItem(self.marker)
+        self.bar: pg.ColorBarItem | None = None
+        if colour_bar:
+            self.bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=colormap("viridis"), width=16,
+                                       interactive=True, pen=PEN, colorMapMenu=False)
+            self.bar.setImageItem(self.image, insert_in=self.plot)
+        self.data: np.ndarray | None = None
+        self._shape: tuple[int, int] | None = None
+        self.scene().sigMouseMoved.connect(self._on_moved)
+        self.scene().sigMouseClicked.connect(self._on_clicked)
+
+    # ---- content ----------------------------------------------------------
+    def set_map(self, data: np.ndarray, levels: tuple[float, float] | None = None,
+                cmap: pg.ColorMap | str | None = None, label: str | None = None,
+                keep_view: bool = True) -> tuple[float, float]:
+        """Show a scalar map; returns the colour levels used.
+
+        ``levels`` default to the 1st-99th percentiles of a subsample.
+        """
+        data = np.asarray(data)
+        if data.ndim != 2:
+            raise ValueError(f"a map must be (H, W), got shape {data.shape}")
+        if levels is None:
+            levels = views.robust_levels(data)
+        self.data = data
+        if isinstance(cmap, str):
+            cmap = colormap(cmap)
+        if self.bar is not None:
+            if cmap is not None:
+                self.bar.setColorMap(cmap)
+            lo, hi = levels
+            self.bar.rounding = max((hi - lo) / 1000.0, 1e-12)
+            self.bar.setLevels(levels)
+            if label is not None:
+                self.bar.axis.setLabel(label)
+        elif cmap is not None:
+            self.image.setColorMap(cmap)
+        self.image.setImage(data, levels=levels, autoLevels=False)
+        self._place(data.shape, keep_view)
+        return levels
+
+    def set_rgba(self, rgba: np.ndarray, keep_view: bool = True) -> None:
+        """Show an (H, W, 4) uint8 image as it is (no colour bar)."""
+        self.data = None
+        self.image.setImage(rgba, autoLevels=False, levels=(0, 255))
+        self._place(rgba.shape[:2], keep_view)
+
+    def set_overlay(self, rgba: np.ndarray | None) -> None:
+        """An (H, W, 4) uint8 overlay on top of the map (None clears it)."""
+        if rgba is None:
+            self.overlay.clear()
+            return
+        self.overlay.setImage(rgba, autoLevels=False, levels=(0, 255))
+        self.overlay.setRect(QRectF(-0.5, -0.5, rgba.shape[1], rgba.shape[0]))
+
+    def _place(self, shape, keep_view: bool) -> None:
+        h, w = shape[:2]
+        self.image.setRect(QRectF(-0.5, -0.5, w, h))
+        if self._shape != (h, w) or not keep_view:
+            self._shape = (h, w)
+            self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
+
+    def set_marker(self, row: int | None, col: int | None) -> None:
+        if row is None:
+            self.marker.setData([], [])
+        else:
+            self.marker.setData([col], [row])
+
+    @property
+    def levels(self) -> tuple[float, float]:
+        lv = self.image.getLevels()
+        return (float(lv[0]), float(lv[1])) if lv is not None else (0.0, 1.0)
+
+    # ---- mouse ------------------------------------------------------------
+    def pixel_at(self, scene_pos) -> tuple[int, int] | None:
+        if self._shape is None or not self.plot.sceneBoundingRect().contains(scene_pos):
+            return None
+        p = self.plot.vb.mapSceneToView(scene_pos)
+        col, row = int(math.floor(p.x() + 0.5)), int(math.floor(p.y() + 0.5))
+        h, w = self._shape
+        if 0 <= row < h and 0 <= col < w:
+            return row, col
+        return None
+
+    def _on_moved(self, pos) -> None:
+        px = self.pixel_at(pos)
+        self.hovered.emit(*(px if px else (-1, -1)))
+
+    def _on_clicked(self, ev) -> None:
+        if ev.button() != Qt.LeftButton:
+            return
+        px = self.pixel_at(ev.scenePos())
+        if px is not None:
+            self.pixelClicked.emit(*px)
+
+    def scene_pos_of(self, row: float, col: float) -> QPointF:
+        """Scene position of a pixel centre (for tests and the tour)."""
+        return self.plot.vb.mapViewToScene(QPointF(col, row))
+
+
+class HeatmapPanel(QWidget):
+    """A heatmap with its colour bar, its histogram and a value-under-cursor line.
+
+    The histogram is drawn from the same numbers as the image (a subsample
+    of at most two million pixels), with the colour levels marked on it.
+    """
+
+    pixelClicked = Signal(int, int)
+
+    def __init__(self, parent: QWidget | None = None, histogram: bool = True):
+        super().__init__(parent)
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.setSpacing(4)
+        self.title = QLabel()
+        self.title.setObjectName("panelTitle")
+        lay.addWidget(self.title)
+        self.view = MapView(self)
+        lay.addWidget(self.view, 4)
+        self.hist: pg.PlotWidget | None = None
+        if histogram:
+            self.hist = pg.PlotWidget(self)
+            self.hist.setMinimumHeight(110)
+            self.hist.setMaximumHeight(170)
+            self.hist.setSizePolicy(QSizePolicy.Expanding, QSizePolicy.Preferred)
+            self.hist.setMouseEnabled(x=False, y=False)
+            self.hist.hideButtons()
+            self.hist.setLabel("left", "pixels")
+            self.hist_curve = pg.PlotDataItem(stepMode="center", fillLevel=0, pen=pg.mkPen("#2b6cb0"),
+                                              brush=pg.mkBrush(43, 108, 176, 90))
+            self.hist.addItem(self.hist_curve)
+            self.lo_line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#e8333a", style=Qt.DashLine))
+            self.hi_line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#e8333a", style=Qt.DashLine))
+            self.hist.addItem(self.lo_line)
+            self.hist.addItem(self.hi_line)
+            lay.addWidget(self.hist, 1)
+            if self.view.bar is not None:
+                self.view.bar.sigLevelsChanged.connect(self._levels_moved)
+        self.readout = QLabel("move the cursor over the map")
+        self.readout.setObjectName("readout")
+        self.readout.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        lay.addWidget(self.readout)
+        self.unit = ""
+        self.scale = 1.0
+        self.value_text: Callable[[int, int], str] | None = None
+        self.view.hovered.connect(self._hovered)
+        self.view.pixelClicked.connect(self.pixelClicked)
+        self.hist_edges = np.zeros(0)
+        self.hist_counts = np.zeros(0)
+
+    def set_map(self, data: np.ndarray, *, title: str, unit: str = "", cmap: str = "viridis",
+                levels: tuple[float, float] | None = None, integer: bool = False,
+                value_text: Callable[[int, int], str] | None = None) -> None:
+        """Show ``data`` (already in display units: µm, px, counts).
+
+        Parameters
+        ----------
+        data : (H, W) array
+        title : str
+        unit : str
+            Shown on the colour bar, histogram axis and readout.
+        cmap : str
+        levels : (lo, hi), optional
+            Default: 1st-99th percentile of a subsample; integer maps use min-max.
+        integer : bool
+            Integer-valued map (counts): one histogram bin per value.
+        value_text : callable (row, col) -> str, optional
+            Custom readout text.
+        """
+        self.unit = unit
+        self.value_text = value_text
+        self.title.setText(title)
+        if levels is None and integer:
+            sub = views.subsample(data)
+            finite = sub[np.isfinite(sub)] if sub.dtype.kind == "f" else sub
+            lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+            levels = (lo - 0.5, hi + 0.5)
+        used = self.view.set_map(data, levels=levels, cmap=cmap, label=unit)
+        if self.hist is not None:
+            if integer:
+                lo, hi = used
+                bins = int(max(1, min(round(hi - lo), 200)))
+                edges, counts = views.histogram(data, (lo, hi), bins=bins)
+            else:
+                edges, counts = views.histogram(data)
+            self.hist_edges, self.hist_counts = edges, counts
+            self.hist_curve.setData(edges, counts)
+            self.hist.setLabel("bottom", unit or "value")
+            self._levels_moved()
+
+    def _levels_moved(self, *_):
+        if self.hist is None:
+            return
+        lo, hi = self.view.levels
+        self.lo_line.setValue(lo)
+        self.hi_line.setValue(hi)
+
+    def _hovered(self, row: int, col: int) -> None:
+        if row < 0:
+            return
+        if self.value_text is not None:
+            text = self.value_text(row, col)
+        else:
+            v = self.view.data[row, col] if self.view.data is not None else np.nan
+            text = f"{v:.4g} {self.unit}".strip() if np.isfinite(v) else "no value (invalid pixel)"
+        self.readout.setText(f"row {row}, col {col}: {text}")
+
+
+class Legend(QWidget):
+    """Colour swatches with labels, one row each (rows are reused, never re-created)."""
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self._lay = QVBoxLayout(self)
+        self._lay.setContentsMargins(0, 0, 0, 0)
+        self._lay.setSpacing(2)
+        self.entries: list[tuple[str, tuple[int, int, int, int]]] = []
+        self._rows: list[tuple[QWidget, QLabel, QLabel]] = []
+
+    def set_entries(self, entries: list[tuple[str, tuple[int, int, int, int], str]]) -> None:
+        """``entries``: (name, rgba, extra text) per row."""
+        while len(self._rows) < len(entries):
+            row = QWidget(self)
+            h = QHBoxLayout(row)
+            h.setContentsMargins(0, 0, 0, 0)
+            sw = QLabel(row)
+            sw.setFixedSize(14, 14)
+            text = QLabel(row)
+            h.addWidget(sw)
+            h.addWidget(text, 1)
+            self._lay.addWidget(row)
+            self._rows.append((row, sw, text))
+        self.entries = [(name, rgba) for name, rgba, _ in entries]
+        for i, (row, sw, text) in enumerate(self._rows):
+            row.setVisible(i < len(entries))
+            if i >= len(entries):
+                continue
+            name, rgba, extra = entries[i]
+            sw.setStyleSheet(f"background: rgba({rgba[0]},{rgba[1]},{rgba[2]},{rgba[3]});"
+                             " border: 1px solid #555;")
+            text.setText(f"{name}  <span style='color:#666'>{extra}</span>" if extra else name)
+
+    def texts(self) -> list[str]:
+        """The names shown, in order (tests)."""
+        return [name for name, _ in self.entries]

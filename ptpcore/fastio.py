@@ -1,0 +1,282 @@
+"""Fast paths for big sensors: direct image reads, and sample stacks on disk.
+
+Two things that decide whether a 5-12 megapixel calibration is limited by
+reading its images and fits a laptop's memory:
+
+- :func:`read_into`: an uncompressed, single-channel TIFF (what machine-vision
+  cameras save) is read with one ``readinto`` straight into a caller's
+  preallocated array, about ten times less CPU than a general decoder. Any
+  other file (PNG, compressed or multi-channel TIFF, odd layouts, wrong size
+  or depth) is declined, and the caller reads it with the full reader, which
+  also gives the proper error message.
+- :class:`SpillStore`: the per-position ``(K, H, W)`` sample arrays written to
+  a temporary file one position at a time, read back in pixel blocks for
+  fitting, and exposed as ``numpy.memmap`` for everything else. Peak memory
+  then no longer grows with the number of positions; the samples live in the
+  file (and in the operating system's page cache while memory is free).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+import threading
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["read_into", "tiff_layout", "SpillStore", "read_block"]
+
+_TYPE_SIZE = {3: 2, 4: 4, 16: 8}
+_TYPE_CODE = {3: "H", 4: "I", 16: "Q"}
+
+
+def tiff_layout(read, size: int):
+    """Strip layout of a plain TIFF, or None.
+
+    Parameters
+    ----------
+    read : callable
+        ``read(offset, n) -> bytes`` of the file (the IFD may be anywhere,
+        libtiff writes it after the pixels).
+    size : int
+        The file's size in bytes.
+
+    Returns
+    -------
+    (width, height, bits, byteorder, [(file offset, nbytes), ...]) or None
+        None unless: classic TIFF, uncompressed, one sample per pixel, 8 or 16
+        bits unsigned, black-is-zero, top-left orientation, strips (not
+        tiles) that hold exactly the image rows, all inside the file.
+    """
+    head = read(0, 8)
+    if len(head) < 8 or head[:4] not in (b"II*\x00", b"MM\x00*"):
+        return None
+    bo = "<" if head[:2] == b"II" else ">"
+    (ifd,) = struct.unpack(bo + "I", head[4:8])
+    if ifd + 2 > size:
+        return None
+    (n,) = struct.unpack(bo + "H", read(ifd, 2))
+    entries = read(ifd + 2, 12 * n)
+    if len(entries) < 12 * n:
+        return None
+    tags: dict[int, tuple[int, ...]] = {}
+    for i in range(n):
+        tag, typ, count, value = struct.unpack(bo + "HHI4s", entries[12 * i:12 * i + 12])
+        if typ not in _TYPE_SIZE or count == 0 or count > 1_000_000:
+            continue
+        nbytes = _TYPE_SIZE[typ] * count
+        if nbytes <= 4:
+            data = value[:nbytes]
+        else:
+            (off,) = struct.unpack(bo + "I", value)
+            if off + nbytes > size:
+                return None
+            data = read(off, nbytes)
+            if len(data) < nbytes:
+                return None
+        tags[tag] = struct.unpack(f"{bo}{count}{_TYPE_CODE[typ]}", data)
+    try:
+        w, h = tags[256][0], tags[257][0]
+        offsets, counts = tags[273], tags[279]
+    except KeyError:
+        return None
+    bits = tags.get(258, (1,))
+    if (tags.get(259, (1,))[0] != 1 or tags.get(277, (1,))[0] != 1 or len(bits) != 1
+            or bits[0] not in (8, 16) or tags.get(339, (1,))[0] != 1 or tags.get(262, (1,))[0] != 1
+            or tags.get(274, (1,))[0] != 1 or 322 in tags or len(offsets) != len(counts)):
+        return None
+    row_bytes = w * bits[0] // 8
+    rps = min(tags.get(278, (h,))[0], h)
+    if rps < 1 or len(offsets) != -(-h // rps):
+        return None
+    runs = []
+    for i, (off, cnt) in enumerate(zip(offsets, counts)):
+        need = min(rps, h - i * rps) * row_bytes
+        if cnt < need or off + need > size:
+            return None
+        if runs and runs[-1][0] + runs[-1][1] == off:
+            runs[-1] = (runs[-1][0], runs[-1][1] + need)  # contiguous strips: one read
+        else:
+            runs.append((off, need))
+    return w, h, bits[0], bo, runs
+
+
+def read_into(path, out: np.ndarray) -> bool:
+    """Read a plain uncompressed TIFF straight into ``out``; False if declined.
+
+    Parameters
+    ----------
+    path : path
+    out : (H, W) uint8 or uint16, C-contiguous
+        Filled only if True is returned (partially on a short read, then
+        declined: read the file with the full reader).
+
+    Returns
+    -------
+    bool
+        True when the file is a TIFF of exactly ``out``'s size and depth in
+        the layout :func:`tiff_layout` accepts, and was read completely.
+    """
+    if out.ndim != 2 or out.dtype not in (np.uint8, np.uint16) or not out.flags.c_contiguous:
+        return False
+    try:
+        with open(path, "rb", buffering=0) as fh:
+            size = os.fstat(fh.fileno()).st_size
+
+            def read(offset: int, n: int) -> bytes:
+                fh.seek(offset)
+                return fh.read(n)
+
+            layout = tiff_layout(read, size)
+            if layout is None:
+                return False
+            w, h, bits, bo, runs = layout
+            if (h, w) != out.shape or bits != 8 * out.itemsize:
+                return False
+            buf = memoryview(out.reshape(-1).view(np.uint8))
+            pos = 0
+            for off, nbytes in runs:
+                fh.seek(off)
+                got = 0
+                while got < nbytes:
+                    n = fh.readinto(buf[pos + got:pos + nbytes])
+                    if not n:
+                        return False
+                    got += n
+                pos += nbytes
+    except (OSError, struct.error):
+        return False
+    if bits == 16 and (bo == "<") != np.little_endian:
+        out.byteswap(inplace=True)
+    return True
+
+
+# --------------------------------------------------------------------------- spill
+
+
+class SpillStore:
+    """``(K, H, W)`` arrays in one temporary file, written a position at a time.
+
+    Parameters
+    ----------
+    k : int
+        Positions.
+    shape : (H, W)
+    fields : dict of str -> dtype
+        E.g. ``{"x": float32, "y": float32, "reasons": uint8}``.
+    fill : dict of str -> scalar
+        Value of positions never written (e.g. NaN, 0xFF).
+    directory : path, optional
+        Where the file goes (default: the system's temporary folder, or
+        ``PTP_SPILL_DIR``). The file is removed when the store and every array
+        from :meth:`arrays` are gone (at the latest when Python exits).
+    """
+
+    def __init__(self, k: int, shape, fields: dict, fill: dict, directory=None):
+        self.k = int(k)
+        self.shape = tuple(int(s) for s in shape)
+        self.pixels = int(np.prod(self.shape))
+        directory = directory or os.environ.get("PTP_SPILL_DIR") or None
+        fd, name = tempfile.mkstemp(prefix="ptp-samples-", suffix=".tmp", dir=directory)
+        self.path = Path(name)
+        self._fh = os.fdopen(fd, "r+b", buffering=0)
+        self._lock = threading.Lock()
+        self.layout: dict[str, tuple[np.dtype, int]] = {}
+        offset = 0
+        for name_, dt in fields.items():
+            dt = np.dtype(dt)
+            self.layout[name_] = (dt, offset)
+            offset += self.k * self.pixels * dt.itemsize
+        self.nbytes = offset
+        self._fh.truncate(offset)
+        self._written = set()
+        self._fill = dict(fill)
+        self._finalizer = weakref.finalize(self, SpillStore._remove, self._fh, self.path)
+
+    @staticmethod
+    def _remove(fh, path: Path) -> None:
+        try:
+            fh.close()
+        finally:
+            try:
+                path.unlink()
+            except OSError:  # pragma: no cover - still mapped (Windows): the OS temp cleaner takes it
+                pass
+
+    def _offset(self, name: str, k: int, start: int = 0) -> int:
+        dt, base = self.layout[name]
+        return base + (k * self.pixels + start) * dt.itemsize
+
+    def write(self, name: str, k: int, array: np.ndarray) -> None:
+        """Store position ``k`` of field ``name`` (an ``(H, W)`` array of its dtype)."""
+        dt, _ = self.layout[name]
+        a = np.ascontiguousarray(array, dtype=dt)
+        if a.shape != self.shape:
+            raise ValueError(f"{name}[{k}] has shape {a.shape}, expected {self.shape}")
+        with self._lock:
+            self._fh.seek(self._offset(name, k))
+            self._fh.write(memoryview(a.reshape(-1).view(np.uint8)))
+        self._written.add((name, k))
+
+    def finish(self) -> None:
+        """Fill every position never written with its field's fill value."""
+        for name, (dt, _) in self.layout.items():
+            blank = None
+            for k in range(self.k):
+                if (name, k) not in self._written:
+                    if blank is None:
+                        blank = np.full(self.shape, self._fill.get(name, 0), dt)
+                    self.write(name, k, blank)
+
+    def read(self, name: str, start: int, stop: int, positions=None) -> np.ndarray:
+        """Pixels ``[start, stop)`` (flat index) of every position: ``(K', stop - start)``.
+
+        Read with plain file reads (never through the memory map), so fitting
+        a big stack block by block keeps the process small.
+        """
+        dt, _ = self.layout[name]
+        ks = range(self.k) if positions is None else [int(p) for p in positions]
+        out = np.empty((len(ks), stop - start), dt)
+        raw = out.view(np.uint8)
+        with self._lock:
+            for i, k in enumerate(ks):
+                self._fh.seek(self._offset(name, k, start))
+                view = memoryview(raw[i])
+                got = 0
+                while got < len(view):
+                    n = self._fh.readinto(view[got:])
+                    if not n:
+                        raise OSError(f"{self.path}: spill file cut short")
+                    got += n
+        return out
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every field as a writable ``(K, H, W)`` ``numpy.memmap`` of the file."""
+        out = {}
+        for name, (dt, base) in self.layout.items():
+            mm = np.memmap(self.path, dtype=dt, mode="r+", offset=base, shape=(self.k, *self.shape))
+            mm._ptp_store = self  # the store (and so its file) lives as long as any of its maps
+            _SPILLED[id(mm)] = (weakref.ref(mm), self, name)
+            weakref.finalize(mm, _SPILLED.pop, id(mm), None)
+            out[name] = mm
+        return out
+
+
+_SPILLED: dict[int, tuple] = {}
+
+
+def read_block(array: np.ndarray, start: int, stop: int, positions=None) -> np.ndarray:
+    """Pixels ``[start, stop)`` (flat) of every position of a ``(K, H, W)`` array: ``(K', n)``.
+
+    An array from :meth:`SpillStore.arrays` is read with file reads (its pages
+    are not mapped into the process); anything else is sliced (a view where
+    possible).
+    """
+    entry = _SPILLED.get(id(array))
+    if entry is not None and entry[0]() is array:
+        return entry[1].read(entry[2], start, stop, positions)
+    flat = array.reshape(array.shape[0], -1)
+    return flat[:, start:stop] if positions is None else flat[np.asarray(positions), start:stop]

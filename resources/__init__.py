@@ -1,0 +1,1 @@
+"""Resources of PTP Studio (icons, default rigs, the stylesheet); installed as ``ptp_studio.resources``."""

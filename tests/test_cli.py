@@ -1,0 +1,63 @@
+"""The ptp command line: a new user's path and one-line errors."""
+
+import subprocess
+import sys
+
+import numpy as np
+
+from ptpcore.cli import main
+from ptpcore.lut import load_lut
+
+
+def test_simulate_calibrate_inspect(tmp_path, capsys):
+    data = tmp_path / "data"
+    assert main(["simulate", str(data), "--preset", "realistic", "--width", "80", "--positions", "4", "-q"]) == 0
+    out = tmp_path / "cal.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(out), "--model", "poly", "--degree", "1", "-q"]) == 0
+    lut = load_lut(out)
+    assert lut.kind == "poly" and lut.degree == 1 and lut.shape == (60, 80)
+    assert lut.valid.mean() > 0.5
+    assert main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "valid pixels" in text and "leave-one-out RMS X" in text
+    assert main(["calibrate", str(data), "--out", str(tmp_path / "t.lut.h5"), "--model", "pchip", "-q"]) == 0
+    assert np.isfinite(load_lut(tmp_path / "t.lut.h5").evaluate(1.0).x).any()
+
+
+def test_calibrate_smooth_and_inspect(tmp_path, capsys):
+    """`--model smooth` writes poly coefficients (scanners read it unchanged) plus predicted sigma maps."""
+    data = tmp_path / "data"
+    assert main(["simulate", str(data), "--preset", "rough", "--width", "80", "--positions", "5", "-q"]) == 0
+    out = tmp_path / "smooth.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(out), "--model", "smooth", "--degree", "1", "-q"]) == 0
+    lut = load_lut(out)
+    assert lut.kind == "poly" and lut.degree == 1 and lut.extra_attrs["method"] == "smooth"
+    scale = float(lut.extra_attrs["smoothing_scale_px"])
+    assert lut.sigma_x is not None and np.all(np.isfinite(lut.sigma_x[lut.valid]))
+    capsys.readouterr()
+    assert main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"smooth, poly degree 1, smoothing scale {scale:g} px" in text or "not smoothed" in text
+    assert "predicted sigma X" in text and "predicted sigma Y" in text
+    # a plain poly LUT gets its sigma maps too
+    plain = tmp_path / "plain.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(plain), "--degree", "1", "-q"]) == 0
+    assert load_lut(plain).sigma_x is not None and "method" not in load_lut(plain).extra_attrs
+    assert "predicted sigma X" in capsys.readouterr().out
+
+
+def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "ptpcore.cli", "calibrate", str(tmp_path / "nope"), "--out",
+                           str(tmp_path / "x.lut.h5")], capture_output=True, text=True)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "nope" in lines[0] and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "ptpcore.cli", "inspect", str(tmp_path / "missing.lut.h5")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "missing.lut.h5" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_help_everywhere():
+    for cmd in (["--help"], ["simulate", "--help"], ["calibrate", "--help"], ["inspect", "--help"], ["demo", "--help"]):
+        proc = subprocess.run([sys.executable, "-m", "ptpcore.cli", *cmd], capture_output=True, text=True)
+        assert proc.returncode == 0 and "usage: ptp" in proc.stdout

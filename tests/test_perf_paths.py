@@ -1,0 +1,301 @@
+"""The fast paths (docs/performance.md) give the reference results.
+
+Tiled, threaded N-step sums, unwrapping, classification, LUT fitting and
+evaluation, direct TIFF reads and spilled sample stacks, each against a plain
+reference: the straightforward implementation kept here, the frame-by-frame
+:class:`PhaseAccumulator`, OpenCV's reader, or the in-memory stack. Images are
+wide enough (4096 px: 8 rows per tile) that every path crosses tile borders.
+"""
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from ptpcore.dataset import DatasetSource, SimulatedSource
+from ptpcore.fastio import SpillStore, read_block, read_into
+from ptpcore.lut import SampleStack, _horner, fit_lut
+from ptpcore.phase import (DecodeOptions, PhaseAccumulator, Reason, _nstep_chain, decode_direction,
+                           finish_position, row_tiles, run_tiles, unwrap_hierarchical, wrapped_phase)
+from ptpcore.pipeline import collect_samples, decode_position
+from ptpcore.rig import save_rig
+from ptpcore.simulate import VirtualRig, scaled_preset
+
+
+def _stack(rng, n, shape, dtype, level=255):
+    phi = rng.uniform(-np.pi, np.pi, shape)
+    a = rng.uniform(0.3, 0.6, shape) * level
+    b = rng.uniform(0.05, 0.3, shape) * level
+    f = np.stack([a + b * np.cos(phi + 2 * np.pi * k / n) + rng.normal(0, 0.01 * level, shape) for k in range(n)])
+    if np.dtype(dtype).kind == "u":
+        f = np.clip(np.rint(f), 0, level).astype(dtype)
+    return f.astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float64])
+@pytest.mark.parametrize("n", [3, 4, 5, 8])
+def test_tiled_nstep_equals_the_frame_by_frame_accumulator(dtype, n):
+    rng = np.random.default_rng(n)
+    level = 4095 if dtype == np.uint16 else 255
+    frames = _stack(rng, n, (40, 4096), dtype, level)
+    assert len(row_tiles(40, 4096)) > 1
+    acc = PhaseAccumulator(frames.shape[1:], n, level * 0.99)
+    for k in range(n):
+        acc.add(frames[k], k)
+    ref = acc.result()
+    got = wrapped_phase(frames, level * 0.99)
+    dphi = np.angle(np.exp(1j * (got.phase.astype(float) - ref.phase)))
+    assert np.max(np.abs(dphi)) < 1e-5  # float32 rounding of the sums (|S|, |C| ~ 100 levels)
+    np.testing.assert_allclose(got.modulation, ref.modulation, rtol=1e-5, atol=1e-4 * level / 255)
+    np.testing.assert_array_equal(got.background, ref.background)
+    np.testing.assert_array_equal(got.saturated, ref.saturated)
+    if n > 3:
+        # The residual variance, against float64 arithmetic on the frames as both
+        # implementations see them (float32 samples).
+        f64 = frames.astype(np.float32).astype(np.float64)
+        a = f64.mean(axis=0)
+        d = 2 * np.pi * np.arange(n) / n
+        s = np.tensordot(np.sin(d), f64, 1)
+        c = np.tensordot(np.cos(d), f64, 1)
+        b = 2 / n * np.hypot(s, c)
+        fit = a + b * np.cos(np.arctan2(-s, c)[None] + d[:, None, None])
+        exact = ((f64 - fit) ** 2).sum(axis=0) / (n - 3)
+        scale = (0.01 * level) ** 2
+        # Integer frames: the sums of I and I^2 are exact; float frames: float32 sums.
+        tol = 1e-3 if np.dtype(dtype).kind == "u" else 1e-2
+        assert np.max(np.abs(got.residual_var - exact)) < tol * scale + 2e-4 * exact.max()
+        assert np.max(np.abs(ref.residual_var - exact)) < 2e-2 * scale + 1e-3 * exact.max()
+    else:
+        assert got.residual_var is None and ref.residual_var is None
+    lean = wrapped_phase(frames, level * 0.99, photometry=False)
+    np.testing.assert_array_equal(lean.phase, got.phase)
+    assert lean.background is None and lean.residual_var is None
+
+
+@pytest.mark.parametrize("n", [3, 4, 6, 8, 12, 16])
+def test_accumulate_weighted_chain_makes_the_weighted_sums(n):
+    d = 2 * np.pi * np.arange(n) / n
+    for kind, wts in (("s", -np.sin(d)), ("c", np.cos(d))):
+        steps, lam = _nstep_chain(n, kind)
+        coef = np.zeros(n)
+        for i, alpha in steps:  # the chain on unit impulses, in float64
+            coef *= 1 - alpha
+            coef[i] += alpha
+        np.testing.assert_allclose(coef / lam, wts, atol=1e-12)
+
+
+def _unwrap_reference(phases, periods):
+    two_pi = 2.0 * np.pi
+    unwrapped = np.mod(np.asarray(phases[0], dtype=np.float64), two_pi)
+    dis = np.zeros(unwrapped.shape, bool)
+    for j in range(1, len(periods)):
+        predicted = unwrapped * (periods[j - 1] / periods[j])
+        phi = np.asarray(phases[j], dtype=np.float64)
+        order = np.rint((predicted - phi) / two_pi)
+        unwrapped = phi + two_pi * order
+        dis |= np.abs(unwrapped - predicted) > (np.pi / 2)
+    return unwrapped * (periods[-1] / two_pi), dis
+
+
+def test_tiled_unwrapping_equals_the_reference_exactly():
+    rng = np.random.default_rng(0)
+    periods = [4096, 256, 16]
+    u = np.linspace(0, 4000, 4096)[None, :] + rng.uniform(0, 50, (40, 1))
+    phases = [np.angle(np.exp(2j * np.pi * u / t) * np.exp(1j * rng.normal(0, 0.3, u.shape))).astype(np.float32)
+              for t in periods]
+    coord, dis = unwrap_hierarchical(phases, periods)
+    rc, rd = _unwrap_reference(phases, periods)
+    np.testing.assert_array_equal(coord, rc)
+    np.testing.assert_array_equal(dis, rd)
+    assert dis.any() and not dis.all()
+    # Phases outside [-2pi, 2pi) take np.mod itself.
+    shifted = [phases[0] + np.float32(7.0)] + phases[1:]
+    np.testing.assert_array_equal(unwrap_hierarchical(shifted, periods)[0], _unwrap_reference(shifted, periods)[0])
+
+
+def _finish_reference(rig, decoded, options=DecodeOptions()):
+    shape = rig.camera.shape
+    reasons = np.zeros(shape, np.uint8)
+    min_mod = options.min_modulation * rig.camera.max_level
+    for d, dec in decoded.items():
+        extent = rig.lcd.width if d == "x" else rig.lcd.height
+        for w in dec.wrapped:
+            reasons[w.modulation < min_mod] |= Reason.LOW_MODULATION
+            reasons[w.saturated] |= Reason.SATURATED
+        reasons[dec.disagreement] |= Reason.UNWRAP
+        outside = ~((dec.coord >= -0.5) & (dec.coord <= extent - 0.5))
+        reasons[outside] |= Reason.OUTSIDE_LCD
+        with np.errstate(invalid="ignore"):
+            gr, gc = np.gradient(dec.coord)
+            reach = options.border_margin_px * np.hypot(gr, gc)
+            near_edge = (dec.coord < -0.5 + reach) | (dec.coord > extent - 0.5 - reach)
+        reasons[near_edge & ~outside] |= Reason.BORDER
+    m = options.border_margin_px
+    bezel = (reasons & (Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)) != 0
+    near = ndimage.binary_dilation(bezel, structure=np.ones((2 * m + 1, 2 * m + 1), bool))
+    reasons[near & ~bezel] |= Reason.BORDER
+    return reasons
+
+
+@pytest.fixture(scope="module")
+def realistic():
+    rig, settings = scaled_preset("realistic", 320)
+    return VirtualRig(rig, settings, seed=4)
+
+
+def test_tiled_classification_equals_the_reference(realistic):
+    rig = realistic.rig
+    f = rig.fringes
+    for k in (0, rig.stage.n_positions - 1):
+        frames = {}
+        for (d, j, _t, n, big_n), img in realistic.frames(k):
+            frames.setdefault((d, j), [None] * big_n)[n] = img
+        decoded = {d: decode_direction([wrapped_phase(np.stack(frames[(d, j)]), rig.camera.max_level)
+                                        for j in range(len(f.periods_px))], f.periods_px,
+                                       f.carrier(d) * rig.stage.z_mm[k]) for d in f.directions}
+        got = finish_position(rig, k, decoded).reasons
+        ref = _finish_reference(rig, decoded)
+        np.testing.assert_array_equal(got, ref)
+        assert (got & Reason.BORDER).any() and (got == 0).mean() > 0.5
+
+
+def test_nested_tiles_run_serially():
+    out = np.zeros((64, 64), int)
+
+    def outer(r0, r1):
+        run_tiles(lambda a, b: out[r0:r1].__setitem__(slice(None), out[r0:r1] + 1), 8, 64, tile_pixels=64)
+
+    run_tiles(outer, 64, 64, tile_pixels=64 * 8)
+    assert (out == 8).all()  # 8 inner tiles per outer tile, no deadlock
+
+
+# ---------------------------------------------------------------------------- files
+
+
+@pytest.mark.parametrize("depth", [8, 16])
+def test_read_into_reads_plain_tiffs_and_declines_the_rest(tmp_path, depth):
+    rng = np.random.default_rng(depth)
+    dtype = np.uint8 if depth == 8 else np.uint16
+    img = rng.integers(0, 1 << depth, (37, 53), dtype=dtype)
+    plain = tmp_path / "plain.tif"
+    cv2.imwrite(str(plain), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])
+    out = np.empty_like(img)
+    assert read_into(plain, out)
+    np.testing.assert_array_equal(out, img)
+    lzw = tmp_path / "lzw.tif"
+    cv2.imwrite(str(lzw), img, [cv2.IMWRITE_TIFF_COMPRESSION, 5])
+    png = tmp_path / "img.png"
+    cv2.imwrite(str(png), img)
+    assert not read_into(lzw, out)
+    assert not read_into(png, out)
+    assert not read_into(plain, np.empty((37, 52), dtype))  # wrong size
+    assert not read_into(plain, np.empty((37, 53), np.uint16 if depth == 8 else np.uint8))  # wrong depth
+    assert not read_into(tmp_path / "missing.tif", out)
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(plain.read_bytes()[:200])
+    assert not read_into(cut, out)
+
+
+def _dataset(tmp_path, vr, ext):
+    rig = vr.rig
+    from dataclasses import replace
+
+    rig = replace(rig, template="z{pos:02d}/{dir}_{period}_{step}" + ext)
+    save_rig(rig, tmp_path / "rig.toml")
+    params = [cv2.IMWRITE_TIFF_COMPRESSION, 1] if ext == ".tif" else []
+    for k in range(rig.stage.n_positions):
+        for (d, _j, t, n, big_n), img in vr.frames(k):
+            p = tmp_path / rig.image_name(k, d, t, n, big_n)
+            p.parent.mkdir(exist_ok=True)
+            cv2.imwrite(str(p), img, params)
+    return DatasetSource(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def small_rig():
+    rig, settings = scaled_preset("realistic", 160)
+    return VirtualRig(rig.with_z(rig.stage.z_mm[:6]), settings, seed=2)
+
+
+@pytest.mark.parametrize("ext", [".tif", ".png"])
+def test_folder_decoding_equals_the_frame_source(tmp_path, small_rig, ext):
+    src = _dataset(tmp_path, small_rig, ext)
+    ref = decode_position(SimulatedSource(small_rig), 3)
+    got = decode_position(src, 3)
+    # Same frames; OpenCV's SIMD sums may round differently in other buffers (float32 level).
+    np.testing.assert_array_equal(got.reasons, ref.reasons)
+    np.testing.assert_allclose(got.u, ref.u, rtol=0, atol=1e-5)
+    for d in "xy":
+        for a, b in zip(got.directions[d].wrapped, ref.directions[d].wrapped):
+            np.testing.assert_allclose(a.modulation, b.modulation, rtol=1e-5)
+            # (a difference of large sums: float32 rounding of S, C shows at 1e-3 here)
+            np.testing.assert_allclose(a.residual_var, b.residual_var, rtol=5e-3, atol=0.05)
+
+
+def test_spilled_samples_equal_samples_in_memory(tmp_path, small_rig):
+    src = _dataset(tmp_path, small_rig, ".tif")
+    mem = collect_samples(src, spill=False)
+    seen = []
+    spilled = collect_samples(src, spill=True, spill_dir=tmp_path, on_position=lambda p: seen.append(p.index))
+    assert seen == list(range(6))
+    assert isinstance(spilled.x, np.memmap)
+    # Bit for bit where no float32 sum is involved; OpenCV's SIMD sums can round
+    # a last bit differently in other buffers (modulation: 1e-7 relative).
+    for name in ("reasons", "background"):
+        np.testing.assert_array_equal(getattr(spilled, name), getattr(mem, name), err_msg=name)
+    for name in ("x", "y", "x_ref", "y_ref"):  # mm; 1e-9 mm is far below float32 phase rounding
+        np.testing.assert_allclose(getattr(spilled, name), getattr(mem, name), rtol=0, atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(spilled.modulation, mem.modulation, rtol=1e-6)
+    assert spilled.noise.read_var == pytest.approx(mem.noise.read_var, rel=1e-3, abs=1e-6)
+    assert spilled.noise.gain == pytest.approx(mem.noise.gain, rel=1e-3)
+    part = collect_samples(src, spill=True, spill_dir=tmp_path, positions=[1, 4])
+    assert (part.reasons[[0, 2, 3, 5]] == 0xFF).all()
+    np.testing.assert_array_equal(part.reasons[1], mem.reasons[1])
+    for model, positions in (("poly", None), ("poly", [0, 1, 2, 3, 5]), ("linear", [0, 2, 4])):
+        a = fit_lut(mem, model, 2, positions=positions)
+        b = fit_lut(spilled, model, 2, positions=positions)
+        for field in ("x", "y", "valid", "rms_x", "loo_y", "pixel_z_min", "n_positions"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{model} {field}")
+
+
+def test_spill_store_blocks_and_cleanup(tmp_path):
+    st = SpillStore(3, (4, 5), {"x": np.float32, "r": np.uint8}, {"x": np.nan, "r": 0xFF}, tmp_path)
+    st.write("x", 1, np.arange(20, dtype=np.float32).reshape(4, 5))
+    st.finish()
+    arrays = st.arrays()
+    path = st.path
+    del st
+    np.testing.assert_array_equal(read_block(arrays["x"], 3, 7), arrays["x"].reshape(3, -1)[:, 3:7])
+    np.testing.assert_array_equal(read_block(arrays["x"], 3, 7, [1]), [[3, 4, 5, 6]])
+    assert (arrays["r"] == 0xFF).all()
+    assert path.exists()
+    del arrays
+    import gc
+
+    gc.collect()
+    assert not path.exists()
+
+
+# ---------------------------------------------------------------------------- LUT
+
+
+def test_tiled_evaluation_equals_horner():
+    rng = np.random.default_rng(0)
+    h, w = 40, 4096
+    samples = SampleStack.empty(np.arange(6) * 2.0, (h, w), with_photometry=False)
+    x0, sx = rng.uniform(0, 100, (h, w)), rng.uniform(-0.3, 0.3, (h, w))
+    for k, z in enumerate(samples.z):
+        reasons = (rng.random((h, w)) < 0.1).astype(np.uint8)
+        samples.set_position(k, x0 + sx * z + 1e-3 * z * z, x0 - sx * z, reasons)
+    lut = fit_lut(samples, "poly", 2)
+    zmap = rng.uniform(-1, 11, (h, w))
+    for z in (4.0, zmap):
+        for extrapolate in (False, True):
+            ev = lut.evaluate(z, extrapolate=extrapolate)
+            zz = np.asarray(z, float)
+            in_range = lut.valid & (zz >= lut.pixel_z_min - 1e-9) & (zz <= lut.pixel_z_max + 1e-9)
+            keep = lut.valid if extrapolate else in_range
+            t = (zz - lut.z_center) / lut.z_scale
+            np.testing.assert_array_equal(ev.in_range, in_range)
+            np.testing.assert_array_equal(ev.x, np.where(keep, _horner(lut.x, t), np.nan))
+            np.testing.assert_array_equal(ev.y, np.where(keep, _horner(lut.y, t), np.nan))
