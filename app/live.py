@@ -170,7 +170,7 @@ def build_devices(session, parent_widget: QWidget | None = None):
         camera = SimulatedCamera(VirtualRig(rig, session.sim_settings, session.seed), display, stage)
     elif lv.camera == "opencv":
         src = lv.camera_source.strip() or "0"
-        camera = OpenCVCamera(int(src) if src.isdigit() else src)
+        camera = OpenCVCamera(int(src) if src.isdigit() else src, width=rig.camera.width, height=rig.camera.height)
     elif lv.camera == "genicam":
         cfg = config.camera if config is not None else None
         cti = lv.camera_source.strip() or (cfg.cti if cfg else "")

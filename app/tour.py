@@ -120,6 +120,12 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     shot("calibrate")
     cal.show_map("loo_y")
     shot("calibrate-loo")
+    cal.configure("smooth", 2, "all")  # the smooth LUT, with its predicted uncertainty map
+    wait_job(cal.fit())
+    if rows.size:
+        cal.select_pixel(int(rows[i]), int(cols[i]))
+    cal.show_map("sigma_x")
+    shot("calibrate-smooth-sigma")
     next_page()
 
     wait_job(p["compare"].run())

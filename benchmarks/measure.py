@@ -210,8 +210,10 @@ def task_calibrate_vs_read(folder, rig, repeat, positions):
     pos_paths = image_paths(folder, rig, positions)
     buf = np.empty((len(pos_paths[0]), *rig.camera.shape), np.uint8 if rig.camera.bit_depth <= 8 else np.uint16)
 
+    spill = {"auto": None, "file": True, "memory": False}[os.environ.get("PTP_BENCH_SPILL", "auto")]
+
     def cal():
-        lut, samples = calibrate(DatasetSource(folder), model="poly", degree=3, positions=positions)
+        lut, samples = calibrate(DatasetSource(folder), model="poly", degree=3, positions=positions, spill=spill)
         return float(lut.valid.mean())
 
     with ThreadPoolExecutor(os.cpu_count()) as pool:
@@ -220,7 +222,7 @@ def task_calibrate_vs_read(folder, rig, repeat, positions):
             lambda: [read_raw(p, buf, pool) for p in pos_paths], cal)
     return {"read_cv2_s": t_cv, "read_raw_s": t_raw, "calibrate_s": t_cal, "read_cv2_cpu_s": CPU[0],
             "read_raw_cpu_s": CPU[1], "calibrate_cpu_s": CPU[2], "images": sum(map(len, pos_paths)),
-            "valid_pixels": valid}
+            "valid_pixels": valid, "spill": os.environ.get("PTP_BENCH_SPILL", "auto")}
 
 
 TASKS = {"read": task_read, "decode": task_decode, "unwrap": task_unwrap, "fit": task_fit,

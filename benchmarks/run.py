@@ -102,6 +102,7 @@ def main(argv=None) -> int:
     ap.add_argument("--format", default="tif", choices=["tif", "lzw", "png"])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--cal-repeat", type=int, default=2, help="repeats of the whole calibration and its floor")
+    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds of our decode and fringes'")
     ap.add_argument("--data", default=os.environ.get("PTP_BENCH_DATA", "/tmp/ptp-bench"))
     ap.add_argument("--fringes-python", default="/tmp/fringes-venv/bin/python")
     ap.add_argument("--out", default=None)
@@ -124,15 +125,22 @@ def main(argv=None) -> int:
         if mp in sizes:
             one = subset(base, 2)  # a rig needs two positions; the tasks use the first
             ours = data / f"coords-{mp:g}.npz"
-            r["decode"] = measure("decode", one, args.repeat, "--save-coords", str(ours))
-            r["unwrap"] = measure("unwrap", one, args.repeat)
-            r["fit"] = measure("fit", one, args.repeat, "--positions", str(args.positions))
-            r["evaluate"] = measure("evaluate", one, args.repeat)
             theirs = data / f"fringes-{mp:g}.npz"
-            fr = fringes(args.fringes_python, one, args.repeat, theirs)
+            # Ours and fringes alternate (rounds of best-of-2 each), so load changes hit both.
+            dec, fr = None, None
+            for _ in range(args.rounds):
+                d = measure("decode", one, 2, "--save-coords", str(ours))
+                dec = d if dec is None or d["decode_s"] < dec["decode_s"] else dec
+                f = fringes(args.fringes_python, one, 2, theirs)
+                if f and (fr is None or f["seconds"] < fr["seconds"]):
+                    fr = f
+            r["decode"] = dec
             if fr:
                 fr["median_abs_diff_px"] = agreement(ours, theirs)
                 r["fringes"] = fr
+            r["unwrap"] = measure("unwrap", one, args.repeat)
+            r["fit"] = measure("fit", one, args.repeat, "--positions", str(args.positions))
+            r["evaluate"] = measure("evaluate", one, args.repeat)
         if mp in cal_sizes:
             folder = subset(base, args.positions)
             r["calibrate"] = measure("calibrate-vs-read", folder, args.cal_repeat)

@@ -44,7 +44,7 @@ from .atomic import write_bytes_atomic, write_text_atomic
 from .dataset import check_calibration_design, read_image
 from .devices import describe
 from .devices.camera import FrameError
-from .errors import Cancelled, CaptureError, ConfigError, DeviceError, PtpError
+from .errors import CaptureError, ConfigError, DeviceError, PtpError
 from .patterns import fringe_profile
 from .rig import FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
 
@@ -560,6 +560,8 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
         raise type(exc)(f"{exc} — {saved_note()}") from exc
     except ExposureError as exc:
         raise ExposureError(f"{exc} — {saved_note()}") from None
+    except OSError as exc:  # the folder: disk full, permissions, a vanished drive
+        raise CaptureError(f"{exc} — {saved_note()}") from exc
     finally:
         for dev in reversed(opened):
             try:

@@ -52,7 +52,7 @@ def cmd_capture(args) -> int:
     from .cli import _progress
     from .devices import SimulatedCamera, SimulatedDisplay, simulated_meta
     from .devices.config import load_capture_config
-    from .errors import ConfigError
+    from .errors import Cancelled, ConfigError
     from .rig import load_rig
     from .simulate import TRUTH_FILE, VirtualRig, preset, save_truth, scaled_preset
 
@@ -93,6 +93,12 @@ def cmd_capture(args) -> int:
                          check=not args.no_check, accept_exposure=args.ignore_exposure, limits=limits,
                          image_ext=".tif" if args.tiff else ".png", meta=meta, progress=bar,
                          on_exposure=on_exposure)
+    except (Cancelled, KeyboardInterrupt):
+        st = capture_state(out)
+        if st is not None:
+            print(f"{out}: {st['done']} of {st['total']} positions are saved; continue with --resume",
+                  file=sys.stderr)
+        raise
     finally:
         bar.close()
     if not (out / TRUTH_FILE).exists():

@@ -286,8 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.set_defaults(func=cmd_inspect)
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
-                        description="Calibrate a ptp-dataset/1 folder both ways (per-pixel LUT and pinhole +"
-                                    " Brown from feature points) on some positions, judge both at the others"
+                        description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"
+                                    " pinhole + Brown from feature points) on some positions, judge them at the others"
                                     " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
                                     " folder (simulated data) adds errors against the exact truth.")
     cm.add_argument("dataset_dir", metavar="DATASET_DIR")

@@ -298,7 +298,11 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                            spill_dir)
         samples = SampleStack(z_all, np.empty((0, *shape), np.float32), np.empty((0, *shape), np.float32),
                               np.full(shape, np.nan), np.full(shape, np.nan), np.empty((0, *shape), np.uint8))
-        out = {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
+        # Two sets of position maps: one is written to the file (on its own
+        # thread, overlapping the next position's decoding) while the other fills.
+        outs = [{name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()} for _ in range(2)]
+        writes: list = [None, None]
+        writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-spill")
     else:
         samples = SampleStack.empty(rig.stage.z_mm, shape)
     noise = NoiseAccumulator(rig.camera.max_level)
@@ -319,11 +323,13 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                 dest = {"x": samples.x[k], "y": samples.y[k], "reasons": samples.reasons[k],
                         "modulation": samples.modulation[k], "background": samples.background[k]}
             else:
-                dest = out
+                slot = i % 2
+                if writes[slot] is not None:
+                    writes[slot].result()  # its maps are free again
+                dest = outs[slot]
             run_tiles(lambda r0, r1: _store_rows(rig, pos, fine_x, fine_y, samples, dest, r0, r1), *shape)
             if store is not None:
-                for name, arr in out.items():
-                    store.write(name, k, arr)
+                writes[slot] = writer.submit(lambda d=dest, kk=k: [store.write(n, kk, a) for n, a in d.items()])
             valid = pos.reasons[::stride, ::stride] == 0
             for fine in (fine_x, fine_y):
                 if fine.residual_var is not None:
@@ -335,7 +341,12 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     finally:
         if reader:
             reader.close()
+        if store is not None:
+            writer.shutdown(wait=True)
     if store is not None:
+        for w in writes:
+            if w is not None:
+                w.result()  # raise a failed write here
         store.finish()
         arrays = store.arrays()
         samples = SampleStack(z_all, arrays["x"], arrays["y"], samples.x_ref, samples.y_ref,
@@ -376,7 +387,7 @@ def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: Wr
 
 
 def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOptions = DecodeOptions(),
-              positions=None, progress: Progress | None = None) -> tuple[Lut, SampleStack]:
+              positions=None, progress: Progress | None = None, spill: bool | None = None) -> tuple[Lut, SampleStack]:
     """Images to LUT in one call.
 
     Parameters
@@ -387,6 +398,8 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
     positions : sequence of int, optional
         Positions to calibrate on (default all).
     progress : callable, optional
+    spill : bool, optional
+        See :func:`collect_samples` (default: a temporary file for big stacks).
 
     Returns
     -------
@@ -398,7 +411,7 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
             return None
         return lambda f, msg: progress(lo + (hi - lo) * f, msg)
 
-    samples = collect_samples(source, options=options, positions=positions, progress=sub(0.0, 0.9))
+    samples = collect_samples(source, options=options, positions=positions, progress=sub(0.0, 0.9), spill=spill)
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=rig_to_toml(source.rig),
                   progress=sub(0.9, 1.0))
     return lut, samples

@@ -102,11 +102,27 @@ def _gauss(arr: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian filter with zeros outside the image (truncated at 3 sigma).
 
     OpenCV's separable SIMD filter is used rather than ``scipy.ndimage``: it is
-    an order of magnitude faster at the large scales the cross-validation tries.
+    several times faster at the large scales the cross-validation tries.
     """
     k = 2 * int(np.ceil(3.0 * sigma)) + 1
     return cv2.GaussianBlur(np.ascontiguousarray(arr, dtype=np.float64), (k, k), sigma, sigmaY=sigma,
                             borderType=cv2.BORDER_CONSTANT)
+
+
+def _first_row_of_inverse(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row 0 of the inverse of symmetric 3x3 matrices ``(..., 3, 3)``, and their determinants.
+
+    Closed-form cofactors: batched LAPACK calls cost far more than the
+    arithmetic for millions of 3x3 systems.
+    """
+    a00, a01, a02 = a[..., 0, 0], a[..., 0, 1], a[..., 0, 2]
+    a11, a12, a22 = a[..., 1, 1], a[..., 1, 2], a[..., 2, 2]
+    c0 = a11 * a22 - a12 * a12
+    c1 = a02 * a12 - a01 * a22
+    c2 = a01 * a12 - a02 * a11
+    det = a00 * c0 + a01 * c1 + a02 * c2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.stack([c0, c1, c2], -1) / det[..., None], det
 
 
 def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float,
@@ -119,7 +135,9 @@ def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float
 
     Parameters
     ----------
-    values : (H, W) float64 (anything where ``weights == 0``)
+    values : (H, W) or (n, H, W) float64 (anything where ``weights == 0``)
+        One map or a stack of maps that share the weights (smoothed together:
+        the moment matrices are built once).
     weights : (H, W) float64 >= 0, e.g. inverse variances
     scale_px : float
         Gaussian sigma in camera pixels; 0 returns the input.
@@ -128,15 +146,17 @@ def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float
 
     Returns
     -------
-    smoothed : (H, W) float64, NaN where there is no support
+    smoothed : same shape as ``values``, float64, NaN where there is no support
     variance : (H, W) float64 or None
         Variance of the estimate if ``weights`` are inverse variances.
     """
     if scale_px <= 0:
         with np.errstate(divide="ignore"):
             return np.where(weights > 0, values, np.nan), np.where(weights > 0, 1.0 / weights, np.nan)
-    h, w = values.shape
+    h, w = weights.shape
     vals = np.where(weights > 0, values, 0.0)
+    stacked = vals.ndim == 3
+    vals = vals if stacked else vals[None]
     # Coordinates in units of the scale keep the 3x3 systems well conditioned.
     rr, cc = np.mgrid[0:h, 0:w]
     x = cc / scale_px
@@ -149,29 +169,35 @@ def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float
     g = lambda arr: _gauss(arr, scale_px)  # noqa: E731
     a = moments(g, weights)
     s0 = a[..., 0, 0]
-    t0 = g(weights * vals)
-    rhs = np.stack([t0, g(weights * vals * x) - x * t0, g(weights * vals * y) - y * t0], -1)
-    det = np.linalg.det(a)
+    row_all, det = _first_row_of_inverse(a)
     good = (s0 > 1e-12 * max(s0.max(), 1e-300)) & (np.abs(det) > 1e-12 * np.maximum(s0, 1e-300) ** 3)
-    out = np.full((h, w), np.nan)
+    row = row_all[good]
+    out = np.full(vals.shape, np.nan)
+    t0s = []
+    for i, v in enumerate(vals):
+        t0 = g(weights * v)
+        t0s.append(t0)
+        if good.any():
+            rhs = np.stack([t0[good], (g(weights * v * x) - x * t0)[good], (g(weights * v * y) - y * t0)[good]], -1)
+            out[i][good] = np.einsum("pj,pj->p", row, rhs)
     var = np.full((h, w), np.nan) if with_variance else None
-    if good.any():
-        row = np.linalg.inv(a[good])[:, 0, :]
-        out[good] = np.einsum("pj,pj->p", row, rhs[good])
-        if with_variance:
-            # var(value_q) = 1 / w_q gives var = (A^-1 B A^-1)[0, 0], B the same
-            # moments under G^2, and G_s^2 = G_{s/sqrt2} / (4 pi s^2).
-            g2 = lambda arr: _gauss(arr, scale_px / np.sqrt(2.0)) / (4 * np.pi * scale_px ** 2)  # noqa: E731
-            b = moments(g2, weights)[good]
-            var[good] = np.einsum("pi,pij,pj->p", row, b, row)
+    if good.any() and with_variance:
+        # var(value_q) = 1 / w_q gives var = (A^-1 B A^-1)[0, 0], B the same
+        # moments under G^2, and G_s^2 = G_{s/sqrt2} / (4 pi s^2).
+        g2 = lambda arr: _gauss(arr, scale_px / np.sqrt(2.0)) / (4 * np.pi * scale_px ** 2)  # noqa: E731
+        b = moments(g2, weights)[good]
+        var[good] = np.einsum("pi,pij,pj->p", row, b, row)
     # Locally constant estimate where the linear system is singular.
     weak = ~good & (s0 > 0)
     if weak.any():
-        out[weak] = t0[weak] / s0[weak]
+        for i, t0 in enumerate(t0s):
+            out[i][weak] = t0[weak] / s0[weak]
         if with_variance:
             g2w = _gauss(weights, scale_px / np.sqrt(2.0)) / (4 * np.pi * scale_px ** 2)
             var[weak] = g2w[weak] / s0[weak] ** 2
-    return out, (np.where(np.isfinite(out), var, np.nan) if with_variance else None)
+    if with_variance:
+        var = np.where(np.isfinite(out[0]), var, np.nan)
+    return (out if stacked else out[0]), var
 
 
 def _local_moments(s0, sx, sy, sxx, sxy, syy, x, y) -> np.ndarray:
@@ -277,21 +303,29 @@ def _global_rays(model: PinholeModel, shape) -> tuple[np.ndarray, np.ndarray, np
     return x0, y0, x1 - x0, y1 - y0
 
 
-def _smooth_correction(t, resid, wts, degree, scale, shape, with_variance=True):
-    """Per-pixel weighted fit of residuals, then smooth each coefficient map.
+def _smooth_correction(t, resid_x, resid_y, wts, degree, scale, shape, with_variance=True):
+    """Per-pixel weighted fit of the X and Y residuals, then smooth each coefficient map.
 
-    Returns coef (D+1, H, W) and variance (D+1, H, W) of the smoothed coefficients.
+    X and Y share the sample weights, hence the coefficient variances and the
+    smoothing weights: both are smoothed in one pass.
+
+    Returns
+    -------
+    coef : (2, D+1, H, W) smoothed coefficients of X and Y
+    var : (D+1, H, W) their variance (same for X and Y; NaN without ``with_variance``)
     """
-    coef, cov, _ = _weighted_poly(t, resid, wts, degree)
-    out = np.empty((degree + 1, *shape))
-    var = np.empty((degree + 1, *shape))
+    cx, cov, _ = _weighted_poly(t, resid_x, wts, degree)
+    cy, _, _ = _weighted_poly(t, resid_y, wts, degree)
+    out = np.empty((2, degree + 1, *shape))
+    var = np.full((degree + 1, *shape), np.nan)
     for j in range(degree + 1):
-        cj = coef[j].reshape(shape)
         vj = cov[:, j, j].reshape(shape)
+        both = np.stack([cx[j].reshape(shape), cy[j].reshape(shape)])
         with np.errstate(divide="ignore", invalid="ignore"):
-            wj = np.where(np.isfinite(cj) & (vj > 0), 1.0 / vj, 0.0)
-        out[j], vj_s = local_linear_smooth(np.nan_to_num(cj), wj, scale, with_variance)
-        var[j] = vj_s if vj_s is not None else np.nan
+            wj = np.where(np.isfinite(both).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
+        out[:, j], vj_s = local_linear_smooth(np.nan_to_num(both), wj, scale, with_variance)
+        if vj_s is not None:
+            var[j] = vj_s
     return out, var
 
 
@@ -352,8 +386,15 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
 
     # Cross-validation over the smoothing scale: two folds of alternate positions
     # (each fold keeps the z range covered by the other).
+    # Each fold keeps half the positions: with few positions the folds fit a
+    # lower degree in z (the scale that suits the image-wide field barely
+    # depends on it); with fewer than 4 positions no scale can be validated.
     scales = np.asarray(scales_px, dtype=float)
-    folds = [np.arange(k) % 2 == f for f in (0, 1)] if k >= 2 * (degree + 1) else []
+    cv_degree = min(degree, k // 2 - 1)
+    folds = [np.arange(k) % 2 == f for f in (0, 1)] if cv_degree >= 1 else []
+    if not folds:
+        warnings.warn(f"smooth LUT: {k} calibration positions are too few to cross-validate the smoothing"
+                      " scale (need 4); the correction is not smoothed", RuntimeWarning, stacklevel=2)
     cv = np.zeros(scales.size)
     excess = np.zeros(scales.size)
     sum_w = np.zeros(scales.size)
@@ -363,10 +404,11 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         for si, sc in enumerate(scales):
             report(0.05 + 0.8 * (fi * scales.size + si) / (len(folds) * scales.size),
                    f"cross-validating smoothing scale {sc:g} px")
-            for a in "xy":
-                c, _ = _smooth_correction(t[train], resid[a][train], wts[train], degree, sc, shape, False)
-                vt = np.vander(t[test], degree + 1, increasing=True)
-                pred = np.tensordot(vt, c.reshape(degree + 1, -1), axes=1)
+            cxy, _ = _smooth_correction(t[train], resid["x"][train], resid["y"][train], wts[train], cv_degree,
+                                        sc, shape, False)
+            for a, c in zip("xy", cxy):
+                vt = np.vander(t[test], cv_degree + 1, increasing=True)
+                pred = np.tensordot(vt, c.reshape(cv_degree + 1, -1), axes=1)
                 w_test = wts[test]
                 err = np.where(w_test > 0, pred - resid[a][test], np.nan)
                 use = np.isfinite(err)
@@ -392,8 +434,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     h, w = shape
     coef = {}
     var = {}
-    for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
-        c, v = _smooth_correction(t, resid[a], wts, degree, scale, shape)
+    cxy, v = _smooth_correction(t, resid["x"], resid["y"], wts, degree, scale, shape)
+    for a, c, g0, gs in (("x", cxy[0], gx0, gsx), ("y", cxy[1], gy0, gsy)):
         c[0] += g0 + gs * zc
         c[1] += gs * zs
         coef[a], var[a] = c, v

@@ -326,17 +326,19 @@ def test_a_capture_killed_mid_way_resumes_with_nothing_lost(reference, tmp_path)
     out = tmp_path / "cap"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "ptpcore.cli", "capture", "--out", str(out), *ARGS, "--settle-ms", "10", "-q"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-    try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and proc.poll() is None:
-            if (out / "z002").is_dir() and any((out / "z002").iterdir()):
-                break
-            time.sleep(0.002)
-        assert proc.poll() is None, proc.communicate()
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait(30)
+    log = tmp_path / "stderr.txt"
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, env=env)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and proc.poll() is None:
+                if (out / "z002").is_dir() and any((out / "z002").glob("*.png")):
+                    break  # the first image of position 3 is written
+                time.sleep(0.002)
+            assert proc.poll() is None, log.read_text()
+            proc.send_signal(signal.SIGKILL)
+        finally:
+            proc.wait(30)
     assert proc.returncode == -signal.SIGKILL
     assert not (out / "rig.toml").exists()
     st = capture_state(out)
@@ -347,4 +349,5 @@ def test_a_capture_killed_mid_way_resumes_with_nothing_lost(reference, tmp_path)
     assert len(kept) == 80
     assert cli.main(["capture", "--out", str(out), *ARGS, "--resume", "-q"]) == 0
     assert snapshot(out, {0, 1}) == kept
+    assert not list(out.rglob("*.part"))
     assert_same_images(reference, out)

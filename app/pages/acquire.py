@@ -323,7 +323,8 @@ class AcquirePage(StudioPage):
     def _show_positions(self) -> None:
         s = self.model.session
         self.table.setRowCount(len(s.positions))
-        colours = {"done": "#1b7f4c", "running": "#2b6cb0", "cancelled": "#c0392b", "not reached": "#c0392b"}
+        colours = {"done": "#1b7f4c", "running": "#2b6cb0", "captured": "#2b6cb0", "kept": "#2b6cb0",
+                   "cancelled": "#c0392b", "not reached": "#c0392b"}
         for i, st in enumerate(s.positions):
             cells = [str(st.index + 1), f"{st.z_mm:g}", st.state,
                      "" if st.valid_fraction is None else f"{100 * st.valid_fraction:.1f} %",
@@ -356,7 +357,7 @@ class AcquirePage(StudioPage):
         if s.samples is not None:
             return None
         if self._outcome == "cancelled":
-            return "The acquisition was cancelled: press Start acquisition to run it again."
+            return f"The acquisition was cancelled: press {self.start_button.text()} to run it again."
         if self._outcome == "errored":
             return "The acquisition failed (see the message above): fix the cause and press Start again."
-        return "Acquire the images first: press Start acquisition."
+        return f"Acquire the images first: press {self.start_button.text()}."

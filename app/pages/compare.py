@@ -122,7 +122,8 @@ class ComparePage(StudioPage):
             self.heat[m].plot.setXLink(self.heat[METHODS[-1]].plot)
         right.addWidget(heat_box, 3)
         plots = QHBoxLayout()
-        self.vs_dist = pg.PlotWidget(title="Distance error vs distance")
+        self.vs_dist = pg.PlotWidget(title="Distance error vs distance<br><span style='font-size:8pt'>"
+                                           "solid: same height, dashed: across heights</span>")
         self.vs_dist.setLabel("left", "RMS error", units="µm")
         self.vs_dist.setLabel("bottom", "distance", units="mm")
         self.vs_dist.addLegend(offset=(5, 5))
@@ -166,8 +167,7 @@ class ComparePage(StudioPage):
                     with_smooth=self.with_smooth.isChecked())
         samples, rig = s.samples, s.rig
         gen = self.model.generation
-        what = "PTP, PTP smooth and 3DSTC" if args["with_smooth"] else "PTP with 3DSTC"
-        job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), f"comparing {what}")
+        job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
@@ -221,6 +221,8 @@ class ComparePage(StudioPage):
                 item = QTableWidgetItem(text)
                 if c:
                     item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                else:
+                    item.setToolTip(label)  # the first column is narrow
                 self.stats.setItem(i, c, item)
         c = r.coverage
         nm = max(int(c.n_measured.sum()), 1)
@@ -257,6 +259,7 @@ class ComparePage(StudioPage):
         errs = {}
         for m in methods:
             pen_style = {"same_height": Qt.SolidLine, "across_heights": Qt.DashLine}
+            named = False  # one legend entry per method; the line style tells the pair kind (see the title)
             for kind, d in rr.methods[m].distance.items():
                 cv = d.curve
                 if cv.edges_mm.size < 2:
@@ -265,7 +268,8 @@ class ComparePage(StudioPage):
                 self.vs_dist.plot(centres, cv.rms_um, connect="finite", symbol="o", symbolSize=5,
                                   symbolBrush=COLOURS[m], symbolPen=COLOURS[m],
                                   pen=pg.mkPen(COLOURS[m], width=2, style=pen_style[kind]),
-                                  name=f"{METHOD_LABELS[m]}, {kind.replace('_', ' ')}")
+                                  name=None if named else METHOD_LABELS[m])
+                named = True
             errs[m] = np.concatenate([d.error_mm for d in rr.methods[m].distance.values()]) * 1e3
         allv = np.concatenate(list(errs.values())) if errs else np.zeros(0)
         if allv.size:

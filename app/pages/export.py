@@ -37,6 +37,25 @@ def _save_png(image, path: Path) -> None:
             raise OSError(f"{path}: could not write the PNG")
 
 
+def _map_image(maps: dict, key: str, size: tuple[int, int] = (900, 720)):
+    """One of the Calibrate page's maps rendered off screen at report size, as a QImage.
+
+    (Grabbing the page's own panel while another page is shown gives whatever
+    squeezed geometry the hidden page has.)
+    """
+    from ..widgets.maps import HeatmapPanel
+
+    title, data, unit, cmap, integer = maps[key]
+    panel = HeatmapPanel()
+    try:
+        panel.resize(*size)
+        panel.set_map(data, title=title, unit=unit, cmap=cmap, integer=integer)
+        panel.readout.setText("")
+        return panel.grab().toImage()
+    finally:
+        panel.deleteLater()
+
+
 class ExportPage(StudioPage):
     key = "export"
     heading = "Export"
@@ -144,14 +163,11 @@ class ExportPage(StudioPage):
         if self.do_report.isChecked() and result is not None and self.compare_page is not None:
             for stem, widget in self.compare_page.plot_widgets.items():
                 images[out / f"comparison_{stem}.png"] = widget.grab().toImage()
-        if self.do_quality.isChecked() and self.calibrate_page is not None:
+        if self.do_quality.isChecked() and self.calibrate_page is not None and self.calibrate_page.maps:
             cal = self.calibrate_page
-            images[out / "lut_quality.png"] = cal.heatmap.grab().toImage()
+            images[out / "lut_quality.png"] = _map_image(cal.maps, cal.current_map)
             if "sigma_x" in cal.maps:
-                shown = cal.current_map
-                cal.show_map("sigma_x")
-                images[out / "lut_sigma_x.png"] = cal.heatmap.grab().toImage()
-                cal.show_map(shown)
+                images[out / "lut_sigma_x.png"] = _map_image(cal.maps, "sigma_x")
         report = result.to_json_dict() if (self.do_report.isChecked() and result is not None) else None
         session_obj = self._session_object(out) if self.do_session.isChecked() and _session_mod else None
         write_rig = self.do_rig.isChecked()

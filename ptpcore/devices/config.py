@@ -47,7 +47,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from ..errors import ConfigError
-from ..rig import _convert, _Section, _short_repr, _tname
+from ..rig import _Section, _short_repr, _tname
 from .stage import SerialProtocol
 
 __all__ = ["CAPTURE_CONFIG_FORMAT", "CaptureConfig", "CameraConfig", "StageConfig", "DisplayConfig",
