@@ -121,7 +121,7 @@ def task_decode(folder, rig, repeat, positions):
 
 
 def task_unwrap(folder, rig, repeat, positions):
-    from ptpcore.phase import decode_direction, finish_position, wrapped_phase
+    from ptpcore.phase import decode_direction, finish_position
 
     _, pos = task_decode(folder, rig, 1, positions)
     f = rig.fringes

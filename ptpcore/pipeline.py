@@ -337,7 +337,6 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                               valid, rig.fringes.steps[-1] - 3)
             if on_position:
                 on_position(pos)
-            del pos, fine_x, fine_y
     finally:
         if reader:
             reader.close()
