@@ -6,6 +6,7 @@ import name ``ptp_studio`` (``pyproject.toml`` maps it). Layers:
 - :mod:`ptp_studio.session` — the one session model every page sees (a plain
   object) and its thin Qt wrapper that emits change signals;
 - :mod:`ptp_studio.worker` — the one worker pattern for every long job;
+- :mod:`ptp_studio.sessionfile` — session files (``ptp-session/1``): open, save, autosave;
 - :mod:`ptp_studio.widgets` — heatmaps, image views, the job panel;
 - :mod:`ptp_studio.pages` — the wizard's pages, one module each;
 - :mod:`ptp_studio.wizard` — the wizard window;

@@ -1,4 +1,4 @@
-"""``ptp-studio``: start the calibration wizard (or ``--tour OUTDIR`` it offscreen)."""
+"""``ptp-studio``: start the calibration wizard (``--session FILE`` resumes one, ``--tour OUTDIR`` walks it)."""
 
 from __future__ import annotations
 
@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="realistic", choices=list(PRESETS),
                    help="simulated rig to start with (default realistic)")
     p.add_argument("--camera", type=_size, metavar="WxH", help="simulated camera size (default: the preset's)")
+    p.add_argument("--session", metavar="FILE",
+                   help="open a session file (ptp-session/1, *.ptps.h5) and go on where it stopped; it is saved"
+                        " again after each completed stage")
     p.add_argument("--tour", metavar="OUTDIR",
                    help="walk every page offscreen on a small simulated rig, write one PNG per page to OUTDIR, exit")
     p.add_argument("--tour-camera", type=_size, default=(320, 240), metavar="WxH",
@@ -79,6 +82,8 @@ def main(argv=None) -> int:
     session.reset_positions()
     wiz = StudioWizard(session)
     wiz.show()
+    if args.session:  # read in the background; a bad file is reported on the Rig page
+        wiz.open_session(args.session)
     return app.exec()
 
 

@@ -7,12 +7,13 @@ samples, the LUT and the comparison. :class:`SessionModel` is a thin
 views subscribe instead of polling.
 
 Changing something upstream drops what was computed from it: a new rig drops
-the samples, new samples drop the LUT and the comparison.
+the samples, new samples drop the LUT and the comparison. Opening a session
+file replaces everything at once (:meth:`SessionModel.restore`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ import numpy as np
 from PySide6.QtCore import QObject, Signal
 
 from ptpcore.dataset import DatasetSource, SimulatedSource
+from ptpcore.phase import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, preset
 
@@ -90,9 +92,18 @@ class Session:
         Positions the LUT was fitted on (None: all).
     compare : object or None
         The comparison result (``ptpcore.compare``).
+    saved_comparison : dict or None
+        The comparison report (JSON) read from a session file; replaced when
+        the comparison runs again.
     truth : GroundTruth or None
         Exact rays when the data are simulated.
     exports : dict str -> Path
+    decode_options : DecodeOptions
+        How the samples were decoded (a session file may say otherwise than the default).
+    created : str or None
+        ISO 8601 time the session started (kept in its session file).
+    lut_file : str or None
+        The LUT file the session writes (kept in its session file).
     """
 
     rig: Rig
@@ -107,9 +118,13 @@ class Session:
     lut: Any = None
     lut_positions: list | None = None
     compare: Any = None
+    saved_comparison: dict | None = None
     truth: Any = None
     exports: dict = field(default_factory=dict)
     live: LiveSettings = field(default_factory=LiveSettings)
+    decode_options: DecodeOptions = field(default_factory=DecodeOptions)
+    created: str | None = None
+    lut_file: str | None = None
 
     @classmethod
     def from_preset(cls, name: str = "realistic", camera: Camera | None = None) -> "Session":
@@ -191,6 +206,7 @@ class SessionModel(QObject):
         self.generation += 1
         s.samples = None
         s.truth = None
+        s.decode_options = DecodeOptions()
         s.decoded.clear()
         s.reset_positions()
         self.samplesChanged.emit()
@@ -205,8 +221,9 @@ class SessionModel(QObject):
             self.lutChanged.emit()
 
     def _drop_compare(self) -> None:
-        if self.session.compare is not None:
+        if self.session.compare is not None or self.session.saved_comparison is not None:
             self.session.compare = None
+            self.session.saved_comparison = None
             self.compareChanged.emit()
 
     def set_rig(self, rig: Rig) -> None:
@@ -260,7 +277,22 @@ class SessionModel(QObject):
 
     def set_compare(self, result) -> None:
         self.session.compare = result
+        self.session.saved_comparison = None
         self.compareChanged.emit()
+
+    def restore(self, other: Session) -> None:
+        """Replace everything with ``other`` (an opened session file); the live-capture settings stay.
+
+        Every signal is emitted once; jobs started before finish into the void.
+        """
+        s = self.session
+        self.generation += 1
+        for f in fields(Session):
+            if f.name != "live":
+                setattr(s, f.name, getattr(other, f.name))
+        for signal in (self.rigChanged, self.sourceChanged, self.samplesChanged, self.positionsChanged,
+                       self.lutChanged, self.compareChanged, self.exportsChanged):
+            signal.emit()
 
     def add_export(self, what: str, path: Path) -> None:
         self.session.exports[what] = Path(path)

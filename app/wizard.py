@@ -17,6 +17,7 @@ from .pages.fringes import FringesPage
 from .pages.phasemaps import PhaseMapsPage
 from .pages.rig import RigPage
 from .session import Session, SessionModel
+from .sessionfile import Autosave, OpenedSession
 from .worker import wait_for_jobs
 
 __all__ = ["StudioWizard", "configure_app", "PAGE_CLASSES"]
@@ -84,6 +85,11 @@ class StudioWizard(QWizard):
         export = self.page_by_key["export"]
         export.compare_page = self.page_by_key["compare"]
         export.calibrate_page = self.page_by_key["calibrate"]
+        self.jumping = False  # go_to() passing pages on its way: their on_enter waits until they are shown
+        cal = self.page_by_key["calibrate"]
+        self.autosave = Autosave(self.model, lambda: (cal.model_combo.currentData(), cal.degree.value()), self)
+        self.page_by_key["rig"].sessionOpened.connect(self._session_opened)
+        export.sessionWritten.connect(lambda path: self.autosave.set_path(path, just_saved=True))
 
         # Keep a reference: PySide does not take ownership in setSideWidget.
         self._side = side = QWidget(self)
@@ -98,6 +104,11 @@ class StudioWizard(QWizard):
         sl.addWidget(logo)
         self.steps = StepList(self.pages)
         sl.addWidget(self.steps, 1)
+        self.session_status = QLabel("")
+        self.session_status.setObjectName("hint")
+        self.session_status.setWordWrap(True)
+        self.autosave.status.connect(self._show_session_status)
+        sl.addWidget(self.session_status)
         ver = QLabel(f"version {__version__}")
         ver.setObjectName("hint")
         sl.addWidget(ver)
@@ -111,8 +122,44 @@ class StudioWizard(QWizard):
         return self.pages.index(page) if page in self.pages else 0
 
     def _page_changed(self, _id: int) -> None:
+        page = self.currentPage()
+        if not self.jumping and getattr(page, "enter_pending", False):
+            page.enter_pending = False
+            page.on_enter()
+            page.update_complete()
         self.steps.set_current(self.page_index())
         self._update_buttons()
+
+    # ---- session files -------------------------------------------------------------
+    def open_session(self, path):
+        """Open a session file (as the Rig page's Open session… does); the Job, or None if refused."""
+        return self.page_by_key["rig"].open_session(path)
+
+    def _session_opened(self, opened: OpenedSession) -> None:
+        self.autosave.set_path(None)  # restoring is not a completed stage: nothing to save
+        self.model.restore(opened.session)
+        s = opened.session
+        half = list(range(0, s.rig.stage.n_positions, 2))
+        self.page_by_key["calibrate"].configure(opened.model, opened.degree,
+                                                "half" if s.lut_positions == half else "all")
+        self.autosave.set_path(opened.path)
+        self.go_to(opened.page)
+
+    def _show_session_status(self, text: str) -> None:
+        self.session_status.setText(text)
+        self.session_status.setToolTip(str(self.autosave.path or ""))
+
+    def go_to(self, key: str) -> None:
+        """Land on page ``key``, passing every page before it as Next would (stops at one that blocks)."""
+        target = self.pages.index(self.page_by_key[key])
+        self.jumping = True
+        try:
+            self.restart()
+            while self.page_index() < target and self.currentPage().isComplete():
+                self.next()
+        finally:
+            self.jumping = False
+        self._page_changed(self.currentId())
 
     def _update_buttons(self) -> None:
         page = self.currentPage()

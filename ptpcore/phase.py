@@ -233,6 +233,36 @@ def run_tiles(fn, h: int, w: int, tile_pixels: int = TILE_PIXELS) -> None:
 
 
 # ---------------------------------------------------------------------------
+# Optional numba kernels (ptpcore._fused)
+
+_fused_mod = None
+_fused_tried = False
+_fused_lock = threading.Lock()
+
+
+def fused_kernels():
+    """The numba kernels module :mod:`ptpcore._fused`, or None.
+
+    None when numba is not installed (``pip install "ptp-studio[fast]"``) or the
+    environment sets ``PTP_NO_NUMBA=1``: the numpy/OpenCV path then runs. numba
+    is imported on first use only (it takes a fraction of a second).
+    """
+    global _fused_mod, _fused_tried
+    if os.environ.get("PTP_NO_NUMBA", "") not in ("", "0"):
+        return None
+    if not _fused_tried:
+        with _fused_lock:
+            if not _fused_tried:
+                try:
+                    from . import _fused
+                except ImportError:
+                    _fused = None
+                _fused_mod = _fused
+                _fused_tried = True
+    return _fused_mod
+
+
+# ---------------------------------------------------------------------------
 # The N-step kernel
 
 @functools.lru_cache(maxsize=None)
@@ -275,11 +305,54 @@ def _nstep_chain(n: int, kind: str) -> tuple[tuple[tuple[int, float], ...], floa
 
 
 _CV_SRC = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+_INT_SRC = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+@functools.lru_cache(maxsize=None)
+def _nstep_weights(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """float32 ``-sin(delta_n)``, ``cos(delta_n)``; exactly 0 where the weight is (``_nstep_chain``)."""
+    delta = 2.0 * np.pi * np.arange(n) / n
+    ws, wc = -np.sin(delta), np.cos(delta)
+    ws[np.abs(ws) <= 1e-12] = 0.0
+    wc[np.abs(wc) <= 1e-12] = 0.0
+    return ws.astype(np.float32), wc.astype(np.float32)
+
+
+def _int_threshold(level) -> int:
+    """``x >= level`` as ``x >= t`` for integer ``x`` (never true without a level)."""
+    if level is None or np.isnan(level) or level == np.inf:
+        return 1 << 40
+    if level == -np.inf:
+        return -(1 << 40)
+    return int(np.ceil(level))
+
+
+def _nstep_rows_fused(kern, frames: np.ndarray, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+    """:func:`_nstep_rows` with the numba kernel (:func:`ptpcore._fused.nstep_rows`): one pass over
+    the tile's frames for all sums, then numpy's (SIMD) ``arctan2`` on the tile."""
+    n, _h, w = frames.shape
+    ws, wc = _nstep_weights(n)
+    photometry = out.background is not None
+    want_rv = out.residual_var is not None
+    work = np.float32 if frames.dtype == np.uint8 and n <= 16 else np.float64
+    neg_s = out.phase[r0:r1]  # -S goes straight into the phase rows, atan2 in place
+    c = np.empty((r1 - r0, w), np.float32)
+    dummy = out.modulation
+    kern.nstep_rows(frames, r0, r1, ws, wc, _int_threshold(saturation_level), neg_s, c, out.modulation,
+                    out.saturated, photometry,
+                    out.background if photometry else dummy, want_rv, np.empty(w, work), work(1),
+                    out.residual_var if want_rv else dummy)
+    np.arctan2(neg_s, c, out=neg_s)
 
 
 def _nstep_rows(frames: np.ndarray, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
     """N-step reduction of rows ``[r0, r1)`` of a stack into ``out`` (see :func:`wrapped_phase`)."""
     n = frames.shape[0]
+    if frames.dtype in _INT_SRC:
+        kern = fused_kernels()
+        if kern is not None:
+            _nstep_rows_fused(kern, frames, saturation_level, out, r0, r1)
+            return
     raw = frames[:, r0:r1]
     fr = raw if raw.dtype in _CV_SRC and raw.strides[-1] == raw.itemsize else raw.astype(np.float32)
     rows = fr.shape[1:]
@@ -619,3 +692,77 @@ def finish_position(rig: Rig, index: int, decoded: dict, options: DecodeOptions 
     u = decoded["x"].coord if "x" in decoded else None
     v = decoded["y"].coord if "y" in decoded else None
     return DecodedPosition(index, float(rig.stage.z_mm[index]), u, v, reasons, dict(decoded))
+
+
+def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions = DecodeOptions(), *,
+                      outs: dict | None = None) -> DecodedPosition | None:
+    """:func:`decode_direction` of every direction, then :func:`finish_position`, fused.
+
+    With the numba kernels (:func:`fused_kernels`), unwrapping and the per-pixel
+    classification of both directions are one pass per row tile, and the border
+    test another; the results are bit-equal to the two functions (tests check).
+    Returns None without the kernels (the caller then runs the two functions).
+
+    Parameters
+    ----------
+    rig : Rig
+    index : int
+        Position index k.
+    levels : dict of str -> list of WrappedPhase
+        Each direction's wrapped levels, coarse to fine.
+    options : DecodeOptions
+    outs : dict, optional
+        ``{d: (coord, disagreement), "reasons": reasons}`` arrays to fill
+        (reused by a streaming caller).
+    """
+    kern = fused_kernels()
+    if kern is None:
+        return None
+    f = rig.fringes
+    h, w = rig.camera.shape
+    if h < 2 or w < 2:
+        return None
+    z = float(rig.stage.z_mm[index])
+    outs = {} if outs is None else outs
+    reasons = outs.get("reasons")
+    if reasons is None:
+        reasons = np.zeros((h, w), np.uint8)
+    else:
+        reasons[...] = 0
+    two_pi = 2.0 * np.pi
+    periods = list(f.periods_px)
+    ratios = np.array([1.0] + [periods[j - 1] / periods[j] for j in range(1, len(periods))])
+    scale = periods[-1] / two_pi
+    min_mod = np.float32(options.min_modulation * rig.camera.max_level)  # as numpy compares float32 maps
+    m = options.border_margin_px
+    jobs = []
+    decoded = {}
+    for d, wrapped in levels.items():
+        if len(wrapped) != len(periods):
+            raise ValueError("need one wrapped phase per period")
+        coord, dis = outs.get(d) or (np.empty((h, w), np.float64), np.empty((h, w), bool))
+        extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
+        jobs.append((tuple(wp.phase for wp in wrapped), float(f.carrier(d) * z),
+                     tuple(wp.modulation for wp in wrapped), tuple(wp.saturated for wp in wrapped),
+                     extent, coord, dis))
+        decoded[d] = DirectionDecode(coord, list(wrapped), dis)
+
+    def rows(r0: int, r1: int) -> None:
+        for phases, shift, mods, sats, extent, coord, dis in jobs:
+            kern.unwrap_classify_rows(r0, r1, phases, ratios, scale, shift, mods, sats, min_mod,
+                                      extent, coord, dis, reasons)
+
+    run_tiles(rows, h, w)
+    if m > 0:
+        def edges(r0: int, r1: int) -> None:
+            for *_, extent, coord, _dis in jobs:
+                kern.near_edge_rows(r0, r1, coord, extent, float(m), reasons)
+
+        run_tiles(edges, h, w)
+        bezel = np.bitwise_and(reasons, Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)
+        if bezel.any():
+            near = cv2.dilate(bezel, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
+            run_tiles(lambda r0, r1: kern.border_rows(r0, r1, near, reasons), h, w)
+    u = decoded["x"].coord if "x" in decoded else None
+    v = decoded["y"].coord if "y" in decoded else None
+    return DecodedPosition(index, z, u, v, reasons, decoded)

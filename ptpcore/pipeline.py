@@ -21,6 +21,7 @@ How it is fast on big sensors (``docs/performance.md`` has the numbers):
 
 from __future__ import annotations
 
+import functools
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -30,8 +31,8 @@ import numpy as np
 
 from .lut import Lut, SampleStack, fit_lut
 from .noise import NoiseAccumulator
-from .phase import (DecodedPosition, DecodeOptions, WrappedPhase, decode_direction, finish_position,
-                    run_tiles, tile_workers, wrapped_phase)
+from .phase import (DecodedPosition, DecodeOptions, WrappedPhase, decode_and_finish, decode_direction,
+                    finish_position, fused_kernels, run_tiles, tile_workers, wrapped_phase)
 from .rig import Rig, rig_to_toml
 
 __all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES"]
@@ -200,6 +201,21 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
                     np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
                     np.empty((h, w), np.float32) if photometry and len(stack) > 3 else None)
         wrapped[(d, j)] = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+    levels = {d: [wrapped[(d, j)] for j in range(len(f.periods_px))] for d in f.directions}
+    if fused_kernels() is not None:
+        outs = None
+        if buffers is not None:
+            outs = {}
+            for d in f.directions:
+                outs[d] = buffers.get(d)
+                if outs[d] is None:
+                    outs[d] = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
+            outs["reasons"] = buffers.get("reasons")
+            if outs["reasons"] is None:
+                outs["reasons"] = buffers["reasons"] = np.empty((h, w), np.uint8)
+        pos = decode_and_finish(rig, k, levels, options, outs=outs)
+        if pos is not None:
+            return pos
     z = rig.stage.z_mm[k]
     decoded = {}
     for d in f.directions:
@@ -327,7 +343,9 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                 if writes[slot] is not None:
                     writes[slot].result()  # its maps are free again
                 dest = outs[slot]
-            run_tiles(lambda r0, r1: _store_rows(rig, pos, fine_x, fine_y, samples, dest, r0, r1), *shape)
+            kern = fused_kernels()
+            put = _store_rows if kern is None else functools.partial(_store_rows_fused, kern)
+            run_tiles(lambda r0, r1: put(rig, pos, fine_x, fine_y, samples, dest, r0, r1), *shape)
             if store is not None:
                 writes[slot] = writer.submit(lambda d=dest, kk=k: [store.write(n, kk, a) for n, a in d.items()])
             valid = pos.reasons[::stride, ::stride] == 0
@@ -383,6 +401,20 @@ def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: Wr
     bg = dest["background"][r0:r1]
     np.add(fine_x.background[r0:r1], fine_y.background[r0:r1], out=bg)
     bg *= 0.5
+
+
+def _store_rows_fused(kern, rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
+                      samples: SampleStack, dest: dict, r0: int, r1: int) -> None:
+    """:func:`_store_rows` with the numba kernel :func:`ptpcore._fused.store_rows` (bit-equal)."""
+    a, b, _ = rig.stage.direction
+    px, py = rig.lcd.pitch_mm
+    z = pos.z_mm
+    with_bg = fine_x.background is not None and fine_y.background is not None
+    bgx = fine_x.background if with_bg else fine_x.modulation
+    bgy = fine_y.background if with_bg else fine_y.modulation
+    kern.store_rows(r0, r1, pos.reasons, pos.u, pos.v, float(px), float(py), float(a * z), float(b * z),
+                    samples.x_ref, samples.y_ref, fine_x.modulation, fine_y.modulation, bgx, bgy, with_bg,
+                    dest["x"], dest["y"], dest["reasons"], dest["modulation"], dest["background"])
 
 
 def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOptions = DecodeOptions(),

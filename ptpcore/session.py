@@ -78,6 +78,7 @@ __all__ = [
     "SESSION_SUFFIX",
     "STAGES",
     "Session",
+    "next_step",
     "new_session",
     "save_session",
     "load_session",
@@ -149,6 +150,22 @@ class Session:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def next_step(session: Session) -> str | None:
+    """What resuming ``session`` does next.
+
+    ``"decode"`` (stage ``new``), ``"fit"`` (stage ``samples``), ``"compare"``
+    (the LUT is fitted, no comparison results yet; optional), or None when
+    everything the session file holds is done.
+    """
+    if session.samples is None and session.lut is None:
+        return "decode"
+    if session.lut is None:
+        return "fit"
+    if session.comparison is None:
+        return "compare"
+    return None
 
 
 def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,

@@ -7,6 +7,8 @@ reference: the straightforward implementation kept here, the frame-by-frame
 wide enough (4096 px: 8 rows per tile) that every path crosses tile borders.
 """
 
+import functools
+
 import cv2
 import numpy as np
 import pytest
@@ -299,3 +301,170 @@ def test_tiled_evaluation_equals_horner():
             np.testing.assert_array_equal(ev.in_range, in_range)
             np.testing.assert_array_equal(ev.x, np.where(keep, _horner(lut.x, t), np.nan))
             np.testing.assert_array_equal(ev.y, np.where(keep, _horner(lut.y, t), np.nan))
+
+
+# ---------------------------------------------------------------------------- numba kernels
+# The optional fused kernels (ptpcore._fused, `pip install ".[fast]"`) against the numpy/OpenCV
+# path on the same inputs: N-step sums to float32 rounding, unwrapping, classification and
+# the stored samples bit for bit.
+
+
+@pytest.fixture
+def kernels(monkeypatch):
+    """The numba kernels, switched on (skips without numba)."""
+    pytest.importorskip("numba")
+    from ptpcore.phase import fused_kernels
+
+    monkeypatch.delenv("PTP_NO_NUMBA", raising=False)
+    kern = fused_kernels()
+    assert kern is not None
+    return kern
+
+
+@pytest.fixture
+def numpy_path(monkeypatch):
+    """A context switch: ``with numpy_path():`` runs the numpy/OpenCV path."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def use():
+        with monkeypatch.context() as m:
+            m.setenv("PTP_NO_NUMBA", "1")
+            yield
+
+    return use
+
+
+def test_numba_can_be_switched_off(monkeypatch):
+    from ptpcore.phase import fused_kernels
+
+    monkeypatch.setenv("PTP_NO_NUMBA", "1")
+    assert fused_kernels() is None
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("n", [3, 4, 5, 8])
+def test_numba_nstep_matches_the_numpy_path(dtype, n, kernels, numpy_path):
+    rng = np.random.default_rng(10 + n)
+    level = 4095 if dtype == np.uint16 else 255
+    frames = _stack(rng, n, (40, 4096), dtype, level)
+    frames[:, :3] = level  # saturated rows
+    frames[:, 5, :100] = 7  # constant pixels: S = C = 0 up to rounding
+    for sat in (level * 0.99, None, level):
+        for photometry in (True, False):
+            got = wrapped_phase(frames, sat, photometry=photometry)
+            with numpy_path():
+                ref = wrapped_phase(frames, sat, photometry=photometry)
+            np.testing.assert_array_equal(got.saturated, ref.saturated)
+            np.testing.assert_allclose(got.modulation, ref.modulation, rtol=2e-6, atol=2e-4 * level / 255)
+            sure = ref.modulation > 1e-3 * level  # the phase of a zero vector is rounding noise
+            dphi = np.angle(np.exp(1j * (got.phase.astype(float) - ref.phase)))
+            assert np.max(np.abs(dphi[sure])) < 1e-5
+            if photometry:
+                np.testing.assert_array_equal(got.background, ref.background)
+                if n > 3:
+                    scale = (0.01 * level) ** 2
+                    np.testing.assert_allclose(got.residual_var, ref.residual_var, rtol=0,
+                                               atol=2e-3 * scale + 1e-4 * float(ref.residual_var.max()))
+                else:
+                    assert got.residual_var is None
+            else:
+                assert got.background is None and got.residual_var is None
+
+
+def _wrapped_levels(vr, k):
+    rig = vr.rig
+    f = rig.fringes
+    frames = {}
+    for (d, j, _t, n, big_n), img in vr.frames(k):
+        frames.setdefault((d, j), [None] * big_n)[n] = img
+    return {d: [wrapped_phase(np.stack(frames[(d, j)]), rig.camera.max_level) for j in range(len(f.periods_px))]
+            for d in f.directions}
+
+
+def test_numba_unwrap_and_classification_equal_the_numpy_path_exactly(realistic, kernels):
+    from ptpcore.phase import decode_and_finish
+
+    rig = realistic.rig
+    f = rig.fringes
+    for k in (0, rig.stage.n_positions - 1):
+        levels = _wrapped_levels(realistic, k)
+        for opts in (DecodeOptions(), DecodeOptions(0.1, 0), DecodeOptions(0.01, 5)):
+            got = decode_and_finish(rig, k, levels, opts)
+            dec = {d: decode_direction(levels[d], f.periods_px, f.carrier(d) * rig.stage.z_mm[k]) for d in levels}
+            ref = finish_position(rig, k, dec, opts)
+            np.testing.assert_array_equal(got.reasons, ref.reasons)
+            np.testing.assert_array_equal(got.u, ref.u)
+            np.testing.assert_array_equal(got.v, ref.v)
+            for d in levels:
+                np.testing.assert_array_equal(got.directions[d].disagreement, dec[d].disagreement)
+            assert got.z_mm == ref.z_mm
+        assert (got.reasons & Reason.BORDER).any() and (got.reasons == 0).mean() > 0.5
+
+
+def test_numba_unwrapping_of_odd_phases_equals_the_reference(kernels):
+    unwrap_classify_rows = kernels.unwrap_classify_rows
+
+    rng = np.random.default_rng(3)
+    periods = [4096, 256, 16]
+    u = np.linspace(0, 4000, 4096)[None, :] + rng.uniform(0, 50, (40, 1))
+    phases = [np.angle(np.exp(2j * np.pi * u / t) * np.exp(1j * rng.normal(0, 0.3, u.shape))).astype(np.float32)
+              for t in periods]
+    phases[0][3, 7:20] += np.float32(7.0)  # outside [-2pi, 2pi): np.mod
+    phases[0][4, 1] = np.nan
+    phases[1][5, 2] = np.nan
+    phases[0][6, :5] = [-0.0, 0.0, -2 * np.pi, np.float32(2 * np.pi), -1e-30]
+    ref_coord, ref_dis = _unwrap_reference(phases, periods)
+    ref_coord -= 1.25
+    coord = np.empty(u.shape)
+    dis = np.empty(u.shape, bool)
+    reasons = np.zeros(u.shape, np.uint8)
+    mods = tuple(np.ones(u.shape, np.float32) for _ in periods)
+    sats = tuple(np.zeros(u.shape, bool) for _ in periods)
+    unwrap_classify_rows(0, 40, tuple(phases), np.array([1.0, 16.0, 16.0]), 16 / (2 * np.pi), 1.25, mods, sats,
+                         np.float32(0.5), 3840.0, coord, dis, reasons)
+    np.testing.assert_array_equal(coord, ref_coord)
+    np.testing.assert_array_equal(dis, ref_dis)
+
+
+def test_numba_store_equals_the_numpy_path_exactly(realistic, kernels):
+    from ptpcore.pipeline import _store_rows, _store_rows_fused
+
+    rig = realistic.rig
+    f = rig.fringes
+    shape = rig.camera.shape
+    stacks = [SampleStack.empty(rig.stage.z_mm, shape) for _ in range(2)]
+    for k in (0, 3, rig.stage.n_positions - 1):
+        levels = _wrapped_levels(realistic, k)
+        dec = {d: decode_direction(levels[d], f.periods_px, f.carrier(d) * rig.stage.z_mm[k]) for d in levels}
+        pos = finish_position(rig, k, dec)
+        fx, fy = levels["x"][-1], levels["y"][-1]
+        for s, fn in zip(stacks, (_store_rows, functools.partial(_store_rows_fused, kernels))):
+            dest = {"x": s.x[k], "y": s.y[k], "reasons": s.reasons[k], "modulation": s.modulation[k],
+                    "background": s.background[k]}
+            run_tiles(lambda r0, r1: fn(rig, pos, fx, fy, s, dest, r0, r1), *shape)
+    for name in ("x", "y", "x_ref", "y_ref", "reasons", "modulation", "background"):
+        np.testing.assert_array_equal(getattr(stacks[1], name), getattr(stacks[0], name), err_msg=name)
+
+
+def test_numba_calibration_matches_the_numpy_path(tmp_path, small_rig, kernels, numpy_path):
+    src = _dataset(tmp_path, small_rig, ".tif")
+    got = collect_samples(src, spill=True, spill_dir=tmp_path)
+    with numpy_path():
+        ref = collect_samples(src, spill=False)
+    # The N-step sums agree to float32 rounding, and a pixel's class follows that rounding
+    # only where a phase is undefined (no modulation: its coordinate is noise) or a
+    # coordinate sits on a threshold (the coarse level's 0/2pi seam, the border test).
+    low = ((got.reasons | ref.reasons) & Reason.LOW_MODULATION) != 0
+    same = got.reasons == ref.reasons
+    assert (~same & ~low).mean() < 1e-3
+    assert ((got.reasons == 0) != (ref.reasons == 0)).mean() < 1e-3
+    both = same & (ref.reasons == 0)
+    for name in ("x", "y"):  # mm, absolute: x_ref, the first valid position, may differ
+        a = getattr(got, name) + getattr(got, name + "_ref")
+        b = getattr(ref, name) + getattr(ref, name + "_ref")
+        np.testing.assert_allclose(a[both], b[both], rtol=0, atol=5e-6)  # float32 of tens of mm
+    np.testing.assert_array_equal(got.background, ref.background)
+    np.testing.assert_allclose(got.modulation, ref.modulation, rtol=2e-6, atol=1e-4)
+    assert got.noise.read_var == pytest.approx(ref.noise.read_var, rel=1e-2, abs=1e-5)
+    assert got.noise.gain == pytest.approx(ref.noise.gain, rel=1e-2)

@@ -19,7 +19,7 @@ from ptpcore.cli import main
 from ptpcore.errors import FileFormatError
 from ptpcore.lut import load_lut, save_lut
 from ptpcore.rig import Camera
-from ptpcore.session import load_session, new_session, run_session, save_session
+from ptpcore.session import load_session, new_session, next_step, run_session, save_session
 from ptpcore.simulate import preset, simulate_dataset
 
 
@@ -100,6 +100,16 @@ def test_each_stage_round_trips(dataset, tmp_path):
     final = load_session(tmp_path / "a.ptps.h5")
     assert final.stage == "lut" and final.lut.kind == "pchip"
     np.testing.assert_array_equal(final.lut.z_nodes, [0.0, 8.0, 24.0])
+
+
+def test_next_step_follows_the_stages(dataset, complete, tmp_path):
+    s = new_session(dataset, model="poly", degree=1, positions=[0, 2, 3])
+    assert next_step(s) == "decode"
+    run_session(s, tmp_path / "n.ptps.h5", stop_after="samples")
+    assert next_step(load_session(tmp_path / "n.ptps.h5")) == "fit"
+    run_session(s, tmp_path / "n.ptps.h5")
+    assert next_step(load_session(tmp_path / "n.ptps.h5")) == "compare"
+    assert next_step(load_session(complete[1])) is None  # comparison results saved too
 
 
 def test_smooth_session_round_trips(dataset, tmp_path):

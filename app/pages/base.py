@@ -47,6 +47,7 @@ class StudioPage(QWizardPage):
         outer.addWidget(self.why)
         self.jobs: JobPanel | None = None
         self._last_reason: str | None | bool = False
+        self.enter_pending = False  # the wizard passed this page without showing it (StudioWizard.go_to)
 
     @property
     def icon(self) -> QIcon:
@@ -90,7 +91,10 @@ class StudioPage(QWizardPage):
         self.completeChanged.emit()
 
     def initializePage(self) -> None:  # noqa: N802 - Qt API
-        self.on_enter()
+        if getattr(self.wizard(), "jumping", False):
+            self.enter_pending = True  # run on_enter (and its jobs) only if the page is shown
+        else:
+            self.on_enter()
         self.update_complete()
 
     def cleanupPage(self) -> None:  # noqa: N802 - Qt API

@@ -17,7 +17,7 @@ from ..widgets.maps import PEN, MapView, colormap
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["ComparePage"]
+__all__ = ["ComparePage", "saved_verdict"]
 
 COLOURS = {"ptp": "#1b7f4c", "smooth": "#2b6cb0", "3dstc": "#c0392b"}
 REF_LABELS = {"truth": "the simulator's exact truth", "measured": "the measured held-out samples"}
@@ -25,6 +25,18 @@ REF_LABELS = {"truth": "the simulator's exact truth", "measured": "the measured 
 
 def _fmt(v: float, digits: int = 3) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{v:.{digits}g}"
+
+
+def saved_verdict(report) -> str:
+    """The verdict line of a comparison report read from a session file (only its JSON is saved)."""
+    refs = report.get("references") if isinstance(report, dict) else None
+    for ref in ("truth", "measured"):
+        entry = refs.get(ref) if isinstance(refs, dict) else None
+        verdict = entry.get("verdict") if isinstance(entry, dict) else None
+        if isinstance(verdict, dict) and isinstance(verdict.get("text"), str):
+            return (f"<b>Saved comparison (from the session file), against {REF_LABELS[ref]}:</b> {verdict['text']}"
+                    " Run the comparison again to see its plots.")
+    return "A comparison is saved in the session file: run it again to see it here."
 
 
 class ComparePage(StudioPage):
@@ -190,7 +202,8 @@ class ComparePage(StudioPage):
         for p in (self.vs_dist, self.hist, self.per_pos):
             p.clear()
         if r is None:
-            self.verdict.setText("")
+            saved = self.model.session.saved_comparison
+            self.verdict.setText("" if saved is None else saved_verdict(saved))
             return
         ref = self.reference.currentData() or "measured"
         rr = r.references[ref]
@@ -289,7 +302,10 @@ class ComparePage(StudioPage):
             self.per_pos.addItem(bars)
 
     def on_enter(self) -> None:
-        if self.model.session.compare is None:
+        s = self.model.session
+        if s.compare is None and s.saved_comparison is not None:
+            self.verdict.setText(saved_verdict(s.saved_comparison))
+        elif s.compare is None:
             self.verdict.setText("Optional: run the comparison to see how 3DSTC does on the same data and to "
                                  "include it in the report. Next works without it.")
 

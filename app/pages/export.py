@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-from dataclasses import asdict
 from pathlib import Path
 
+from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
                                QPushButton, QVBoxLayout)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
 from ptpcore.lut import save_lut
-from ptpcore.models import describe_lut, lut_model
+from ptpcore.models import describe_lut
 from ptpcore.rig import rig_to_toml
+from ptpcore.session import save_session
 
+from ..sessionfile import to_engine
 from ..worker import Job
 from .base import StudioPage
 
@@ -23,11 +25,6 @@ __all__ = ["ExportPage", "LUT_NAME", "REPORT_NAME", "SESSION_NAME"]
 LUT_NAME = "calibration.lut.h5"
 REPORT_NAME = "comparison.json"
 SESSION_NAME = "session.ptps.h5"
-
-try:  # session files come from ptpcore.session (ptp-session/1)
-    from ptpcore import session as _session_mod
-except ImportError:  # pragma: no cover - depends on the engine version
-    _session_mod = None
 
 
 def _save_png(image, path: Path) -> None:
@@ -57,10 +54,14 @@ def _map_image(maps: dict, key: str, size: tuple[int, int] = (900, 720)):
 
 
 class ExportPage(StudioPage):
+    """Signals: ``sessionWritten(Path)`` after an export that wrote the session file (autosave goes there)."""
+
     key = "export"
     heading = "Export"
     subheading = ("Write what this session produced: the LUT a scanner loads (ptp-lut/1), the comparison "
                   "report (JSON plus PNG plots) and the session itself, to resume later.")
+
+    sessionWritten = Signal(object)
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
@@ -128,15 +129,12 @@ class ExportPage(StudioPage):
 
     def on_enter(self) -> None:
         s = self.model.session
-        has_cmp = s.compare is not None
+        has_cmp = s.compare is not None or s.saved_comparison is not None
         self.do_report.setEnabled(has_cmp)
         self.do_report.setToolTip("" if has_cmp else "No comparison was run (Compare page).")
         if not has_cmp:
             self.do_report.setChecked(False)
-        self.do_session.setEnabled(_session_mod is not None)
-        if _session_mod is None:
-            self.do_session.setChecked(False)
-            self.do_session.setToolTip("This engine version cannot write session files.")
+        self.do_session.setToolTip("Saved again after each completed stage from now on (autosave).")
         lut = s.lut
         if lut is not None:
             self.summary.setText(f"LUT: {describe_lut(lut)}, {lut.shape[1]}x{lut.shape[0]} px, "
@@ -168,8 +166,10 @@ class ExportPage(StudioPage):
             images[out / "lut_quality.png"] = _map_image(cal.maps, cal.current_map)
             if "sigma_x" in cal.maps:
                 images[out / "lut_sigma_x.png"] = _map_image(cal.maps, "sigma_x")
-        report = result.to_json_dict() if (self.do_report.isChecked() and result is not None) else None
-        session_obj = self._session_object(out) if self.do_session.isChecked() and _session_mod else None
+        report = None
+        if self.do_report.isChecked():  # an opened session's comparison: its report, without plots
+            report = result.to_json_dict() if result is not None else s.saved_comparison
+        session_obj = to_engine(s, out=out / LUT_NAME) if self.do_session.isChecked() else None
         write_rig = self.do_rig.isChecked()
 
         def run(ctx):
@@ -200,7 +200,7 @@ class ExportPage(StudioPage):
                 written.append(out / "rig.toml")
             if session_obj is not None:
                 step(f"writing {SESSION_NAME}")
-                _session_mod.save_session(session_obj, out / SESSION_NAME)
+                save_session(session_obj, out / SESSION_NAME)
                 written.append(out / SESSION_NAME)
             ctx.progress(1.0, f"wrote {len(written)} files to {out}")
             return written
@@ -209,19 +209,6 @@ class ExportPage(StudioPage):
         job.finished.connect(self._written)
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
-
-    def _session_object(self, out: Path):
-        s = self.model.session
-        sim = None
-        if s.source_kind == "simulated":
-            sim = json.dumps({"seed": s.seed, **asdict(s.sim_settings)})
-        lut = s.lut
-        return _session_mod.Session(
-            rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None,
-            model=lut_model(lut), degree=int(lut.degree or 3),
-            positions=None if s.lut_positions is None else tuple(s.lut_positions),
-            out=str(out / LUT_NAME), sim_settings=sim, samples=s.samples, lut=lut,
-            comparison=s.compare.to_json_dict() if s.compare is not None else None)
 
     def _written(self, files) -> None:
         self.files = list(files)
@@ -233,6 +220,9 @@ class ExportPage(StudioPage):
             lines.append(f"✔ {f}  ({size / 1e6:.2f} MB)" if size > 1e5 else f"✔ {f}  ({size / 1e3:.1f} kB)")
         self.written.setText("\n".join(lines))
         self.update_complete()
+        for f in self.files:
+            if f.name == SESSION_NAME:
+                self.sessionWritten.emit(f)
 
     def blocker(self) -> str | None:
         if self.model.session.lut is None:

@@ -1,4 +1,4 @@
-"""Page 1, Rig: camera, LCD, stage positions, and where the images come from."""
+"""Page 1, Rig: camera, LCD, stage positions, and where the images come from; or open a saved session."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QFileDialog, QFormLayout,
                                QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
                                QRadioButton, QSpinBox, QVBoxLayout, QWidget)
@@ -15,6 +16,8 @@ from ptpcore.rig import Camera, Lcd, Rig, Stage, load_rig, rig_from_toml, rig_to
 from ptpcore.simulate import PRESETS, preset
 
 from ..assets import default_rigs
+from ..sessionfile import read_session_file
+from ..worker import Job
 from .base import StudioPage
 
 __all__ = ["RigPage", "parse_numbers"]
@@ -62,9 +65,13 @@ def _ispin(lo, hi, value, suffix=""):
 
 
 class RigPage(StudioPage):
+    """Signals: ``sessionOpened(OpenedSession)`` once a session file is read (the wizard restores it)."""
+
     key = "rig"
     heading = "Rig"
     subheading = "The camera, the LCD on its stage, the stage positions, and where the images come from."
+
+    sessionOpened = Signal(object)
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
@@ -132,6 +139,18 @@ class RigPage(StudioPage):
         tl.addWidget(self.load_button)
         tl.addWidget(self.save_button)
         left.addWidget(tpl)
+
+        # ---- session file
+        ses = QGroupBox("Saved session (ptp-session/1)")
+        sv = QVBoxLayout(ses)
+        srow = QHBoxLayout()
+        self.open_button = QPushButton("Open session…")
+        self.open_button.setToolTip("Resume a saved calibration: its rig, samples, LUT and comparison; the wizard "
+                                    "goes on where it stopped and saves the file again after each stage.")
+        srow.addWidget(self.open_button)
+        srow.addWidget(self.make_job_panel(), 1)
+        sv.addLayout(srow)
+        left.addWidget(ses)
         left.addStretch(1)
 
         # ---- camera and LCD
@@ -198,6 +217,7 @@ class RigPage(StudioPage):
         self.template.activated.connect(self._template_chosen)
         self.load_button.clicked.connect(self._load_dialog)
         self.save_button.clicked.connect(self._save_dialog)
+        self.open_button.clicked.connect(self._open_dialog)
         for w in (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
                   self.z_start, self.z_step, self.z_count, self.skew_a, self.skew_b):
             w.valueChanged.connect(self._edited)
@@ -409,6 +429,31 @@ class RigPage(StudioPage):
             self.model.set_rig(rig)
             self._update_stage_summary()
         self.update_complete()
+
+    # ---- session files -------------------------------------------------------
+    def _open_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open session", "",
+                                              "PTP sessions (*.ptps.h5);;HDF5 files (*.h5);;All files (*)")
+        if path:
+            self.open_session(path)
+
+    def open_session(self, path) -> Job | None:
+        """Read a session file in the background; on success emit ``sessionOpened``.
+
+        A file that cannot be read leaves everything as it was and shows the reason here.
+        """
+        if self.jobs.busy:
+            return None
+        wiz = self.wizard()
+        busy = [p for p in getattr(wiz, "pages", ()) if p is not self and p.jobs is not None and p.jobs.busy]
+        if busy:
+            self.jobs.error.setText(f"Wait for '{busy[0].jobs.job.name}' ({busy[0].heading} page) to finish, or"
+                                    " cancel it, before opening a session.")
+            self.jobs.error.show()
+            return None
+        job = Job(lambda ctx: read_session_file(path, ctx.progress), "opening the session")
+        job.finished.connect(self.sessionOpened.emit)
+        return self.run_job(job)
 
     # ---- why can't I go on? -------------------------------------------------
     def blocker(self) -> str | None:
