@@ -141,8 +141,6 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from dataclasses import replace
-
     from .accuracy import held_out_accuracy, predicted_poly_sigma, sample_sigma
     from .dataset import DatasetSource
     from .lut import fit_lut

@@ -18,7 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import h5py
 import numpy as np
@@ -27,6 +27,9 @@ from scipy.interpolate import PchipInterpolator
 from . import __version__
 from .atomic import atomic_path
 from .errors import FileFormatError
+
+if TYPE_CHECKING:
+    from .noise import NoiseModel
 
 __all__ = [
     "LUT_FORMAT",
@@ -75,7 +78,7 @@ class SampleStack:
     reasons: np.ndarray
     modulation: np.ndarray | None = None
     background: np.ndarray | None = None
-    noise: "NoiseModel | None" = None  # measured from the N-step residuals (ptpcore.noise)
+    noise: NoiseModel | None = None  # measured from the N-step residuals (ptpcore.noise)
 
     @classmethod
     def empty(cls, z, shape, with_photometry: bool = True) -> "SampleStack":
@@ -638,6 +641,20 @@ def _str_attr(value) -> str | None:
     return value if isinstance(value, str) else None
 
 
+def open_hdf5(path) -> tuple[h5py.File, str]:
+    """Open an HDF5 file for reading; any failure is a :class:`FileFormatError` naming it.
+
+    Returns the open file and its name for messages.
+    """
+    where = str(path)
+    try:
+        return h5py.File(Path(path), "r"), where
+    except FileNotFoundError:
+        raise FileFormatError(f"{where}: file not found") from None
+    except OSError as exc:
+        raise FileFormatError(f"{where}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
+
+
 def check_format(obj, where: str, expected: str) -> None:
     """Check a ``format`` attribute ``"name/N"`` against ``expected``.
 
@@ -812,14 +829,7 @@ def load_lut(path) -> Lut:
         truncated, another format or a newer version, missing or wrongly shaped
         datasets, NaN where a valid pixel needs a number, values out of range.
     """
-    path = Path(path)
-    where = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise FileFormatError(f"{where}: file not found") from None
-    except OSError as exc:
-        raise FileFormatError(f"{where}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
+    f, where = open_hdf5(path)
     with f:
         check_format(f, where, LUT_FORMAT)
         return _read_lut_group(f, where)

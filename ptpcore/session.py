@@ -66,7 +66,7 @@ import numpy as np
 from . import __version__
 from .atomic import atomic_path
 from .errors import ConfigError, DatasetError, FileFormatError
-from .lut import (LUT_FORMAT, Lut, SampleStack, _lut_root_attrs, _read_lut_group, _str_attr,
+from .lut import (LUT_FORMAT, Lut, SampleStack, _lut_root_attrs, _read_lut_group, _str_attr, open_hdf5,
                   _write_lut_group, check_format)
 from .models import LUT_MODELS, fit_model
 from .phase import DecodeOptions
@@ -441,14 +441,7 @@ def load_session(path) -> Session:
         truncated, not a session, too new, missing or wrongly shaped datasets,
         NaN where a valid sample needs a number, values out of range.
     """
-    path = Path(path)
-    where = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise FileFormatError(f"{where}: file not found") from None
-    except OSError as exc:
-        raise FileFormatError(f"{where}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
+    f, where = open_hdf5(path)
     with f:
         version = _file_version(f, where)
         if version == SESSION_VERSION:

@@ -28,7 +28,7 @@ uncertainty maps ``sigma_x``, ``sigma_y`` for plain and smooth LUTs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable
 
 import warnings
