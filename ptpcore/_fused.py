@@ -295,3 +295,53 @@ def store_rows(r0, r1, reasons, u, v, px, py, ax, by, x_ref, y_ref, mod_x, mod_y
                 dmod[r, c] = mx if mx < my else my
             if with_bg:
                 dbg[r, c] = (bg_x[r, c] + bg_y[r, c]) * half
+
+
+@njit(**_OPTS)
+def poly_fit_full(pinv, v, loo_scale, with_loo, y, coef, rms, loo):
+    """Least squares of every column of ``y`` (K, P) with all K samples valid.
+
+    ``coef = pinv @ y``, ``resid = y - v @ coef``, ``rms = sqrt(sum resid^2 / K)``,
+    ``loo = sqrt(sum (resid * loo_scale)^2 / K)`` (if ``with_loo``), as
+    :func:`ptpcore.lut._fit_poly_tile_xy` does with ``einsum``, in one pass over
+    ``y`` (float32 or float64, each sample taken as float64) in blocks of
+    pixels that stay in L1. Equal to the einsum path to a float64 rounding or two.
+    """
+    n_coef, k = pinv.shape
+    p = y.shape[1]
+    blk = 256
+    c = np.empty((n_coef, blk))
+    r = np.empty(blk)
+    sq = np.empty(blk)
+    sl = np.empty(blk)
+    for p0 in range(0, p, blk):
+        m = min(blk, p - p0)
+        for i in range(n_coef):
+            for q in range(m):
+                c[i, q] = 0.0
+            for j in range(k):
+                a = pinv[i, j]
+                for q in range(m):
+                    c[i, q] += a * np.float64(y[j, p0 + q])
+        for q in range(m):
+            sq[q] = 0.0
+            sl[q] = 0.0
+        for j in range(k):
+            for q in range(m):
+                r[q] = 0.0
+            for i in range(n_coef):
+                a = v[j, i]
+                for q in range(m):
+                    r[q] += a * c[i, q]
+            s = loo_scale[j]
+            for q in range(m):
+                e = np.float64(y[j, p0 + q]) - r[q]
+                sq[q] += e * e
+                e *= s
+                sl[q] += e * e
+        for q in range(m):
+            for i in range(n_coef):
+                coef[i, p0 + q] = c[i, q]
+            rms[p0 + q] = math.sqrt(sq[q] / k)
+            if with_loo:
+                loo[p0 + q] = math.sqrt(sl[q] / k)

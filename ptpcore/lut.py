@@ -404,6 +404,8 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
     t_all = (z - z_center) / z_scale
     wflat = None if weights is None else np.asarray(weights, dtype=float).reshape(k, -1)
     sel = None if positions is None else idx
+    z_sorted = z[order]
+    sorted_z = bool(np.all(order == np.arange(k)))
 
     def tile(start: int) -> None:
         stop = min(start + _TILE, p_total)
@@ -412,11 +414,19 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
         n_pos[start:stop] = n_t
         usable_t = n_t >= min_positions
         if usable_t.any():
-            zk = np.broadcast_to(z[:, None], valid_t.shape)
-            pz_min[start:stop] = np.where(usable_t, np.min(np.where(valid_t, zk, np.inf), axis=0), np.nan)
-            pz_max[start:stop] = np.where(usable_t, np.max(np.where(valid_t, zk, -np.inf), axis=0), np.nan)
+            # The lowest and highest valid z: the first and last valid position in z order
+            # (argmax of a bool stack, no (K, P) float temporaries).
+            vs = valid_t if sorted_z else valid_t[order]
+            first = vs.argmax(axis=0)
+            last = len(z) - 1 - vs[::-1].argmax(axis=0)
+            pz_min[start:stop] = np.where(usable_t, z_sorted[first], np.nan)
+            pz_max[start:stop] = np.where(usable_t, z_sorted[last], np.nan)
         mask = valid_t & usable_t[None, :]
-        offs = {a: read_block(getattr(samples, a), start, stop, sel).astype(np.float64) for a in "xy"}
+        # Poly fits take the float32 samples as they are (each group converts what it uses,
+        # the fused kernel as it reads); tables want float64.
+        offs = {a: read_block(getattr(samples, a), start, stop, sel) for a in "xy"}
+        if model != "poly":
+            offs = {a: o.astype(np.float64) for a, o in offs.items()}
         refs = {a: getattr(samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}
         if model == "poly":
             fits = _fit_poly_tile_xy(t_all, [offs["x"], offs["y"]], mask, degree,
@@ -513,6 +523,9 @@ def _fit_poly_tile_xy(t: np.ndarray, values_list, mask: np.ndarray, degree: int,
     n_coef = degree + 1
     out = [(np.full((n_coef, p), np.nan), np.full(p, np.nan), np.full(p, np.nan)) for _ in values_list]
     vander = np.vander(t, n_coef, increasing=True)  # (K, D+1)
+    from .phase import fused_kernels
+
+    kern = fused_kernels()
     if weights is None:
         groups = _pattern_groups(mask, n_coef)
     else:
@@ -534,11 +547,26 @@ def _fit_poly_tile_xy(t: np.ndarray, values_list, mask: np.ndarray, degree: int,
         with np.errstate(divide="ignore", invalid="ignore"):
             loo_scale = (1.0 / (1.0 - hat))[:, None] if n > n_coef else None
         all_cols = cols.size == p
+        if kern is not None and n == k and weights is None:
+            # Every position valid (most pixels): one compiled pass over the whole tile
+            # (columns of other patterns are computed too, and dropped).
+            scale = np.zeros(k) if loo_scale is None else np.ascontiguousarray(loo_scale[:, 0])
+            for values, (coef, rms, loo) in zip(values_list, out):
+                if all_cols:
+                    kern.poly_fit_full(pinv, v, scale, loo_scale is not None, values, coef, rms, loo)
+                else:
+                    tc, tr, tl = np.empty((n_coef, p)), np.empty(p), np.full(p, np.nan)
+                    kern.poly_fit_full(pinv, v, scale, loo_scale is not None, values, tc, tr, tl)
+                    coef[:, cols] = tc[:, cols]
+                    rms[cols] = tr[cols]
+                    loo[cols] = tl[cols]
+            continue
         for values, (coef, rms, loo) in zip(values_list, out):
             if all_cols:
                 y = values if n == k else values[rows]
             else:
                 y = values[np.ix_(rows, cols)]
+            y = y.astype(np.float64, copy=False)
             # einsum, not BLAS: (D+1, K) x (K, P) is too thin for BLAS's threads,
             # which on a busy machine cost ten times the arithmetic.
             c = np.einsum("ij,jk->ik", pinv, y)

@@ -325,6 +325,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     stride = max(1, int(np.sqrt(shape[0] * shape[1] / NOISE_PIXELS)))
     reader = _DatasetReader(source, todo) if _is_dataset(source) else None
     buffers: dict = {}
+    noise_jobs: list = []
     try:
         for i, k in enumerate(todo):
             if progress:
@@ -351,8 +352,12 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             valid = pos.reasons[::stride, ::stride] == 0
             for fine in (fine_x, fine_y):
                 if fine.residual_var is not None:
-                    noise.add(fine.background[::stride, ::stride], fine.residual_var[::stride, ::stride],
-                              valid, rig.fringes.steps[-1] - 3)
+                    args = (fine.background[::stride, ::stride], fine.residual_var[::stride, ::stride],
+                            valid, rig.fringes.steps[-1] - 3)
+                    if store is None:
+                        noise.add(*args)
+                    else:  # on the writer thread (in order), off the decoding's path
+                        noise_jobs.append(writer.submit(noise.add, *(np.array(a) for a in args[:3]), args[3]))
             if on_position:
                 on_position(pos)
     finally:
@@ -361,7 +366,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         if store is not None:
             writer.shutdown(wait=True)
     if store is not None:
-        for w in writes:
+        for w in writes + noise_jobs:
             if w is not None:
                 w.result()  # raise a failed write here
         store.finish()

@@ -468,3 +468,24 @@ def test_numba_calibration_matches_the_numpy_path(tmp_path, small_rig, kernels, 
     np.testing.assert_allclose(got.modulation, ref.modulation, rtol=2e-6, atol=1e-4)
     assert got.noise.read_var == pytest.approx(ref.noise.read_var, rel=1e-2, abs=1e-5)
     assert got.noise.gain == pytest.approx(ref.noise.gain, rel=1e-2)
+
+
+@pytest.mark.parametrize("positions", [None, [0, 2, 3, 5, 6, 8], [8, 1, 4, 2, 6, 0]])
+def test_numba_poly_fit_equals_the_numpy_path(positions, kernels, numpy_path):
+    """The compiled all-valid-pattern fit (and the z range by argmax) give the numpy path's LUT."""
+    rng = np.random.default_rng(1)
+    k, h, w = 9, 30, 900
+    z = np.linspace(0, 8, k)
+    x = (rng.normal(size=(k, h, w)) * 0.01 + z[:, None, None] * 0.3).astype(np.float32)
+    y = (rng.normal(size=(k, h, w)) * 0.01 - z[:, None, None] * 0.2).astype(np.float32)
+    reasons = np.zeros((k, h, w), np.uint8)
+    reasons[rng.random((k, h, w)) < 0.03] = 1
+    x[reasons != 0] = np.nan
+    y[reasons != 0] = np.nan
+    s = SampleStack(z, x, y, np.zeros((h, w)), np.ones((h, w)), reasons)
+    fast = fit_lut(s, "poly", 3, positions=positions)
+    with numpy_path():
+        ref = fit_lut(s, "poly", 3, positions=positions)
+    for name in ("x", "y", "rms_x", "rms_y", "loo_x", "loo_y", "pixel_z_min", "pixel_z_max", "valid",
+                 "n_positions"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name), err_msg=name)

@@ -113,3 +113,45 @@ def test_plain_lut_sigma_maps_agree_with_observed_errors_everywhere(rough_rig):
                 ratios.append(np.sqrt(e2[tile][m].mean()) / np.sqrt(np.mean(sx[tile][m].astype(float) ** 2)))
     assert len(ratios) >= 12
     assert 0.7 <= min(ratios) and max(ratios) <= 1.4, ratios
+
+
+def test_binned_smoothing_keeps_linear_trends_and_follows_the_per_pixel_one():
+    """The large-image path (bins of b x b px, interpolated back) is exact for planes, close otherwise."""
+    from ptpcore.smooth import _smooth_binned
+
+    rng = np.random.default_rng(2)
+    h, w = 96, 130  # not multiples of the bin
+    rr, cc = np.mgrid[0:h, 0:w]
+    trend = 0.3 + 0.01 * cc - 0.02 * rr
+    weights = np.where(rng.random((h, w)) < 0.7, rng.uniform(1.0, 8.0, (h, w)), 0.0)
+    weights[:, :9] = 0.0  # an edge of the valid region that cuts through bins
+    out, var = _smooth_binned(trend, weights, 16.0, 4)
+    m = np.isfinite(out)
+    assert m[:, 9:].all() and np.nanmax(np.abs(out - trend)) < 1e-9
+    field = np.sin(cc / 25.0) + np.cos(rr / 30.0) + rng.normal(0, 0.5, (h, w))
+    ref, ref_var = local_linear_smooth(field, weights, 16.0)
+    got, got_var = _smooth_binned(field, weights, 16.0, 4)
+    inner = (slice(10, -10), slice(20, -10))
+    # A slightly different smoother (each pixel weighted by the Gaussian at its bin's centre):
+    # the two estimates differ by a fraction of their own noise, not by a bias.
+    diff = (got - ref)[inner] / np.sqrt(ref_var[inner])
+    assert np.sqrt(np.mean(diff ** 2)) < 0.15 and np.max(np.abs(diff)) < 0.4 and abs(np.mean(diff)) < 0.04
+    assert np.allclose(got_var[inner], ref_var[inner], rtol=0.1)
+
+
+@pytest.mark.parametrize("which", ["rough", "mild"])
+def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_rig, monkeypatch):
+    """Large images cross-validate large scales on bins and small ones per pixel in strips of rows:
+    forced onto the 320x240 presets (2 and 4 px bins, strips of 40 rows) it picks the same scale, and
+    the per-pixel scales score exactly as on the whole image."""
+    import ptpcore.smooth as smooth
+
+    vr, samples = rough_rig if which == "rough" else mild_rig
+    cal, _ = _split(samples)
+    _, ref = fit_smooth_lut(samples, vr.rig, 1, cal)
+    monkeypatch.setattr(smooth, "_STRIP_ROWS", 40)
+    for b in (2, 4):
+        _, info = fit_smooth_lut(samples, vr.rig, 1, cal, cv_bin=b)
+        assert info.scale_px == ref.scale_px, (b, info.cv_rms_mm, ref.cv_rms_mm)
+        fine = ref.scales_px < 4 * b
+        np.testing.assert_allclose(info.cv_rms_mm[fine], ref.cv_rms_mm[fine], rtol=1e-9)
