@@ -11,6 +11,7 @@ image together, so a bad capture costs seconds, not a failed run per file.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import struct
 import threading
@@ -237,9 +238,22 @@ def read_header(path: Path) -> ImageHeader:
         raise DatasetError(f"{path}: {exc.detail}") from None
 
 
+@contextlib.contextmanager
+def _file_errors():
+    """Map the OS's errors on opening or reading an image to :class:`_Unusable` reasons."""
+    try:
+        yield
+    except FileNotFoundError:
+        raise _Unusable("missing", "image missing") from None
+    except IsADirectoryError:
+        raise _Unusable("unreadable", "is a folder, not an image") from None
+    except OSError as exc:
+        raise _Unusable("unreadable", f"cannot read ({exc.strerror or exc})") from None
+
+
 def _header(path: Path) -> ImageHeader:
     try:
-        with open(path, "rb") as fh:
+        with _file_errors(), open(path, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
             if size == 0:
                 raise _Unusable("empty", "image file is empty (0 bytes)")
@@ -250,12 +264,6 @@ def _header(path: Path) -> ImageHeader:
             if sig[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
                 return _tiff_header(fh, size)
             raise _Unusable("unsupported", "not a PNG or TIFF file")
-    except FileNotFoundError:
-        raise _Unusable("missing", "image missing") from None
-    except IsADirectoryError:
-        raise _Unusable("unreadable", "is a folder, not an image") from None
-    except OSError as exc:
-        raise _Unusable("unreadable", f"cannot read ({exc.strerror or exc})") from None
     except struct.error:
         raise _Unusable("truncated", "truncated image (header cut short)") from None
 
@@ -285,14 +293,8 @@ def _check_depth(bits: int, sample_format: str, rig: Rig) -> None:
 
 def _decode(path: Path, rig: Rig) -> tuple[np.ndarray, bool]:
     """Read, decode and check one image; returns ``(grey image (H, W), was_colour)``."""
-    try:
+    with _file_errors():
         data = np.fromfile(path, dtype=np.uint8)
-    except FileNotFoundError:
-        raise _Unusable("missing", "image missing") from None
-    except IsADirectoryError:
-        raise _Unusable("unreadable", "is a folder, not an image") from None
-    except OSError as exc:
-        raise _Unusable("unreadable", f"cannot read ({exc.strerror or exc})") from None
     if data.size == 0:
         raise _Unusable("empty", "image file is empty (0 bytes)")
     if data[:8].tobytes() == _PNG_SIGNATURE:
