@@ -71,7 +71,8 @@ def cmd_calibrate(args) -> int:
         raise FileExistsError(f"{args.session}: session file exists; continue it with `ptp resume"
                               f" {args.session}` or choose another name")
     # Validates rig.toml, the design and every image in one pass, before the long decode.
-    session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out)
+    session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
+                          stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -266,6 +267,11 @@ def build_parser() -> argparse.ArgumentParser:
                         " polynomial regularised across neighbouring pixels (default poly)")
     c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
                    help="polynomial degree 1-5 (poly and smooth, default 3)")
+    c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
+                   help="1-sigma error of the stage readings in um (its specification); part of the LUT's"
+                        " predicted sigma maps (default 0)")
+    c.add_argument("--no-level-bias", action="store_true",
+                   help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("-q", "--quiet", action="store_true")

@@ -19,7 +19,8 @@ LUT_MODELS = ("poly", "pchip", "linear", "smooth")
 
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
-              progress: Callable[[float, str], None] | None = None) -> Lut:
+              progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
+              level_bias: bool = True) -> Lut:
     """Fit a LUT of any kind to decoded samples.
 
     Parameters
@@ -33,6 +34,11 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         Calibration positions (default all).
     progress : callable, optional
         ``progress(fraction, message)``; may raise to cancel.
+    stage_sigma_mm : float
+        1-sigma error of the stage readings (mm, the stage's specification):
+        part of the predicted sigma maps (``poly`` and ``smooth``).
+    level_bias : bool
+        ``smooth``: remove the display's level bias first (:mod:`ptpcore.display`).
 
     Returns
     -------
@@ -46,13 +52,14 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
     if model == "smooth":
         from .smooth import fit_smooth_lut
 
-        lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress)
+        lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
+                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias)
         return lut
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
     if model == "poly" and samples.noise is not None and samples.modulation is not None:
         from .smooth import poly_sigma_maps
 
-        lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions)
+        lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm)
     return lut
 
 

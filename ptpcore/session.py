@@ -107,6 +107,10 @@ class Session:
         One of :data:`ptpcore.models.LUT_MODELS`.
     degree : int
         Polynomial degree (``poly``, ``smooth``).
+    stage_sigma_um : float
+        1-sigma error of the stage readings (um), for the predicted sigma maps.
+    level_bias : bool
+        ``smooth``: remove the display's level bias (:mod:`ptpcore.display`).
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -129,6 +133,8 @@ class Session:
     dataset: str | None = None
     model: str = "poly"
     degree: int = 3
+    stage_sigma_um: float = 0.0
+    level_bias: bool = True
     options: DecodeOptions = field(default_factory=DecodeOptions)
     positions: tuple[int, ...] | None = None
     out: str | None = None
@@ -170,7 +176,7 @@ def next_step(session: Session) -> str | None:
 
 def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
-                full_check: bool = False) -> Session:
+                full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True) -> Session:
     """Start a session on a dataset folder, validating it first.
 
     Parameters
@@ -178,6 +184,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     dataset : path
         A ``ptp-dataset/1`` folder.
     model, degree : see :func:`ptpcore.models.fit_model`
+    stage_sigma_um, level_bias : see :class:`Session`
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
@@ -197,6 +204,8 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     from .dataset import DatasetSource
 
     _check_model(model, degree)
+    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0):
+        raise ValueError(f"stage sigma must be a finite number >= 0 um, got {stage_sigma_um}")
     source = DatasetSource(dataset)
     if validate:
         source.validate(full=full_check)
@@ -206,6 +215,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
         if bad:
             raise ValueError(f"positions {bad} do not exist (the rig has {source.rig.stage.n_positions})")
     return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
+                   stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias),
                    options=options, positions=positions, out=None if out is None else str(out),
                    sim_settings=_sim_settings_of(source.folder))
 
@@ -281,7 +291,8 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
         return session
     if session.lut is None:
         session.lut = fit_model(session.samples, session.rig, session.model, session.degree,
-                                positions=session.positions, progress=sub(0.9, 1.0))
+                                positions=session.positions, progress=sub(0.9, 1.0),
+                                stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias)
         if path is not None:
             save_session(session, path)
     if progress:
@@ -338,6 +349,8 @@ def save_session(session: Session, path) -> None:
             c = f.create_group("calibration")
             c.attrs.update({"dataset": session.dataset or "", "model": session.model,
                             "degree": int(session.degree), "out": session.out or "",
+                            "stage_sigma_um": float(session.stage_sigma_um),
+                            "level_bias": int(bool(session.level_bias)),
                             "min_modulation": float(session.options.min_modulation),
                             "border_margin_px": int(session.options.border_margin_px)})
             if session.positions is not None:
@@ -526,6 +539,11 @@ def _read_checked(f: h5py.File, where: str) -> Session:
     if not 0 <= min_mod < 1 or border < 0:
         raise FileFormatError(f"{where}: /calibration min_modulation {min_mod} or border_margin_px {border}"
                               " out of range")
+    stage_sigma_um = _attr(f, "calibration", "stage_sigma_um", where, float, 0.0)
+    level_bias = _attr(f, "calibration", "level_bias", where, int, 1)
+    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1):
+        raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0) or"
+                              f" level_bias {level_bias} (0 or 1) out of range")
     positions = None
     if "calibration/positions" in f:
         pos = _dataset(f, "calibration/positions", where, None, "iu")
@@ -561,8 +579,8 @@ def _read_checked(f: h5py.File, where: str) -> Session:
             raise FileFormatError(f"{where}: attribute 'json' of /comparison is not valid JSON") from None
 
     stage = _str_attr(f.attrs.get("stage"))
-    session = Session(rig=rig, dataset=dataset, model=model, degree=degree,
-                      options=DecodeOptions(min_mod, border), positions=positions, out=out,
+    session = Session(rig=rig, dataset=dataset, model=model, degree=degree, stage_sigma_um=stage_sigma_um,
+                      level_bias=bool(level_bias), options=DecodeOptions(min_mod, border), positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
                       created=_str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:

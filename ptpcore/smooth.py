@@ -36,6 +36,7 @@ import warnings
 import cv2
 import numpy as np
 
+from .display import level_bias_at
 from .lut import Lut, SampleStack, _z_normalisation, fit_lut
 from .pinhole import PinholeModel, fit_pinhole
 from .rig import Rig
@@ -53,6 +54,50 @@ def _nanmean0(a: np.ndarray) -> np.ndarray:
     cnt = a.shape[0] - nan.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(nan, 0.0, a).sum(axis=0) / cnt
+
+
+def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z) -> np.ndarray:
+    """Absolute world X or Y samples minus the display's level bias (:mod:`ptpcore.display`), in place.
+
+    Parameters
+    ----------
+    values : (K, n) float64, mm
+        Absolute ``X`` (``axis = "x"``) or ``Y`` of ``n`` pixels at the heights ``z`` (K,).
+    """
+    d = "xy".index(axis)
+    slope, pitch = rig.stage.direction[d], rig.lcd.pitch_mm[d]
+    for i, zk in enumerate(np.asarray(z, dtype=float)):
+        coord = (values[i] - slope * zk) / pitch  # the decoded LCD coordinate
+        values[i] -= level_bias_at(rig.fringes, rig.lcd, axis, zk, coord) * pitch
+    return values
+
+
+def stage_leverage(t: np.ndarray, degree: int, t_range=None) -> float:
+    """How a per-position stage error reaches a pixel's fitted value: ``mean_t g(t)' g(t)``.
+
+    A stage reading that is off by ``dz`` at position ``k`` moves every
+    pixel's sample by ``(dX/dz - a) dz`` at once, so smoothing over
+    neighbouring pixels does not average it away: it passes through each
+    pixel's fit in z like an independent error per position. ``g(t)`` are
+    the unweighted least-squares weights of the fitted value at ``t``; the
+    mean is over ``t`` uniform on the calibrated range.
+
+    Parameters
+    ----------
+    t : (K,) normalised heights of the calibration positions
+    degree : int
+    t_range : (2,) float, optional
+        Default ``(t.min(), t.max())``.
+
+    Returns
+    -------
+    float
+        Multiply by ``((dX/dz - a) * sigma_stage)**2`` for the variance (mm^2).
+    """
+    lo, hi = (float(np.min(t)), float(np.max(t))) if t_range is None else t_range
+    pinv = np.linalg.pinv(np.vander(np.asarray(t, float), degree + 1, increasing=True))
+    g = np.vander(np.linspace(lo, hi, 257), degree + 1, increasing=True) @ pinv
+    return float(np.mean(np.sum(g * g, axis=1)))
 
 
 __all__ = ["sample_sigma_from_noise", "fit_smooth_lut", "SmoothInfo", "poly_sigma_maps",
@@ -116,7 +161,7 @@ def _run_blocks(fn, blocks) -> None:
         pass
 
 
-def _weighted_poly(t: np.ndarray, values_list, weights: np.ndarray, degree: int):
+def _weighted_poly(t: np.ndarray, values_list, weights: np.ndarray, degree: int, full: bool = False):
     """Per-pixel weighted least squares of several value arrays sharing the weights (X and Y).
 
     The normal equations of every pixel are solved together by Gauss-Jordan
@@ -132,6 +177,7 @@ def _weighted_poly(t: np.ndarray, values_list, weights: np.ndarray, degree: int)
     coefs : list of (D+1, P), NaN where fewer than D+1 samples
     var : (D+1, P) diagonal of the inverse normal matrix (coefficient variances for inverse-variance weights)
     n : (P,) samples used
+    cov : (D+1, D+1, P), only with ``full``: the whole inverse normal matrix
     """
     d1 = degree + 1
     p = weights.shape[1]
@@ -160,7 +206,26 @@ def _weighted_poly(t: np.ndarray, values_list, weights: np.ndarray, degree: int)
         b = np.einsum("kp,kj->jp", wv, tp[:, :d1])
         coefs.append(np.einsum("ijp,jp->ip", inv, b))
     var = inv[np.arange(d1), np.arange(d1)]
+    if full:
+        return coefs, var, n, inv
     return coefs, var, n
+
+
+def _range_moments(ta: np.ndarray, tb: np.ndarray, order: int) -> np.ndarray:
+    """Mean of ``t**m`` for ``t`` uniform on ``[ta, tb]`` (per pixel), ``m = 0 .. order``.
+
+    Returns
+    -------
+    (order + 1, *ta.shape) float64; where ``tb == ta`` the value ``ta**m``.
+    """
+    span = tb - ta
+    wide = span > 1e-9
+    out = np.empty((order + 1, *np.shape(ta)))
+    with np.errstate(all="ignore"):
+        for m in range(order + 1):
+            out[m] = np.where(wide, (tb ** (m + 1) - ta ** (m + 1)) / ((m + 1) * np.where(wide, span, 1.0)),
+                              ta ** m)
+    return out
 
 
 def _gauss(arr: np.ndarray, sigma: float) -> np.ndarray:
@@ -433,7 +498,8 @@ def _global_rays(model: PinholeModel, shape) -> tuple[np.ndarray, np.ndarray, np
     return x0, y0, sx, sy
 
 
-def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays, stage_sigma_mm: float):
+def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays, stage_sigma_mm: float,
+                   level_bias: bool = False):
     """Rows ``[r0, r1)`` of the chosen positions: validity, sample sigma, weights and residuals to the global model.
 
     Returns
@@ -464,12 +530,18 @@ def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, ray
     for a, g0, gs in (("x", g[0], g[2]), ("y", g[1], g[3])):
         absval = getattr(samples, f"{a}_ref").reshape(-1)[s:e][None] + read_block(getattr(samples, a), s, e, sel
                                                                                   ).astype(np.float64)
+        if level_bias:
+            _remove_level_bias(absval, rig, a, z)
         resid.append(absval - (g0[None] + gs[None] * z[:, None]))
     return valid, sig, wts, resid
 
 
-def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed: int = 0) -> PinholeModel:
-    """Fit the pinhole + Brown model to a random subset of valid calibration samples."""
+def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed: int = 0,
+                   rig: Rig | None = None) -> PinholeModel:
+    """Fit the pinhole + Brown model to a random subset of valid calibration samples.
+
+    With ``rig``, the samples lose the display's level bias first (:mod:`ptpcore.display`).
+    """
     rng = np.random.default_rng(seed)
     h, w = samples.shape
     pts, pix = [], []
@@ -485,6 +557,9 @@ def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed:
         r, c = np.divmod(pick, w)
         x = samples.x_ref.ravel()[pick] + read_block(samples.x, 0, h * w, [k])[0][pick]
         y = samples.y_ref.ravel()[pick] + read_block(samples.y, 0, h * w, [k])[0][pick]
+        if rig is not None:
+            x = _remove_level_bias(x[None], rig, "x", [samples.z[k]])[0]
+            y = _remove_level_bias(y[None], rig, "y", [samples.z[k]])[0]
         pts.append(np.stack([x, y, np.full(pick.size, samples.z[k])], 1))
         pix.append(np.stack([c, r], 1).astype(float))
     return fit_pinhole(np.concatenate(pts), np.concatenate(pix)).model
@@ -578,7 +653,7 @@ def sigma_scale(samples: SampleStack, rig: Rig, positions=None, stage_sigma_mm: 
 
 def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=None, *,
                    scales_px=(0.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0), stage_sigma_mm: float = 0.0,
-                   seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
+                   level_bias: bool = True, seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
                    progress: Callable[[float, str], None] | None = None) -> tuple[Lut, SmoothInfo]:
     """Fit the ``smooth`` LUT (see the module docstring).
 
@@ -595,7 +670,14 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     scales_px : sequence of float
         Candidate smoothing scales (camera px) for cross-validation.
     stage_sigma_mm : float
-        Stage position uncertainty added to each sample's sigma.
+        1-sigma error of the stage readings (mm), from the stage's specification.
+        It is common to every pixel of a position, so smoothing does not
+        reduce it: it is added to the sigma maps through each pixel's fit in z
+        (:func:`stage_leverage`) and slope, and left out of the weights.
+    level_bias : bool
+        Remove the bias that the LCD's integer levels put into the decoded
+        coordinates (:mod:`ptpcore.display`) before fitting. Off for a display
+        that dithers.
     seed : int
         For the global model's random sample.
     cv_bin : int, optional
@@ -619,7 +701,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     _check_noise(samples)
     report = progress or (lambda f, m: None)
     report(0.0, "fitting the global camera model")
-    model = global_pinhole(samples, positions, seed=seed)
+    model = global_pinhole(samples, positions, seed=seed, rig=rig if level_bias else None)
     shape = samples.shape
     h, w = shape
     sel = np.asarray(positions)
@@ -673,6 +755,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     pz_min = np.empty((h, w), np.float32)
     pz_max = np.empty((h, w), np.float32)
     mean_var = np.empty((h, w))
+    own_var = np.empty((h, w))   # the pixel's own fit: exact variance over its range
+    own_diag = np.empty((h, w))  # the same with the coefficients taken as uncorrelated
 
     def fold_maps(rows):
         return {"w": np.zeros((dc, rows, w)), "mean": np.zeros((2, dc, rows, w)),
@@ -687,7 +771,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     def block(r0, r1, a0, fmaps, final):
         """Rows [r0, r1): the final fit's maps if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
         rows = r1 - r0
-        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, stage_sigma_mm)
+        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, 0.0, level_bias)
         if final:
             n_pos[r0:r1] = valid.sum(axis=0).reshape(rows, w)
             zk = np.broadcast_to(z[:, None], valid.shape)
@@ -696,10 +780,19 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
             with np.errstate(all="ignore"):
                 mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
             del zk
-            (cx, cy), v, _ = _weighted_poly(t, [rx, ry], wts, degree)
+            (cx, cy), v, _, cov = _weighted_poly(t, [rx, ry], wts, degree, full=True)
             fit[0, :, r0:r1] = cx.reshape(d1, rows, w)
             fit[1, :, r0:r1] = cy.reshape(d1, rows, w)
             var[:, r0:r1] = v.reshape(d1, rows, w)
+            # The pixel's own fit's variance, averaged over its own calibrated
+            # range, with the covariances (a pixel seen at a few positions at
+            # one end of the range has strongly correlated coefficients).
+            mom = _range_moments(((pz_min[r0:r1] - zc) / zs).ravel().astype(np.float64),
+                                 ((pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
+            idx = np.add.outer(np.arange(d1), np.arange(d1))
+            own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
+            own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
+            del cov, mom
         del sig, valid
         s0, s1 = r0 - a0, r1 - a0
         for test, st in zip(folds, fmaps):
@@ -819,6 +912,12 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         for r0, r1 in _row_blocks(h, w):
             c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
             c[1, r0:r1] += gs[r0:r1] * zs
+    stage_var = {}
+    if stage_sigma_mm:
+        # Per-position stage errors move all pixels together (see stage_leverage).
+        lev = stage_leverage(t, degree)
+        for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
+            stage_var[a] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
     rays = gx0 = gy0 = gsx = gsy = None
     valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (n_pos >= 1)
     pz_min[~valid] = np.nan
@@ -836,6 +935,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
             pred = np.einsum("kj,jp->kp", vander, coef[a][:, r0:r1].reshape(d1, -1))
             absval = getattr(samples, f"{a}_ref").reshape(-1)[s:e][None] + read_block(getattr(samples, a), s, e, sel
                                                                                       ).astype(np.float64)
+            if level_bias:
+                _remove_level_bias(absval, rig, a, z)
             r = np.where(ok, absval - pred, np.nan)
             with np.errstate(all="ignore"):
                 q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
@@ -846,12 +947,23 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     # error beyond it (smoothing bias) is estimated by cross-validation and
     # reported in SmoothInfo.excess_sigma_mm, not folded into the map: the
     # fold fits use half the positions, so it is an upper bound.
-    moments = _uniform_moments(degree)
-    s2 = np.einsum("j,jhw->hw", np.diag(moments), var)
+    # Smoothing averages neighbouring pixels' coefficients, each map on its
+    # own: its variance reduction is measured on the uncorrelated form and
+    # applied to the pixel's own exact variance over its calibrated range.
+    with np.errstate(all="ignore"):
+        mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64),
+                             2 * degree)
+        smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
+        s2 = own_var * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+        # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
+        s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+    del mom, smooth_diag, own_var, own_diag
     var = None
     sig1 = (np.sqrt(s2) * noise_scale).astype(np.float32)
     del s2
     sig = {"x": sig1, "y": sig1.copy()}
+    for a, sv in stage_var.items():
+        sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
     for a in "xy":
         coef[a][:, ~valid] = np.nan
         sig[a][~valid] = np.nan
@@ -880,7 +992,9 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
 
     The variance of the fitted value at each calibrated node, propagated from
     every sample's phase noise through the pixel's own least-squares fit, and
-    averaged (RMS) over the pixel's nodes.
+    averaged (RMS) over the pixel's calibrated range. With ``stage_sigma_mm``
+    (the stage readings' 1-sigma error) each sample also carries
+    ``|dX/dz - a| * stage_sigma_mm``, with the pixel's own slope ``dX/dz``.
 
     Returns
     -------
@@ -889,13 +1003,24 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     from .accuracy import predicted_poly_sigma
 
     positions = list(range(samples.z.size)) if positions is None else list(positions)
-    scale = sigma_scale(samples, rig, positions, stage_sigma_mm)
-    sig = sample_sigma_from_noise(samples, rig, stage_sigma_mm) * scale
+    scale = sigma_scale(samples, rig, positions)
+    sig = sample_sigma_from_noise(samples, rig) * scale
     # RMS over the calibrated range: evaluate on a fine uniform grid of z.
     zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
-    pred = predicted_poly_sigma(samples, sig, lut.degree, positions, zs)  # (E, H, W)
     inside = (zs[:, None, None] >= lut.pixel_z_min) & (zs[:, None, None] <= lut.pixel_z_max)
-    with np.errstate(all="ignore"):
-        s = np.sqrt(_nanmean(np.where(inside, pred * pred, np.nan), axis=0))
-    s = np.where(lut.valid, s, np.nan).astype(np.float32)
-    return s, s.copy()
+    out = []
+    for d, coef in enumerate((lut.x, lut.y)):
+        if stage_sigma_mm:
+            # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
+            slope = coef[1] / lut.z_scale - rig.stage.direction[d]
+            sig_a = np.hypot(sig, np.abs(slope) * stage_sigma_mm)
+        elif out:
+            out.append(out[0].copy())
+            break
+        else:
+            sig_a = sig
+        pred = predicted_poly_sigma(samples, sig_a, lut.degree, positions, zs)  # (E, H, W)
+        with np.errstate(all="ignore"):
+            s = np.sqrt(_nanmean(np.where(inside, pred * pred, np.nan), axis=0))
+        out.append(np.where(lut.valid, s, np.nan).astype(np.float32))
+    return out[0], out[1]

@@ -124,6 +124,21 @@ def test_smooth_session_round_trips(dataset, tmp_path):
         new_session(dataset, model="smooth", degree=7)
 
 
+def test_stage_sigma_and_level_bias_round_trip_and_reach_the_sigma_maps(dataset, tmp_path):
+    plain = new_session(dataset, model="smooth", degree=1, level_bias=False)
+    run_session(plain)
+    s = new_session(dataset, model="smooth", degree=1, stage_sigma_um=0.5, level_bias=False)
+    run_session(s, tmp_path / "s.ptps.h5")
+    back = load_session(tmp_path / "s.ptps.h5")
+    assert back.stage_sigma_um == 0.5 and back.level_bias is False
+    m = s.lut.valid
+    # The stage term adds (dX/dz * 0.5 um)^2 * leverage: nothing where the ray is vertical.
+    assert np.all(s.lut.sigma_x[m] >= plain.lut.sigma_x[m]) and np.mean(s.lut.sigma_x[m] > plain.lut.sigma_x[m]) > 0.9
+    np.testing.assert_array_equal(s.lut.x, plain.lut.x)      # and only to the sigma maps
+    with pytest.raises(ValueError, match="stage sigma"):
+        new_session(dataset, stage_sigma_um=-1.0)
+
+
 # --------------------------------------------------------------------------- resume
 
 def test_cli_saves_each_stage_and_resume_continues(dataset, complete, tmp_path, capsys):
@@ -302,6 +317,8 @@ CASES = {
     "fringes disagree": (lambda f: f["fringes"].attrs.__setitem__("gamma", 1.7), "/fringes"),
     "bad comparison": (lambda f: f["comparison"].attrs.__setitem__("json", "{oops"), "/comparison"),
     "bad model": (lambda f: f["calibration"].attrs.__setitem__("model", "spline"), "/calibration"),
+    "negative stage sigma": (lambda f: f["calibration"].attrs.__setitem__("stage_sigma_um", -0.1),
+                             "stage_sigma_um -0.1"),
     "not a session": (lambda f: f.attrs.__setitem__("format", "something/1"), "attribute 'format'"),
     "text where a number goes": (lambda f: f["lut/camera"].attrs.__setitem__("width", "64"),
                                  "'width' of /lut/camera must be a number"),
