@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtWidgets import (QButtonGroup, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                               QPushButton, QSpinBox, QVBoxLayout)
+from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox, QHBoxLayout,
+                               QLabel, QPushButton, QSpinBox, QVBoxLayout)
 
 from ptpcore.models import describe_lut, fit_model
 from ptpcore.views import pixel_series, reason_text
@@ -32,7 +32,7 @@ def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
         "loo_y": ("Leave-one-position-out RMS, Y", lut.loo_y * um, "µm", "viridis", False),
         "n_positions": ("Positions used per pixel", lut.n_positions, "positions", "CET-L4", True),
         "valid": ("Validity: 1 where the pixel has a usable LUT", lut.valid.astype(np.uint8), "valid", "CET-L15", True),
-        **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (from the phase noise)",
+        **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (phase noise and stage)",
                           getattr(lut, f"sigma_{a}") * um, "µm", "viridis", False)
            for a in "xy" if getattr(lut, f"sigma_{a}", None) is not None},
     }
@@ -62,11 +62,21 @@ class CalibratePage(StudioPage):
         self.positions_combo = QComboBox()
         self.positions_combo.addItem("all positions", "all")
         self.positions_combo.addItem("every second position (hold out the others)", "half")
+        self.stage_sigma = QDoubleSpinBox()
+        self.stage_sigma.setRange(0.0, 100.0)
+        self.stage_sigma.setDecimals(2)
+        self.stage_sigma.setSingleStep(0.1)
+        self.stage_sigma.setPrefix("stage 1σ ")
+        self.stage_sigma.setSuffix(" µm")
+        self.stage_sigma.setToolTip("1-sigma error of the stage readings (its specification). It moves every pixel"
+                                    " of a position at once, so it enters the predicted σ maps through each"
+                                    " pixel's slope and is not averaged away by the smooth LUT.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")
         cl.addWidget(self.model_combo)
         cl.addWidget(self.degree)
         cl.addWidget(self.positions_combo)
+        cl.addWidget(self.stage_sigma)
         cl.addWidget(self.fit_button)
         cl.addWidget(self.make_job_panel(), 1)
         grid.addWidget(ctl, 0, 0, 1, 2)
@@ -149,10 +159,12 @@ class CalibratePage(StudioPage):
             self.heatmap.title.setText("Choose a model and press Fit LUT.")
 
     # ---- fitting --------------------------------------------------------------------
-    def configure(self, model: str = "poly", degree: int = 3, positions: str = "all") -> None:
+    def configure(self, model: str = "poly", degree: int = 3, positions: str = "all",
+                  stage_sigma_um: float = 0.0) -> None:
         """Set the model controls (the tour and tests use it)."""
         self.model_combo.setCurrentIndex(self.model_combo.findData(model))
         self.degree.setValue(degree)
+        self.stage_sigma.setValue(stage_sigma_um)
         self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
 
     def fit(self) -> Job | None:
@@ -164,8 +176,10 @@ class CalibratePage(StudioPage):
         k = s.rig.stage.n_positions
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
         samples, rig = s.samples, s.rig
+        stage_mm = self.stage_sigma.value() * 1e-3
         gen = self.model.generation
-        job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress),
+        job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress,
+                                        stage_sigma_mm=stage_mm),
                   f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self.model.set_lut(lut, positions))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))

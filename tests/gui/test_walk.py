@@ -143,6 +143,13 @@ def test_full_walk(wizard, qtbot, tmp_path):
         assert cal.heatmap.unit == "µm" and cal.heatmap.view.bar.axis.labelText == "µm"
         assert cal.heatmap.hist_counts.sum() > 0
     assert "smooth, poly degree 1" in cal.stats.text() and "Predicted 1σ" in cal.stats.text()
+    # the stage's reading error (its specification) adds to the predicted sigma, not to the LUT
+    cal.configure("smooth", 1, "all", stage_sigma_um=0.5)
+    assert run_job(qtbot, cal.fit()) == "finished"
+    v = lut.valid
+    np.testing.assert_array_equal(s.lut.x, lut.x)
+    assert np.all(s.lut.sigma_x[v] >= lut.sigma_x[v]) and np.nanmean(s.lut.sigma_x[v]) > np.nanmean(lut.sigma_x[v])
+    lut = s.lut
     cal.configure("pchip", 3, "all")  # the degree applies to poly and smooth only
     assert not cal.degree.isEnabled()
     cal.configure("smooth", 1, "all")
