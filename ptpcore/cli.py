@@ -72,7 +72,8 @@ def cmd_calibrate(args) -> int:
                               f" {args.session}` or choose another name")
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
-                          stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias)
+                          stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
+                          footprint=not args.no_footprint)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -272,6 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
                         " predicted sigma maps (default 0)")
     c.add_argument("--no-level-bias", action="store_true",
                    help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")
+    c.add_argument("--no-footprint", action="store_true",
+                   help="smooth: keep each pixel's footprint-centroid bias (its size is read from the fringe"
+                        " contrast; turn off when ambient light or a camera black level lower the contrast)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("-q", "--quiet", action="store_true")

@@ -20,7 +20,7 @@ LUT_MODELS = ("poly", "pchip", "linear", "smooth")
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
               progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
-              level_bias: bool = True) -> Lut:
+              level_bias: bool = True, footprint: bool = True) -> Lut:
     """Fit a LUT of any kind to decoded samples.
 
     Parameters
@@ -39,6 +39,9 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         part of the predicted sigma maps (``poly`` and ``smooth``).
     level_bias : bool
         ``smooth``: remove the display's level bias first (:mod:`ptpcore.display`).
+    footprint : bool
+        ``smooth``: move samples from the footprint centroid to the centre ray
+        (:func:`ptpcore.smooth.footprint_bias`).
 
     Returns
     -------
@@ -53,7 +56,7 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         from .smooth import fit_smooth_lut
 
         lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
-                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias)
+                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
         return lut
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
     if model == "poly" and samples.noise is not None and samples.modulation is not None:

@@ -111,6 +111,8 @@ class Session:
         1-sigma error of the stage readings (um), for the predicted sigma maps.
     level_bias : bool
         ``smooth``: remove the display's level bias (:mod:`ptpcore.display`).
+    footprint : bool
+        ``smooth``: remove the footprint-centroid bias (:func:`ptpcore.smooth.footprint_bias`).
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -135,6 +137,7 @@ class Session:
     degree: int = 3
     stage_sigma_um: float = 0.0
     level_bias: bool = True
+    footprint: bool = True
     options: DecodeOptions = field(default_factory=DecodeOptions)
     positions: tuple[int, ...] | None = None
     out: str | None = None
@@ -176,7 +179,8 @@ def next_step(session: Session) -> str | None:
 
 def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
-                full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True) -> Session:
+                full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True,
+                footprint: bool = True) -> Session:
     """Start a session on a dataset folder, validating it first.
 
     Parameters
@@ -184,7 +188,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     dataset : path
         A ``ptp-dataset/1`` folder.
     model, degree : see :func:`ptpcore.models.fit_model`
-    stage_sigma_um, level_bias : see :class:`Session`
+    stage_sigma_um, level_bias, footprint : see :class:`Session`
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
@@ -215,7 +219,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
         if bad:
             raise ValueError(f"positions {bad} do not exist (the rig has {source.rig.stage.n_positions})")
     return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
-                   stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias),
+                   stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
                    options=options, positions=positions, out=None if out is None else str(out),
                    sim_settings=_sim_settings_of(source.folder))
 
@@ -292,7 +296,8 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     if session.lut is None:
         session.lut = fit_model(session.samples, session.rig, session.model, session.degree,
                                 positions=session.positions, progress=sub(0.9, 1.0),
-                                stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias)
+                                stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias,
+                                footprint=session.footprint)
         if path is not None:
             save_session(session, path)
     if progress:
@@ -351,6 +356,7 @@ def save_session(session: Session, path) -> None:
                             "degree": int(session.degree), "out": session.out or "",
                             "stage_sigma_um": float(session.stage_sigma_um),
                             "level_bias": int(bool(session.level_bias)),
+                            "footprint": int(bool(session.footprint)),
                             "min_modulation": float(session.options.min_modulation),
                             "border_margin_px": int(session.options.border_margin_px)})
             if session.positions is not None:
@@ -541,9 +547,10 @@ def _read_checked(f: h5py.File, where: str) -> Session:
                               " out of range")
     stage_sigma_um = _attr(f, "calibration", "stage_sigma_um", where, float, 0.0)
     level_bias = _attr(f, "calibration", "level_bias", where, int, 1)
-    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1):
-        raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0) or"
-                              f" level_bias {level_bias} (0 or 1) out of range")
+    footprint = _attr(f, "calibration", "footprint", where, int, 1)
+    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1) or footprint not in (0, 1):
+        raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0),"
+                              f" level_bias {level_bias} or footprint {footprint} (0 or 1) out of range")
     positions = None
     if "calibration/positions" in f:
         pos = _dataset(f, "calibration/positions", where, None, "iu")
@@ -580,7 +587,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
 
     stage = _str_attr(f.attrs.get("stage"))
     session = Session(rig=rig, dataset=dataset, model=model, degree=degree, stage_sigma_um=stage_sigma_um,
-                      level_bias=bool(level_bias), options=DecodeOptions(min_mod, border), positions=positions, out=out,
+                      level_bias=bool(level_bias), footprint=bool(footprint), options=DecodeOptions(min_mod, border), positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
                       created=_str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:

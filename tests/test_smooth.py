@@ -76,6 +76,25 @@ def test_smooth_beats_3dstc_on_a_brown_lens(mild_rig):
     assert info.scale_px >= 16  # a Brown lens needs almost no local correction
 
 
+def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig):
+    """At 0.03 um the prediction (phase noise through the smoothing, the stage's readings) holds.
+
+    It needs the display's level bias and the footprint-centroid bias removed
+    (both ~0.05 um, ptpcore.display and smooth.footprint_bias) and a global
+    model fitted to enough points: without them the observed error is 4x the
+    prediction.
+    """
+    vr, samples = mild_rig
+    cal, held = _split(samples)
+    lut, _ = fit_smooth_lut(samples, vr.rig, 1, cal, stage_sigma_mm=vr.settings.stage_error_um * 1e-3)
+    acc = held_out_accuracy(lut, vr.truth(), vr.rig.stage.z_mm, held)
+    m = np.isfinite(acc.error_x) & np.isfinite(lut.sigma_x)[None]
+    pred_um = 1e3 * np.sqrt(np.mean(np.concatenate([np.broadcast_to(lut.sigma_x, m.shape)[m],
+                                                    np.broadcast_to(lut.sigma_y, m.shape)[m]]).astype(float) ** 2))
+    assert 0.7 <= acc.rms_um / pred_um <= 1.4, (acc.rms_um, pred_um)
+    assert acc.rms_um < 0.05
+
+
 def test_smooth_beats_the_plain_lut_on_the_rough_preset(rough_rig):
     vr, samples = rough_rig
     cal, held = _split(samples)
@@ -222,3 +241,40 @@ def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_r
         assert info.scale_px == ref.scale_px, (b, info.cv_rms_mm, ref.cv_rms_mm)
         fine = ref.scales_px < 4 * b
         np.testing.assert_allclose(info.cv_rms_mm[fine], ref.cv_rms_mm[fine], rtol=1e-9)
+
+
+def test_footprint_bias_is_half_the_second_moment_times_the_laplacian():
+    """An analytic map X = 0.05 c + 1e-6 (c^2 + r^2) (mm) and a contrast that says m2 = 0.25 px^2."""
+    from ptpcore.simulate import preset
+    from ptpcore.smooth import FOOTPRINT_M2_MAX_PX2, footprint_bias
+
+    rig, _ = preset("mild")
+    f = rig.fringes
+    h, w = 40, 50
+    rr, cc = np.mgrid[0:h, 0:w].astype(float)
+    beta = 1e-6
+    x0 = 0.05 * cc + beta * (cc ** 2 + rr ** 2)
+    y0 = -0.05 * rr + beta * (cc ** 2 + rr ** 2)
+    zero = np.zeros((h, w))
+    rays = (x0, y0, zero, zero)
+    g2 = np.stack([np.square(0.05 + 2 * beta * cc) + np.square(2 * beta * rr),
+                   np.square(-0.05 + 2 * beta * rr) + np.square(2 * beta * cc)])
+    period_mm = f.periods_px[-1] * rig.lcd.pitch_mm[0]
+
+    def contrast(m2):  # B / A of a footprint of second moment m2 (camera px^2), per axis
+        return f.amplitude / f.offset * np.exp(-2 * np.pi ** 2 * m2 * g2[0] / period_mm ** 2)
+
+    r0, r1 = 5, 25
+    bg = np.full((1, (r1 - r0) * w), 1000.0)
+    mod = (1000.0 * contrast(0.25))[r0:r1].reshape(1, -1)
+    bx, _ = footprint_bias(rays, rig, np.array([0.0]), mod, bg, r0, r1)
+    # Laplacian 4 beta everywhere (exact second differences of a quadratic, edges included); the
+    # gradient is one-sided at the edge columns (off by beta = 2e-5 of 0.05 there).
+    np.testing.assert_allclose(bx.reshape(r1 - r0, w)[:, 1:-1], 0.5 * 0.25 * 4 * beta, rtol=1e-9)
+    np.testing.assert_allclose(bx, 0.5 * 0.25 * 4 * beta, rtol=1e-4)
+    # A contrast that claims a huge blur is capped; a contrast above the displayed one means no blur.
+    mod_big = (1000.0 * contrast(50.0))[r0:r1].reshape(1, -1)
+    bx, _ = footprint_bias(rays, rig, np.array([0.0]), mod_big, bg, r0, r1)
+    assert np.all(bx <= 0.5 * FOOTPRINT_M2_MAX_PX2 * 4 * beta * (1 + 1e-9))
+    bx, _ = footprint_bias(rays, rig, np.array([0.0]), bg * 2.0, bg, r0, r1)
+    assert np.all(bx == 0.0)
