@@ -1021,7 +1021,9 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
             stage_var[a] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
     gx0 = gy0 = gsx = gsy = None
-    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (n_pos >= 1)
+    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
+    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
+    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (n_pos >= d1)
     pz_min[~valid] = np.nan
     pz_max[~valid] = np.nan
     # Residuals and leave-one-out-like quality against the pixel's own samples.
