@@ -44,6 +44,22 @@ def test_calibrate_smooth_and_inspect(tmp_path, capsys):
     assert main(["calibrate", str(data), "--out", str(plain), "--degree", "1", "-q"]) == 0
     assert load_lut(plain).sigma_x is not None and "method" not in load_lut(plain).extra_attrs
     assert "predicted sigma X" in capsys.readouterr().out
+    # the stage's reading error enters the sigma maps only; the corrections move the coefficients
+    staged = tmp_path / "staged.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(staged), "--model", "smooth", "--degree", "1",
+                 "--stage-sigma-um", "2", "-q"]) == 0
+    st = load_lut(staged)
+    np.testing.assert_array_equal(st.x, lut.x)
+    v = lut.valid
+    assert np.all(st.sigma_x[v] >= lut.sigma_x[v]) and np.mean(st.sigma_x[v]) > np.mean(lut.sigma_x[v])
+    raw = tmp_path / "raw.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(raw), "--model", "smooth", "--degree", "1",
+                 "--no-level-bias", "--no-footprint", "-q"]) == 0
+    assert not np.array_equal(load_lut(raw).x, lut.x)
+    capsys.readouterr()
+    assert main(["calibrate", str(data), "--out", str(tmp_path / "bad.lut.h5"), "--stage-sigma-um", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "stage sigma" in err[0] and "-1" in err[0]
 
 
 def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
