@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox, QHBoxLayout,
-                               QLabel, QPushButton, QSpinBox, QVBoxLayout)
+from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox,
+                               QHBoxLayout, QLabel, QPushButton, QSpinBox, QVBoxLayout)
 
 from ptpcore.models import describe_lut, fit_model
 from ptpcore.views import pixel_series, reason_text
@@ -71,12 +71,23 @@ class CalibratePage(StudioPage):
         self.stage_sigma.setToolTip("1-sigma error of the stage readings (its specification). It moves every pixel"
                                     " of a position at once, so it enters the predicted σ maps through each"
                                     " pixel's slope and is not averaged away by the smooth LUT.")
+        self.level_bias = QCheckBox("level bias")
+        self.level_bias.setChecked(True)
+        self.level_bias.setToolTip("Smooth: remove the bias the LCD's integer levels put into the decoded coordinates"
+                                   " (about -0.0015 LCD px). Off for a display that dithers.")
+        self.footprint = QCheckBox("footprint")
+        self.footprint.setChecked(True)
+        self.footprint.setToolTip("Smooth: move each sample from its pixel's footprint centroid to the pixel's centre"
+                                  " ray (size read from the fringe contrast). Off when ambient light or a camera"
+                                  " black level lower the contrast.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")
         cl.addWidget(self.model_combo)
         cl.addWidget(self.degree)
         cl.addWidget(self.positions_combo)
         cl.addWidget(self.stage_sigma)
+        cl.addWidget(self.level_bias)
+        cl.addWidget(self.footprint)
         cl.addWidget(self.fit_button)
         cl.addWidget(self.make_job_panel(), 1)
         grid.addWidget(ctl, 0, 0, 1, 2)
@@ -132,13 +143,19 @@ class CalibratePage(StudioPage):
         self.series = None
         self.selected: tuple[int, int] | None = None
         self._outcome = None
-        self.model_combo.currentIndexChanged.connect(lambda _i: self.degree.setEnabled(
-            self.model_combo.currentData() in DEGREE_MODELS))
+        self.model_combo.currentIndexChanged.connect(self._model_changed)
+        self._model_changed()
         self.fit_button.clicked.connect(self.fit)
         self.map_buttons.idClicked.connect(lambda _i: self._show_map())
         self.heatmap.pixelClicked.connect(self.select_pixel)
         model.lutChanged.connect(self._lut_changed)
         model.samplesChanged.connect(self.update_complete)
+
+    def _model_changed(self, _index: int = 0) -> None:
+        kind = self.model_combo.currentData()
+        self.degree.setEnabled(kind in DEGREE_MODELS)
+        for box in (self.level_bias, self.footprint):  # corrections only the smooth fit applies
+            box.setEnabled(kind == "smooth")
 
     def _curve_plot(self, axis: str, layout) -> pg.PlotWidget:
         p = pg.PlotWidget()
@@ -177,9 +194,10 @@ class CalibratePage(StudioPage):
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
         samples, rig = s.samples, s.rig
         stage_mm = self.stage_sigma.value() * 1e-3
+        corrections = {"level_bias": self.level_bias.isChecked(), "footprint": self.footprint.isChecked()}
         gen = self.model.generation
         job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress,
-                                        stage_sigma_mm=stage_mm),
+                                        stage_sigma_mm=stage_mm, **corrections),
                   f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self.model.set_lut(lut, positions))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))

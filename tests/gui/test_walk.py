@@ -131,7 +131,7 @@ def test_full_walk(wizard, qtbot, tmp_path):
     # the smooth kind: offered in the model choice, with its degree; its sigma maps shown in µm
     assert cal.model_combo.findData("smooth") >= 0
     cal.configure("smooth", 1, "all")
-    assert cal.degree.isEnabled()
+    assert cal.degree.isEnabled() and cal.level_bias.isEnabled() and cal.level_bias.isChecked()
     assert run_job(qtbot, cal.fit()) == "finished"
     lut = s.lut
     assert lut.kind == "poly" and lut.degree == 1 and lut.extra_attrs["method"] == "smooth"
@@ -152,6 +152,7 @@ def test_full_walk(wizard, qtbot, tmp_path):
     lut = s.lut
     cal.configure("pchip", 3, "all")  # the degree applies to poly and smooth only
     assert not cal.degree.isEnabled()
+    assert not cal.level_bias.isEnabled() and not cal.footprint.isEnabled()  # smooth-only corrections
     cal.configure("smooth", 1, "all")
     assert wiz.next_blocker() is None
     wiz.next()
