@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.synth import make_rig, sensor, write_dataset
+from benchmarks.synth import GENERATION, make_rig, sensor, write_dataset
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -32,7 +32,7 @@ def dataset(data: Path, mp: float, positions: int, steps, fmt: str) -> Path:
     """The dataset folder for a size (written on first use; positions beyond K symlinked views)."""
     ext = ".png" if fmt == "png" else ".tif"
     tag = "-".join(map(str, steps))
-    base = data / f"{mp:g}mp-k{positions}-s{tag}-{fmt}"
+    base = data / f"{mp:g}mp-k{positions}-s{tag}-{fmt}-g{GENERATION}"
     if not (base / "rig.toml").is_file():
         print(f"writing {base} ...", flush=True)
         write_dataset(base, make_rig(mp, positions, steps, ext=ext), tiff_compression=5 if fmt == "lzw" else 1)

@@ -78,18 +78,13 @@ def maxrss_mb() -> float:
 
 def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool | None = None):
     """(SampleStack with modulation, background and noise model, Rig, Truth)."""
-    from benchmarks.synth import SyntheticStack, Truth, make_rig
+    from benchmarks.synth import SyntheticStack, make_rig
     from ptpcore.lut import SampleStack
     from ptpcore.noise import NoiseModel
 
     rig = make_rig(mp, k)
     synth = SyntheticStack(rig, seed)
-    # benchmarks.synth's rays are a mirror image (X grows with the column and Y with the row, seen from
-    # above): no rotation maps a camera onto them, so the smooth fit's pinhole model could not fit. Y is
-    # flipped here (LCD rows counted from the other edge).
-    t0 = synth.truth
-    lcd_h = rig.lcd.height * rig.lcd.pitch_mm[1]
-    truth = Truth(t0.x0, lcd_h - t0.y0, t0.sx, -t0.sy)
+    truth = synth.truth
     h, w = rig.camera.shape
     z = np.asarray(rig.stage.z_mm, dtype=float)
     noise = NoiseModel(read_var=1.5 ** 2, gain=0.02)

@@ -27,6 +27,10 @@ import numpy as np
 
 from ptpcore.rig import Camera, FringeDesign, Lcd, Rig, Stage, save_rig
 
+GENERATION = 2
+"""Bumped whenever the rendered images change (benchmark folders are named with it, so a
+folder written by an older generator is not reused). 2: rays no longer a mirror image."""
+
 SIZES = {0.3: (640, 480), 5: (2448, 2048), 12: (4000, 3000)}
 """Megapixels -> (width, height) of the benchmark sensors."""
 
@@ -89,8 +93,11 @@ class SyntheticStack:
         yd = yn * (1 - 0.6 * r2) + 0.0005 * xn * yn
         zc = 500.0
         lcd_w, lcd_h = rig.lcd.width * rig.lcd.pitch_mm[0], rig.lcd.height * rig.lcd.pitch_mm[1]
-        # X(z) = xd * (zc - z) + centre: rays through the pupil, travelling towards the camera.
-        self.truth = Truth(xd * zc + lcd_w / 2, yd * zc + lcd_h / 2, -xd, -yd)
+        # Rays through the pupil, travelling towards the camera: X(z) = centre + xd * (zc - z),
+        # Y(z) = centre - yd * (zc - z). A camera looking down at the LCD (its z axis along -Z)
+        # with its x axis along +X has its y axis (image rows) along -Y: Y falls as the row
+        # grows, or the rays would be a mirror image that no pinhole camera sees.
+        self.truth = Truth(xd * zc + lcd_w / 2, lcd_h / 2 - yd * zc, -xd, yd)
         vign = (1.0 / (1.0 + 4.0 * r2)) ** 2
         self.a = (20.0 + 100.0 * vign) * scale
         self.b = 80.0 * vign * scale

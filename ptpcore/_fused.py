@@ -5,10 +5,12 @@ when numba is missing or ``PTP_NO_NUMBA=1``; the numpy/OpenCV path then runs
 unchanged. Each kernel does one row tile in one pass over its pixels, with the
 arithmetic of the numpy path operation for operation (``fastmath=False``), so:
 
-- :func:`nstep_rows`: the N-step sums straight from uint8/uint16 frames
-  (``-S``, ``C``, ``sum I``, ``sum I^2``, the maximum for saturation) in float32
-  (``sum I^2`` in float64 where float32 is not exact), then modulation,
-  background and the noise residual. ``atan2`` stays with numpy
+- :func:`nstep_rows`: the N-step sums straight from uint8/uint16 frames (a
+  tuple of (H, W) arrays: slices of a stack or files mapped one by one), pixel
+  by pixel with the frames in the inner loop (``-S``, ``C``, ``sum I``,
+  ``sum I^2``, the maximum for saturation) in float32 (``sum I^2`` in float64
+  where float32 is not exact), then modulation, background and the noise
+  residual. ``atan2`` stays with numpy
   (:func:`ptpcore.phase._nstep_rows_fused` calls it on the tile right after):
   numpy's float32 ``arctan2`` is SIMD, about 25 times cheaper than the scalar
   libm call numba would make.
@@ -20,6 +22,9 @@ arithmetic of the numpy path operation for operation (``fastmath=False``), so:
   per-pixel bound leaves the result in doubt).
 - :func:`store_rows`: world coordinates and the sample maps of one position
   (bit-equal to :func:`ptpcore.pipeline._store_rows`).
+- :func:`poly_fit_full`, :func:`valid_span`: the LUT fit of the pixels valid at
+  every position, and each pixel's count and first/last valid position
+  (equal to :func:`ptpcore.lut.fit_lut`'s numpy path).
 
 The kernels release the GIL (``nogil=True``) and run on the engine's tile pool
 (:func:`ptpcore.phase.run_tiles`, ``PTP_THREADS``), not on numba's own
@@ -41,96 +46,95 @@ LOW_MODULATION, SATURATED, UNWRAP, OUTSIDE_LCD, BORDER = 1, 2, 4, 8, 16  # ptpco
 
 
 @njit(**_OPTS)
-def _sums_lean(row, si, ci, acc_s, acc_c, mx):
-    for c in range(row.shape[0]):
-        x = row[c]
-        v = np.float32(x)
-        acc_s[c] += si * v
-        acc_c[c] += ci * v
-        mx[c] = max(mx[c], x)
+def _row_lean(frames, r, ws, wc, sat_thr, two_over_n, ns_row, c_row, mod_row, sat_row):
+    n = len(frames)
+    for c in range(ns_row.shape[0]):
+        s = np.float32(0.0)
+        cc = np.float32(0.0)
+        m = 0
+        for i in range(n):
+            x = frames[i][r, c]
+            v = np.float32(x)
+            s += ws[i] * v
+            cc += wc[i] * v
+            m = max(m, x)
+        ns_row[c] = s
+        c_row[c] = cc
+        mod_row[c] = np.float32(math.sqrt(s * s + cc * cc)) * two_over_n
+        sat_row[c] = np.int64(m) >= sat_thr
 
 
 @njit(**_OPTS)
-def _sums_full(row, si, ci, acc_s, acc_c, acc_a, sq, one_w, mx):
-    for c in range(row.shape[0]):
-        x = row[c]
-        v = np.float32(x)
-        acc_s[c] += si * v
-        acc_c[c] += ci * v
-        acc_a[c] += v
-        vw = v * one_w
-        sq[c] += vw * vw
-        mx[c] = max(mx[c], x)
-
-
-@njit(**_OPTS)
-def _finish_lean(acc_s, acc_c, mx, sat_thr, two_over_n, neg_s, c_out, modulation, saturated):
-    for c in range(acc_s.shape[0]):
-        s = acc_s[c]
-        cc = acc_c[c]
-        neg_s[c] = s
-        c_out[c] = cc
-        modulation[c] = np.float32(math.sqrt(s * s + cc * cc)) * two_over_n
-        saturated[c] = np.int64(mx[c]) >= sat_thr
-
-
-@njit(**_OPTS)
-def _finish_full(acc_a, sq, acc_s, acc_c, n, one_w, background, residual_var, want_rv):
+def _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, ns_row, c_row, mod_row, sat_row, bg_row, rv_row):
+    n = len(frames)
     fn = np.float32(n)
     n_w = one_w * n
     two_w = one_w * 2
     zero_w = one_w - one_w
     rv_scale = one_w * (1.0 / (n * (n - 3)) if n > 3 else 0.0)
-    for c in range(acc_a.shape[0]):
-        background[c] = acc_a[c] / fn
-    if want_rv:
-        for c in range(acc_a.shape[0]):
-            # (N sum I^2 - (sum I)^2 - 2 |Z|^2) / (N (N - 3)), as the numpy path
-            a = acc_a[c] * one_w
-            s = acc_s[c]
-            cc = acc_c[c]
-            zw = np.float32(math.sqrt(s * s + cc * cc)) * one_w
-            q = sq[c] * n_w
-            q -= a * a
-            q -= (zw * zw) * two_w
-            q = q if q >= zero_w else zero_w
-            residual_var[c] = q * rv_scale
+    for c in range(ns_row.shape[0]):
+        s = np.float32(0.0)
+        cc = np.float32(0.0)
+        a = np.float32(0.0)
+        sq = zero_w
+        m = 0
+        for i in range(n):
+            x = frames[i][r, c]
+            v = np.float32(x)
+            s += ws[i] * v
+            cc += wc[i] * v
+            a += v
+            vw = v * one_w
+            sq += vw * vw
+            m = max(m, x)
+        ns_row[c] = s
+        c_row[c] = cc
+        zz = np.float32(math.sqrt(s * s + cc * cc))
+        mod_row[c] = zz * two_over_n
+        sat_row[c] = np.int64(m) >= sat_thr
+        bg_row[c] = a / fn
+        # (N sum I^2 - (sum I)^2 - 2 |Z|^2) / (N (N - 3)), as the numpy path; computed even
+        # when not wanted (then into a scratch row): a branch here stops the loop vectorising
+        aw = a * one_w
+        zw = zz * one_w
+        q = sq * n_w
+        q -= aw * aw
+        q -= (zw * zw) * two_w
+        q = q if q >= zero_w else zero_w
+        rv_row[c] = q * rv_scale
 
 
 @njit(**_OPTS)
 def nstep_rows(frames, r0, r1, ws, wc, sat_thr, neg_s, c_out, modulation, saturated,
-               photometry, background, want_rv, sq, one_w, residual_var):
-    """N-step sums of rows ``[r0, r1)`` of ``frames`` (N, H, W), uint8 or uint16.
+               photometry, background, one_w, residual_var, rv_r0):
+    """N-step sums of rows ``[r0, r1)`` of ``frames``, a tuple of N (H, W) uint8 or uint16 frames.
 
     ``ws``/``wc``: float32 weights ``-sin(delta_n)``, ``cos(delta_n)``.
     ``sat_thr``: saturated where the maximum step is ``>= sat_thr`` (an integer).
     ``neg_s``, ``c_out``: (r1 - r0, W) float32, the tile's ``-S`` and ``C``.
     ``modulation``, ``saturated``, ``background``, ``residual_var``: (H, W)
-    outputs (the last two only if ``photometry``/``want_rv``). ``sq``: a (W,)
-    accumulator of the dtype the numpy path uses for ``sum I^2`` and the residual
-    (float32, exact, for uint8 and N <= 16; else float64), ``one_w`` a 1 of that dtype.
+    outputs (the last two only if ``photometry``). ``one_w``: a 1 of the dtype
+    the numpy path uses for ``sum I^2`` and the residual (float32, exact, for
+    uint8 and N <= 16; else float64). ``residual_var`` row ``r`` is
+    ``residual_var[r - rv_r0]``, written whenever ``photometry`` is (an
+    unwanted one goes to a scratch tile, ``rv_r0 = r0``).
+
+    Pixel by pixel, the N frames in the inner loop (N is the tuple's length, a
+    compile-time constant, so that loop unrolls and the pixel loop vectorises;
+    one small function per row kind, so that LLVM does): the sums stay in
+    registers, 3-5x cheaper than updating row accumulators frame by frame.
+    Every sum still adds its frames in order 0..N-1 in the same precision, so
+    the results are those of the row-accumulator form, bit for bit (test).
     """
-    n, _h, w = frames.shape
-    acc_s = np.empty(w, np.float32)
-    acc_c = np.empty(w, np.float32)
-    acc_a = np.empty(w, np.float32)
-    mx = np.empty(w, frames.dtype)
+    n = len(frames)
     two_over_n = np.float32(2.0 / n)
     for r in range(r0, r1):
         t = r - r0
-        acc_s[:] = 0
-        acc_c[:] = 0
-        acc_a[:] = 0
-        sq[:] = 0
-        mx[:] = 0
-        for i in range(n):
-            if photometry:
-                _sums_full(frames[i, r], ws[i], wc[i], acc_s, acc_c, acc_a, sq, one_w, mx)
-            else:
-                _sums_lean(frames[i, r], ws[i], wc[i], acc_s, acc_c, mx)
-        _finish_lean(acc_s, acc_c, mx, sat_thr, two_over_n, neg_s[t], c_out[t], modulation[r], saturated[r])
         if photometry:
-            _finish_full(acc_a, sq, acc_s, acc_c, n, one_w, background[r], residual_var[r], want_rv)
+            _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, neg_s[t], c_out[t], modulation[r],
+                      saturated[r], background[r], residual_var[r - rv_r0])
+        else:
+            _row_lean(frames, r, ws, wc, sat_thr, two_over_n, neg_s[t], c_out[t], modulation[r], saturated[r])
 
 
 @njit(**_OPTS)
@@ -298,6 +302,27 @@ def store_rows(r0, r1, reasons, u, v, px, py, ax, by, x_ref, y_ref, mod_x, mod_y
 
 
 @njit(**_OPTS)
+def _axpy(a, x, out, m):
+    for q in range(m):
+        out[q] += a * x[q]
+
+
+@njit(**_OPTS)
+def _to_f64(src, dst, m):
+    for q in range(m):
+        dst[q] = np.float64(src[q])
+
+
+@njit(**_OPTS)
+def _resid_sums(yv, r, s, sq, sl, m):
+    for q in range(m):
+        e = yv[q] - r[q]
+        sq[q] += e * e
+        e *= s
+        sl[q] += e * e
+
+
+@njit(**_OPTS)
 def poly_fit_full(pinv, v, loo_scale, with_loo, y, coef, rms, loo):
     """Least squares of every column of ``y`` (K, P) with all K samples valid.
 
@@ -305,43 +330,64 @@ def poly_fit_full(pinv, v, loo_scale, with_loo, y, coef, rms, loo):
     ``loo = sqrt(sum (resid * loo_scale)^2 / K)`` (if ``with_loo``), as
     :func:`ptpcore.lut._fit_poly_tile_xy` does with ``einsum``, in one pass over
     ``y`` (float32 or float64, each sample taken as float64) in blocks of
-    pixels that stay in L1. Equal to the einsum path to a float64 rounding or two.
+    pixels that stay in L1/L2. Each step is a small loop over the block's
+    pixels (an ``axpy``), which LLVM vectorises; every sum runs over the
+    positions (or coefficients) in order, so the results do not depend on the
+    block size. Equal to the einsum path to a float64 rounding or two.
     """
     n_coef, k = pinv.shape
     p = y.shape[1]
-    blk = 256
+    blk = 512
     c = np.empty((n_coef, blk))
     r = np.empty(blk)
     sq = np.empty(blk)
     sl = np.empty(blk)
+    yk = np.empty((k, blk))
     for p0 in range(0, p, blk):
         m = min(blk, p - p0)
-        for i in range(n_coef):
-            for q in range(m):
-                c[i, q] = 0.0
-            for j in range(k):
-                a = pinv[i, j]
-                for q in range(m):
-                    c[i, q] += a * np.float64(y[j, p0 + q])
-        for q in range(m):
-            sq[q] = 0.0
-            sl[q] = 0.0
         for j in range(k):
-            for q in range(m):
-                r[q] = 0.0
+            _to_f64(y[j, p0:p0 + m], yk[j], m)
+        for i in range(n_coef):
+            ci = c[i]
+            ci[:] = 0.0
+            for j in range(k):
+                _axpy(pinv[i, j], yk[j], ci, m)
+        sq[:] = 0.0
+        sl[:] = 0.0
+        for j in range(k):
+            r[:] = 0.0
             for i in range(n_coef):
-                a = v[j, i]
-                for q in range(m):
-                    r[q] += a * c[i, q]
-            s = loo_scale[j]
-            for q in range(m):
-                e = np.float64(y[j, p0 + q]) - r[q]
-                sq[q] += e * e
-                e *= s
-                sl[q] += e * e
+                _axpy(v[j, i], c[i], r, m)
+            _resid_sums(yk[j], r, loo_scale[j], sq, sl, m)
         for q in range(m):
             for i in range(n_coef):
                 coef[i, p0 + q] = c[i, q]
             rms[p0 + q] = math.sqrt(sq[q] / k)
             if with_loo:
                 loo[p0 + q] = math.sqrt(sl[q] / k)
+
+
+@njit(**_OPTS)
+def _span_row(row, jj, n_out, first_out, last_out, seen):
+    for q in range(row.shape[0]):
+        v = row[q] == 0
+        n_out[q] += 1 if v else 0
+        first_out[q] = jj if (v and not seen[q]) else first_out[q]
+        last_out[q] = jj if v else last_out[q]
+        seen[q] |= v
+
+
+@njit(**_OPTS)
+def valid_span(reasons, order, n_out, first_out, last_out):
+    """Per pixel of a ``(K, P)`` block of reasons: the number of valid samples (reason 0),
+    and the first and last valid one in the order ``order`` (indices into ``order``;
+    0 and K-1 when none is valid, like ``argmax`` of an all-false column).
+    Branch-free, one row at a time, so the pixel loop vectorises."""
+    k, p = reasons.shape
+    for q in range(p):
+        n_out[q] = 0
+        first_out[q] = 0
+        last_out[q] = k - 1
+    seen = np.zeros(p, np.bool_)
+    for jj in range(k):
+        _span_row(reasons[order[jj]], jj, n_out, first_out, last_out, seen)

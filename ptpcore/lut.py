@@ -392,35 +392,51 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
     if min_positions is None:
         min_positions = degree + 2 if model == "poly" else 2
     p_total = h * w
-    n_pos = np.zeros(p_total, np.int64)
-    pz_min = np.full(p_total, np.nan)
-    pz_max = np.full(p_total, np.nan)
-    if model == "poly":
-        coef = {a: np.full((degree + 1, p_total), np.nan) for a in "xy"}
-    else:
-        coef = {a: np.full((k, p_total), np.nan) for a in "xy"}
-    rms = {a: np.full(p_total, np.nan, np.float32) for a in "xy"}
-    loo = {a: np.full(p_total, np.nan, np.float32) for a in "xy"}
+    # Every tile writes every pixel of its slice (so np.empty: the pages are first
+    # touched by the tiles, on every core, not filled here first), in the dtypes of
+    # the Lut (no whole-image conversions after; float64 z to float32 rounds alike).
+    n_pos = np.empty(p_total, np.uint16)
+    pz_min = np.empty(p_total, np.float32)
+    pz_max = np.empty(p_total, np.float32)
+    valid = np.empty(p_total, bool)
+    n_lead = degree + 1 if model == "poly" else k
+    coef = {a: np.empty((n_lead, p_total)) for a in "xy"}
+    rms = {a: np.empty(p_total, np.float32) for a in "xy"}
+    loo = {a: np.empty(p_total, np.float32) for a in "xy"}
     t_all = (z - z_center) / z_scale
     wflat = None if weights is None else np.asarray(weights, dtype=float).reshape(k, -1)
     sel = None if positions is None else idx
     z_sorted = z[order]
     sorted_z = bool(np.all(order == np.arange(k)))
 
+    from .phase import fused_kernels
+
+    kern = fused_kernels()
+
     def tile(start: int) -> None:
         stop = min(start + _TILE, p_total)
-        valid_t = read_block(samples.reasons, start, stop, sel) == 0
-        n_t = valid_t.sum(axis=0)
+        reasons_t = read_block(samples.reasons, start, stop, sel)
+        valid_t = reasons_t == 0
+        if kern is not None:  # counts and first/last valid in one pass (argmax on axis 0 is slow)
+            n_t, first, last = (np.empty(stop - start, np.int64) for _ in range(3))
+            kern.valid_span(np.ascontiguousarray(reasons_t), order, n_t, first, last)
+        else:
+            n_t = valid_t.sum(axis=0)
+            first = last = None
         n_pos[start:stop] = n_t
         usable_t = n_t >= min_positions
         if usable_t.any():
             # The lowest and highest valid z: the first and last valid position in z order
             # (argmax of a bool stack, no (K, P) float temporaries).
-            vs = valid_t if sorted_z else valid_t[order]
-            first = vs.argmax(axis=0)
-            last = len(z) - 1 - vs[::-1].argmax(axis=0)
+            if first is None:
+                vs = valid_t if sorted_z else valid_t[order]
+                first = vs.argmax(axis=0)
+                last = len(z) - 1 - vs[::-1].argmax(axis=0)
             pz_min[start:stop] = np.where(usable_t, z_sorted[first], np.nan)
             pz_max[start:stop] = np.where(usable_t, z_sorted[last], np.nan)
+        else:
+            pz_min[start:stop] = np.nan
+            pz_max[start:stop] = np.nan
         mask = valid_t & usable_t[None, :]
         # Poly fits take the float32 samples as they are (each group converts what it uses,
         # the fused kernel as it reads); tables want float64.
@@ -430,7 +446,8 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
         refs = {a: getattr(samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}
         if model == "poly":
             fits = _fit_poly_tile_xy(t_all, [offs["x"], offs["y"]], mask, degree,
-                                     None if wflat is None else wflat[:, start:stop])
+                                     None if wflat is None else wflat[:, start:stop],
+                                     np.where(usable_t, n_t, 0))
             for axis_name, (c, r, l) in zip("xy", fits):
                 c[0] += refs[axis_name]
                 coef[axis_name][:, start:stop] = c
@@ -443,6 +460,19 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
                 coef[axis_name][:, start:stop] = vals[order]
                 rms[axis_name][start:stop] = np.where(mask.any(axis=0), 0.0, np.nan)
                 loo[axis_name][start:stop] = _table_loo(z[order], o[order], mask[order], model)
+        # A usable pixel whose fit failed is invalid; invalid pixels hold NaN everywhere.
+        cx = coef["x"][:, start:stop]
+        ok = usable_t & (np.all(np.isfinite(cx), axis=0) if model == "poly" else np.isfinite(cx).sum(axis=0) >= 2)
+        valid[start:stop] = ok
+        if not ok.all():
+            bad = np.flatnonzero(~ok) + start
+            for a in "xy":
+                coef[a][:, bad] = np.nan
+                rms[a][bad] = np.nan
+                loo[a][bad] = np.nan
+            pz_min[bad] = np.nan
+            pz_max[bad] = np.nan
+            n_pos[bad] = 0
 
     # Pixel tiles on every core (numpy's loops release the GIL); results land in
     # disjoint slices, so the order of completion does not matter.
@@ -453,18 +483,6 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
     for i, _ in enumerate(done):
         if progress:
             progress(i / len(starts), f"fitting LUT ({model})")
-    usable = n_pos >= min_positions
-    if model == "poly":
-        valid = usable & np.all(np.isfinite(coef["x"]), axis=0)
-    else:
-        valid = usable & (np.isfinite(coef["x"]).sum(axis=0) >= 2)
-    invalid = ~valid
-    for a in "xy":
-        coef[a][:, invalid] = np.nan
-        rms[a][invalid] = np.nan
-        loo[a][invalid] = np.nan
-    pz_min[invalid] = np.nan
-    pz_max[invalid] = np.nan
     shape = (h, w)
     if progress:
         progress(1.0, "LUT fitted")
@@ -473,8 +491,8 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
         z_center=z_center, z_scale=z_scale, z_min=float(z.min()), z_max=float(z.max()),
         x=coef["x"].reshape(-1, h, w), y=coef["y"].reshape(-1, h, w),
         z_nodes=None if model == "poly" else z[order].astype(float),
-        valid=valid.reshape(shape), n_positions=np.where(valid, n_pos, 0).astype(np.uint16).reshape(shape),
-        pixel_z_min=pz_min.astype(np.float32).reshape(shape), pixel_z_max=pz_max.astype(np.float32).reshape(shape),
+        valid=valid.reshape(shape), n_positions=n_pos.reshape(shape),
+        pixel_z_min=pz_min.reshape(shape), pixel_z_max=pz_max.reshape(shape),
         rms_x=rms["x"].reshape(shape), rms_y=rms["y"].reshape(shape),
         loo_x=loo["x"].reshape(shape), loo_y=loo["y"].reshape(shape),
         rig_toml=rig_toml,
@@ -500,12 +518,14 @@ def _fit_poly_tile(t: np.ndarray, values: np.ndarray, mask: np.ndarray, degree: 
     return _fit_poly_tile_xy(t, [values], mask, degree, weights)[0]
 
 
-def _pattern_groups(mask: np.ndarray, n_min: int):
+def _pattern_groups(mask: np.ndarray, n_min: int, counts: np.ndarray | None = None):
     """``_group_by_pattern`` of the columns with at least ``n_min`` samples.
 
     The common pattern "every position valid" is found without sorting.
+    ``counts``: ``mask.sum(axis=0)`` if the caller has it.
     """
-    counts = mask.sum(axis=0)
+    if counts is None:
+        counts = mask.sum(axis=0)
     full = counts == mask.shape[0]
     if full.any():
         yield np.ones(mask.shape[0], bool), np.flatnonzero(full)
@@ -516,9 +536,10 @@ def _pattern_groups(mask: np.ndarray, n_min: int):
 
 
 def _fit_poly_tile_xy(t: np.ndarray, values_list, mask: np.ndarray, degree: int,
-                      weights: np.ndarray | None):
+                      weights: np.ndarray | None, counts: np.ndarray | None = None):
     """:func:`_fit_poly_tile` of several value arrays sharing one mask (X and Y):
-    one grouping and one pseudo-inverse per pattern serve them all."""
+    one grouping and one pseudo-inverse per pattern serve them all.
+    ``counts``: ``mask.sum(axis=0)`` if the caller has it."""
     k, p = mask.shape
     n_coef = degree + 1
     out = [(np.full((n_coef, p), np.nan), np.full(p, np.nan), np.full(p, np.nan)) for _ in values_list]
@@ -527,7 +548,7 @@ def _fit_poly_tile_xy(t: np.ndarray, values_list, mask: np.ndarray, degree: int,
 
     kern = fused_kernels()
     if weights is None:
-        groups = _pattern_groups(mask, n_coef)
+        groups = _pattern_groups(mask, n_coef, counts)
     else:
         groups = ((None, np.array([j])) for j in np.flatnonzero(mask.sum(axis=0) >= n_coef))
     for pattern, cols in groups:

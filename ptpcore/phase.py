@@ -147,9 +147,11 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
 
     Parameters
     ----------
-    frames : (N, H, W) array_like
+    frames : (N, H, W) array_like, or a list of N (H, W) arrays
         Frame ``n`` was shown with phase shift ``2*pi*n/N``. Any real dtype;
-        uint8, uint16 and float32 are reduced without a conversion pass.
+        uint8, uint16 and float32 are reduced without a conversion pass. A
+        list (one shape and dtype) is reduced in place, never stacked: the
+        pipeline passes frames mapped straight from their files.
     saturation_level : float, optional
         Grey level at or above which a sample counts as saturated.
     photometry : bool
@@ -167,17 +169,27 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
         The same values as :class:`PhaseAccumulator` fed frame by frame, to
         float32 rounding.
     """
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or frames.shape[0] < 3:
-        raise ValueError(f"frames must be (N>=3, H, W), got shape {frames.shape}")
-    n, h, w = frames.shape
+    if isinstance(frames, (list, tuple)) and frames and all(isinstance(f, np.ndarray) for f in frames):
+        # Separate frames (e.g. mapped files): reduced where they are, never stacked.
+        if len({(f.shape, f.dtype) for f in frames}) != 1 or frames[0].ndim != 2 or len(frames) < 3:
+            raise ValueError("frames must be N>=3 arrays (H, W) of one shape and dtype, got "
+                             f"{[(f.shape, str(f.dtype)) for f in frames][:4]}")
+        frames = list(frames)
+        n, (h, w) = len(frames), frames[0].shape
+    else:
+        frames = np.asarray(frames)
+        if frames.ndim != 3 or frames.shape[0] < 3:
+            raise ValueError(f"frames must be (N>=3, H, W), got shape {frames.shape}")
+        n, h, w = frames.shape
     if out is None:
         out = WrappedPhase(np.empty((h, w), np.float32), np.empty((h, w), np.float32),
                            np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
                            np.empty((h, w), np.float32) if photometry and n > 3 else None)
     elif out.phase.shape != (h, w) or (out.residual_var is not None and n <= 3):
-        raise ValueError(f"out does not fit frames of shape {frames.shape}")
-    run_tiles(functools.partial(_nstep_rows, frames, saturation_level, out), h, w)
+        raise ValueError(f"out does not fit {n} frames of shape {(h, w)}")
+    fused = fused_kernels() is not None and np.dtype(frames[0].dtype) in _INT_SRC
+    run_tiles(functools.partial(_nstep_rows, frames, saturation_level, out), h, w,
+              KERNEL_TILE_PIXELS if fused else TILE_PIXELS)
     return out
 
 
@@ -186,6 +198,11 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
 
 TILE_PIXELS = 1 << 15
 """Pixels per row tile: N uint8 frames of a tile plus its float32 sums fit in L2."""
+
+KERNEL_TILE_PIXELS = 1 << 18
+"""Pixels per row tile of the numba kernels (:func:`fused_kernels`): they make one pass
+over their pixels, so they need no cache-sized tiles, and bigger tiles mean fewer
+dispatches, each of which holds the GIL (at 5 MP, 20 tiles instead of 157 per map)."""
 
 _pool_lock = threading.Lock()
 _pool_obj: ThreadPoolExecutor | None = None
@@ -327,33 +344,57 @@ def _int_threshold(level) -> int:
     return int(np.ceil(level))
 
 
-def _nstep_rows_fused(kern, frames: np.ndarray, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
     """:func:`_nstep_rows` with the numba kernel (:func:`ptpcore._fused.nstep_rows`): one pass over
-    the tile's frames for all sums, then numpy's (SIMD) ``arctan2`` on the tile."""
-    n, _h, w = frames.shape
+    the tile's frames for all sums, then numpy's (SIMD) ``arctan2`` on the tile.
+
+    ``frames``: the (N, H, W) stack or a sequence of N (H, W) frames (e.g. mapped files).
+    """
+    n = len(frames)
+    w = frames[0].shape[-1]
     ws, wc = _nstep_weights(n)
     photometry = out.background is not None
     want_rv = out.residual_var is not None
-    work = np.float32 if frames.dtype == np.uint8 and n <= 16 else np.float64
+    work = np.float32 if frames[0].dtype == np.uint8 and n <= 16 else np.float64
     neg_s = out.phase[r0:r1]  # -S goes straight into the phase rows, atan2 in place
     c = np.empty((r1 - r0, w), np.float32)
-    dummy = out.modulation
-    kern.nstep_rows(frames, r0, r1, ws, wc, _int_threshold(saturation_level), neg_s, c, out.modulation,
-                    out.saturated, photometry,
-                    out.background if photometry else dummy, want_rv, np.empty(w, work), work(1),
-                    out.residual_var if want_rv else dummy)
+    if want_rv:
+        rv, rv_r0 = out.residual_var, 0
+    elif photometry:  # the kernel computes it with the background anyway (see there): a scratch tile
+        rv, rv_r0 = np.empty((r1 - r0, w), np.float32), r0
+    else:  # not touched
+        rv, rv_r0 = out.modulation, 0
+    kern.nstep_rows(_kernel_frames(frames), r0, r1, ws, wc, _int_threshold(saturation_level), neg_s, c,
+                    out.modulation, out.saturated, photometry, out.background if photometry else out.modulation,
+                    work(1), rv, rv_r0)
     np.arctan2(neg_s, c, out=neg_s)
 
 
-def _nstep_rows(frames: np.ndarray, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
-    """N-step reduction of rows ``[r0, r1)`` of a stack into ``out`` (see :func:`wrapped_phase`)."""
-    n = frames.shape[0]
-    if frames.dtype in _INT_SRC:
+def _kernel_frames(frames) -> tuple:
+    """The frames as a tuple of read-only C-contiguous (H, W) arrays: one numba type per
+    dtype and N, whether they are slices of a stack, separate arrays or mapped files."""
+    out = []
+    for f in frames:
+        f = np.ascontiguousarray(f)
+        if f.flags.writeable:
+            f = f.view()
+            f.flags.writeable = False
+        out.append(f)
+    return tuple(out)
+
+
+def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+    """N-step reduction of rows ``[r0, r1)`` of a stack into ``out`` (see :func:`wrapped_phase`).
+
+    ``frames``: an (N, H, W) array, or a list of N (H, W) arrays of one dtype.
+    """
+    n = len(frames)
+    if frames[0].dtype in _INT_SRC:
         kern = fused_kernels()
         if kern is not None:
             _nstep_rows_fused(kern, frames, saturation_level, out, r0, r1)
             return
-    raw = frames[:, r0:r1]
+    raw = frames[:, r0:r1] if isinstance(frames, np.ndarray) else np.stack([f[r0:r1] for f in frames])
     fr = raw if raw.dtype in _CV_SRC and raw.strides[-1] == raw.itemsize else raw.astype(np.float32)
     rows = fr.shape[1:]
     photometry = out.background is not None
@@ -752,17 +793,17 @@ def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions
             kern.unwrap_classify_rows(r0, r1, phases, ratios, scale, shift, mods, sats, min_mod,
                                       extent, coord, dis, reasons)
 
-    run_tiles(rows, h, w)
+    run_tiles(rows, h, w, KERNEL_TILE_PIXELS)
     if m > 0:
         def edges(r0: int, r1: int) -> None:
             for *_, extent, coord, _dis in jobs:
                 kern.near_edge_rows(r0, r1, coord, extent, float(m), reasons)
 
-        run_tiles(edges, h, w)
+        run_tiles(edges, h, w, KERNEL_TILE_PIXELS)
         bezel = np.bitwise_and(reasons, Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)
         if bezel.any():
             near = cv2.dilate(bezel, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
-            run_tiles(lambda r0, r1: kern.border_rows(r0, r1, near, reasons), h, w)
+            run_tiles(lambda r0, r1: kern.border_rows(r0, r1, near, reasons), h, w, KERNEL_TILE_PIXELS)
     u = decoded["x"].coord if "x" in decoded else None
     v = decoded["y"].coord if "y" in decoded else None
     return DecodedPosition(index, z, u, v, reasons, decoded)

@@ -10,13 +10,15 @@ How it is fast on big sensors (``docs/performance.md`` has the numbers):
   preallocated ``(N, H, W)`` buffer and reduced in cache-sized row tiles on
   every core (:func:`ptpcore.phase.wrapped_phase`); the background and noise
   residuals are computed only at the finest period, where they are used.
-- From a dataset folder, a reader thread reads the next sets (plain TIFFs
-  straight into the buffers, :func:`ptpcore.fastio.read_into`) while the
-  current one is decoded.
+- From a dataset folder, a reader thread reads the next sets while the
+  current one is decoded: plain TIFFs are mapped (:func:`ptpcore.fastio.map_frame`,
+  with the numba kernels) or read straight into the buffers
+  (:func:`ptpcore.fastio.read_into`).
 - Unwrapping, pixel classification and the world coordinates run over the
   same row tiles, written straight into the sample stack.
 - Big sample stacks live in a temporary file (:class:`ptpcore.fastio.SpillStore`),
-  so memory stays flat however many positions there are.
+  so memory stays flat however many positions there are; each row tile writes
+  its rows of the position there as soon as it has stored them.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ import numpy as np
 
 from .lut import Lut, SampleStack, fit_lut
 from .noise import NoiseAccumulator
-from .phase import (DecodedPosition, DecodeOptions, WrappedPhase, decode_and_finish, decode_direction,
-                    finish_position, fused_kernels, run_tiles, tile_workers, wrapped_phase)
+from .phase import (KERNEL_TILE_PIXELS, TILE_PIXELS, DecodedPosition, DecodeOptions, WrappedPhase, decode_and_finish,
+                    decode_direction, finish_position, fused_kernels, run_tiles, tile_workers, wrapped_phase)
 from .rig import Rig, rig_to_toml
 
 __all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES"]
@@ -97,17 +99,21 @@ def _source_sets(source, k: int):
 class _DatasetReader:
     """Reads the sets of some positions of a dataset folder ahead, on its own threads.
 
-    Each set's N files are read in parallel into a preallocated buffer (plain
-    TIFFs with :func:`ptpcore.fastio.read_into`, anything else with
+    Each set's N files are read in parallel: with the numba kernels, plain
+    TIFFs are mapped (:func:`ptpcore.fastio.map_frame`: no copy, the kernels
+    read the page cache); otherwise, or for a file that cannot be mapped, they
+    are read into a preallocated buffer (plain TIFFs with
+    :func:`ptpcore.fastio.read_into`, anything else with
     :func:`ptpcore.dataset.read_image`, which also names a bad file). At most
-    ``depth`` sets are buffered: reading runs ahead of decoding by that much.
+    ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much.
     """
 
-    def __init__(self, source, positions, depth: int = 3):
+    def __init__(self, source, positions, depth: int = 3, map_files: bool | None = None):
         from .dataset import read_image
-        from .fastio import read_into
+        from .fastio import map_frame, read_into
 
-        self._read_image, self._read_into = read_image, read_into
+        self._read_image, self._read_into, self._map_frame = read_image, read_into, map_frame
+        self.map_files = fused_kernels() is not None if map_files is None else bool(map_files)
         self.source = source
         self.rig: Rig = source.rig
         self.positions = list(positions)
@@ -122,10 +128,16 @@ class _DatasetReader:
         self.thread = threading.Thread(target=self._run, name="ptp-reader", daemon=True)
         self.thread.start()
 
-    def _read_one(self, args) -> None:
+    def _read_one(self, args) -> np.ndarray:
+        """One frame: mapped from its file, or read into ``out`` (returned)."""
         path, out = args
+        if self.map_files:
+            mapped = self._map_frame(path, out.shape, out.dtype)
+            if mapped is not None:
+                return mapped
         if not self._read_into(path, out):
             out[...] = self._read_image(path, self.rig)
+        return out
 
     def _run(self) -> None:
         try:
@@ -140,24 +152,31 @@ class _DatasetReader:
                         except queue.Empty:
                             pass
                     paths = [self.source.path(k, d, t, s, n) for s in range(n)]
-                    for _ in self.pool.map(self._read_one, zip(paths, buf[:n])):
-                        pass
-                    self.out.put((k, (d, j), buf))
+                    frames = list(self.pool.map(self._read_one, zip(paths, buf[:n])))
+                    if all(f.base is buf for f in frames):
+                        frames = buf[:n]  # all read into the buffer: the stack itself
+                    self.out.put((k, (d, j), buf, frames))
+                    del frames
         except BaseException as exc:  # handed to the consumer, raised there
             self.out.put(exc)
 
     def sets_of(self, k: int):
-        """Yield ``((d, j), stack)`` for position ``k`` (the next one in order)."""
-        n_by_set = {(d, j): n for d, j, _t, n in self.sets}
+        """Yield ``((d, j), frames)`` for position ``k`` (the next one in order).
+
+        ``frames``: an (N, H, W) stack, or a list of N (H, W) frames when some
+        are mapped from their files (valid until the next set is asked for).
+        """
         for _ in self.sets:
             item = self.out.get()
             if isinstance(item, BaseException):
                 raise item
-            kk, key, buf = item
+            kk, key, buf, frames = item
+            del item
             assert kk == k, (kk, k)
             try:
-                yield key, buf[:n_by_set[key]]
+                yield key, frames
             finally:
+                del frames  # unmaps the mapped files (with the caller's last reference)
                 self.free.put(buf)
 
     def close(self) -> None:
@@ -201,6 +220,7 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
                     np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
                     np.empty((h, w), np.float32) if photometry and len(stack) > 3 else None)
         wrapped[(d, j)] = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+    stack = None  # a set mapped from its files is unmapped once its phases are out
     levels = {d: [wrapped[(d, j)] for j in range(len(f.periods_px))] for d in f.directions}
     if fused_kernels() is not None:
         outs = None
@@ -314,11 +334,11 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                            spill_dir)
         samples = SampleStack(z_all, np.empty((0, *shape), np.float32), np.empty((0, *shape), np.float32),
                               np.full(shape, np.nan), np.full(shape, np.nan), np.empty((0, *shape), np.uint8))
-        # Two sets of position maps: one is written to the file (on its own
-        # thread, overlapping the next position's decoding) while the other fills.
-        outs = [{name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()} for _ in range(2)]
-        writes: list = [None, None]
-        writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-spill")
+        # One set of position maps: each row tile writes its rows of them to the file
+        # as soon as it has stored them (while they are in the cache; positional
+        # writes from the tile pool). The noise model's binning gets a thread of its own.
+        spill_maps = {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
+        writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-noise")
     else:
         samples = SampleStack.empty(rig.stage.z_mm, shape)
     noise = NoiseAccumulator(rig.camera.max_level)
@@ -340,15 +360,20 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                 dest = {"x": samples.x[k], "y": samples.y[k], "reasons": samples.reasons[k],
                         "modulation": samples.modulation[k], "background": samples.background[k]}
             else:
-                slot = i % 2
-                if writes[slot] is not None:
-                    writes[slot].result()  # its maps are free again
-                dest = outs[slot]
+                dest = spill_maps
             kern = fused_kernels()
             put = _store_rows if kern is None else functools.partial(_store_rows_fused, kern)
-            run_tiles(lambda r0, r1: put(rig, pos, fine_x, fine_y, samples, dest, r0, r1), *shape)
+
+            def rows(r0: int, r1: int, kk=k, pos=pos, fx=fine_x, fy=fine_y, dest=dest) -> None:
+                put(rig, pos, fx, fy, samples, dest, r0, r1)
+                if store is not None:
+                    for name, a in dest.items():
+                        store.write_rows(name, kk, r0, a[r0:r1])
+
+            run_tiles(rows, *shape, TILE_PIXELS if kern is None else KERNEL_TILE_PIXELS)
             if store is not None:
-                writes[slot] = writer.submit(lambda d=dest, kk=k: [store.write(n, kk, a) for n, a in d.items()])
+                for name in dest:
+                    store.mark_written(name, k)
             valid = pos.reasons[::stride, ::stride] == 0
             for fine in (fine_x, fine_y):
                 if fine.residual_var is not None:
@@ -356,7 +381,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                             valid, rig.fringes.steps[-1] - 3)
                     if store is None:
                         noise.add(*args)
-                    else:  # on the writer thread (in order), off the decoding's path
+                    else:  # on its own thread (in order), off the decoding's path
                         noise_jobs.append(writer.submit(noise.add, *(np.array(a) for a in args[:3]), args[3]))
             if on_position:
                 on_position(pos)
@@ -366,9 +391,8 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         if store is not None:
             writer.shutdown(wait=True)
     if store is not None:
-        for w in writes + noise_jobs:
-            if w is not None:
-                w.result()  # raise a failed write here
+        for w in noise_jobs:
+            w.result()  # raise a failure here
         store.finish()
         arrays = store.arrays()
         samples = SampleStack(z_all, arrays["x"], arrays["y"], samples.x_ref, samples.y_ref,
