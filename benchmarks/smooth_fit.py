@@ -16,7 +16,9 @@ Tasks (each in its own process; ``base_mb`` is the RSS after building the sample
 ``/proc/self/clear_refs`` once the samples are built; building them peaks
 higher than holding them), ``maxrss_mb`` the whole process's ``ru_maxrss``):
 
-smooth  ``fit_smooth_lut`` (degree 2, all positions)
+smooth  ``fit_smooth_lut`` (degree 2, all positions), without the level-bias and footprint corrections
+        (the synthetic samples have neither effect)
+smooth-corrected  the same with them, as the product runs it: time and memory
 poly    the floor: ``fit_lut(samples, "poly", 2)`` (the plain per-pixel fit, same samples)
 copy    the floor: one copy of the sample arrays (read block by block from the file when spilled)
 """
@@ -156,10 +158,15 @@ def run_task(task: str, mp: float, k: int, spill: bool | None, degree: int = 2) 
            "spilled": bool(isinstance(samples.x, np.memmap)), "base_mb": base}
     t0 = time.perf_counter()
     c0 = time.process_time()
-    if task == "smooth":
+    if task in ("smooth", "smooth-corrected"):
         from ptpcore.smooth import fit_smooth_lut
 
-        lut, info = fit_smooth_lut(samples, rig, degree)
+        # The samples are exact rays plus noise: no displayed levels were rounded and no pixel
+        # footprint was integrated, so the level-bias and footprint corrections (the product's
+        # default) would only add a bias. "smooth" leaves them out and checks the LUT against the
+        # rays; "smooth-corrected" runs them for their time and memory only.
+        corrected = task == "smooth-corrected"
+        lut, info = fit_smooth_lut(samples, rig, degree, level_bias=corrected, footprint=corrected)
         out["scale_px"] = info.scale_px
         out["cv_score"] = [None if not np.isfinite(v) else float(v) for v in info.cv_rms_mm]
     elif task == "poly":
@@ -173,7 +180,7 @@ def run_task(task: str, mp: float, k: int, spill: bool | None, degree: int = 2) 
         raise ValueError(task)
     out["seconds"] = time.perf_counter() - t0
     out["cpu_s"] = time.process_time() - c0
-    if lut is not None:
+    if lut is not None and task != "smooth-corrected":
         zm = float(samples.z[k // 2])
         ev = lut.evaluate(zm)
         tx, ty = truth.xy(zm)
@@ -205,11 +212,13 @@ def table(rows: list[dict]) -> str:
         by.setdefault((r["mp"], r["positions"]), {})[r["task"]] = r
     for (mp, k), t in by.items():
         for task, label in (("copy", "copy of the samples (floor)"), ("poly", "plain poly-2 fit (floor)"),
-                            ("smooth", "smooth fit, degree 2")):
+                            ("smooth", "smooth fit, degree 2"),
+                            ("smooth-corrected", "smooth fit, degree 2, with the level-bias and footprint corrections")):
             if task not in t:
                 continue
             r = t[task]
-            floors = {"copy": (), "poly": ("copy",), "smooth": ("poly", "copy")}[task]
+            floors = {"copy": (), "poly": ("copy",), "smooth": ("poly", "copy"),
+                      "smooth-corrected": ("smooth", "poly")}[task]
             ratios = [f"{r['seconds'] / t[f]['seconds']:.1f}x {f}" for f in floors if f in t]
             extra = f" (chose {r['scale_px']:g} px)" if "scale_px" in r else ""
             err = f", {r['rms_error_um']:.3f} um RMS vs truth" if "rms_error_um" in r else ""
@@ -220,7 +229,8 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", choices=["smooth", "poly", "copy"], default=None, help="one measurement")
+    ap.add_argument("--task", choices=["smooth", "smooth-corrected", "poly", "copy"], default=None,
+                    help="one measurement")
     ap.add_argument("--mp", type=float, default=5)
     ap.add_argument("--sizes", default="0.3,5")
     ap.add_argument("--positions", type=int, default=21)
@@ -235,7 +245,7 @@ def main(argv=None) -> int:
     extra = ["--in-memory"] if args.in_memory else []
     for mp in [float(s) for s in args.sizes.split(",") if s]:
         print(f"{mp:g} MP x {args.positions}", flush=True)
-        for task in ("copy", "poly", "smooth"):
+        for task in ("copy", "poly", "smooth", "smooth-corrected"):
             rows.append(_subprocess(task, mp, args.positions, extra))
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=1))
