@@ -12,12 +12,14 @@ every pixel of a position and different between positions (it depends on the
 carrier shift ``s``, hence on z). Far below the phase noise of one sample,
 it is what limits a LUT that averages many pixels (the ``smooth`` kind).
 
-The mean is known exactly from the design: the levels are the engine's own,
-and ``eps`` is periodic in ``j`` with the (integer) period, so its mean over
-one period is its mean over any footprint that spans a whole number of periods,
-and the expected value for a pixel whose coordinate is not known to better
-than a period. :func:`level_bias_px` computes it; the pipeline subtracts it
-from every decoded coordinate (``DecodeOptions.level_bias``).
+The bias is known from the design: the levels are the engine's own. ``eps``
+would be periodic in ``j`` with the (integer) period, but rounding breaks the
+ties of ``offset = 127.5`` differently from period to period, so the expected
+bias of a pixel whose footprint's phase is unknown is the mean of ``eps`` over
+one period around its coordinate: :func:`level_bias_at` (from the table of
+:func:`level_bias_table`). The smooth LUT subtracts it from every sample
+before fitting (``fit_smooth_lut(level_bias=True)``); the plain LUT and 3DSTC,
+noise-limited far above it, keep the decoded coordinates as they are.
 
 The display is assumed to emit ``(level / 255) ** gamma`` with the gamma the
 patterns were pre-compensated for (``[fringes] gamma``). A display that

@@ -72,7 +72,7 @@ def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z) -> np.ndarray
     return values
 
 
-def stage_leverage(t: np.ndarray, degree: int, t_range=None) -> float:
+def stage_leverage(t: np.ndarray, degree: int) -> float:
     """How a per-position stage error reaches a pixel's fitted value: ``mean_t g(t)' g(t)``.
 
     A stage reading that is off by ``dz`` at position ``k`` moves every
@@ -86,15 +86,13 @@ def stage_leverage(t: np.ndarray, degree: int, t_range=None) -> float:
     ----------
     t : (K,) normalised heights of the calibration positions
     degree : int
-    t_range : (2,) float, optional
-        Default ``(t.min(), t.max())``.
 
     Returns
     -------
     float
         Multiply by ``((dX/dz - a) * sigma_stage)**2`` for the variance (mm^2).
     """
-    lo, hi = (float(np.min(t)), float(np.max(t))) if t_range is None else t_range
+    lo, hi = float(np.min(t)), float(np.max(t))
     pinv = np.linalg.pinv(np.vander(np.asarray(t, float), degree + 1, increasing=True))
     g = np.vander(np.linspace(lo, hi, 257), degree + 1, increasing=True) @ pinv
     return float(np.mean(np.sum(g * g, axis=1)))
@@ -104,25 +102,28 @@ __all__ = ["sample_sigma_from_noise", "fit_smooth_lut", "SmoothInfo", "poly_sigm
            "local_linear_smooth", "global_pinhole"]
 
 
-def sample_sigma_from_noise(samples: SampleStack, rig: Rig, stage_sigma_mm: float = 0.0) -> np.ndarray:
+def _phase_sigma_mm(samples: SampleStack, rig: Rig, background, modulation) -> np.ndarray:
+    """``sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` (mm) for the finest period (METHOD.md section 4)."""
+    f = rig.fringes
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (np.sqrt(2.0 / f.steps[-1]) * samples.noise.sigma_dn(background)
+                / modulation * f.periods_px[-1] / (2 * np.pi) * max(rig.lcd.pitch_mm))
+
+
+def sample_sigma_from_noise(samples: SampleStack, rig: Rig) -> np.ndarray:
     """Predicted 1-sigma error (mm) of every sample, from the measured camera noise.
 
     ``sigma_X = sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` for the finest
     period (METHOD.md section 4), with ``sigma(A)`` from ``samples.noise``.
+    The stage readings' error is not in it: it is common to every pixel of a
+    position (:func:`stage_leverage`, :func:`poly_sigma_maps`).
 
     Returns
     -------
     (K, H, W) float64, NaN where invalid.
     """
-    if samples.noise is None or samples.modulation is None:
-        raise ValueError("samples carry no noise model or modulation: decode them with collect_samples()")
-    f = rig.fringes
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (np.sqrt(2.0 / f.steps[-1]) * samples.noise.sigma_dn(samples.background)
-             / samples.modulation * f.periods_px[-1] / (2 * np.pi) * max(rig.lcd.pitch_mm))
-    if stage_sigma_mm:
-        s = np.hypot(s, stage_sigma_mm * 0.5)  # typical |dX/dz| of a ray ~ 0.5
-    return np.where(samples.valid, s, np.nan)
+    _check_noise(samples)
+    return np.where(samples.valid, _phase_sigma_mm(samples, rig, samples.background, samples.modulation), np.nan)
 
 
 _BLOCK_PIXELS = 1 << 15
@@ -584,7 +585,28 @@ def _gradients(a: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]
     return gr[sl], gc[sl]
 
 
-def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays, stage_sigma_mm: float,
+def _corrected_absolute(samples: SampleStack, rig: Rig, axis: int, s: int, e: int, sel, z,
+                        level_bias: bool, footprint) -> np.ndarray:
+    """Absolute X (``axis`` 0) or Y (1) of flat pixels ``[s, e)`` at positions ``sel``, corrected.
+
+    Returns
+    -------
+    (K, e - s) float64, mm: minus the level bias if ``level_bias``, minus
+    ``footprint[axis]`` (from :func:`footprint_bias`) unless it is None.
+    """
+    from .fastio import read_block
+
+    name = "xy"[axis]
+    values = getattr(samples, f"{name}_ref").reshape(-1)[s:e][None] + read_block(
+        getattr(samples, name), s, e, sel).astype(np.float64)
+    if level_bias:
+        _remove_level_bias(values, rig, name, z)
+    if footprint is not None:
+        values -= footprint[axis]
+    return values
+
+
+def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays,
                    level_bias: bool = False, footprint: bool = False):
     """Rows ``[r0, r1)`` of the chosen positions: validity, sample sigma, weights and residuals to the global model.
 
@@ -600,28 +622,15 @@ def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, ray
     valid = read_block(samples.reasons, s, e, sel) == 0
     mod = read_block(samples.modulation, s, e, sel)
     bg = read_block(samples.background, s, e, sel)
-    f = rig.fringes
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sig = (np.sqrt(2.0 / f.steps[-1]) * samples.noise.sigma_dn(bg)
-               / mod * f.periods_px[-1] / (2 * np.pi) * max(rig.lcd.pitch_mm))
-    if stage_sigma_mm:
-        sig = np.hypot(sig, stage_sigma_mm * 0.5)  # as sample_sigma_from_noise
-    sig = np.where(valid, sig, np.nan)
+    sig = np.where(valid, _phase_sigma_mm(samples, rig, bg, mod), np.nan)
     if rays is None:
         return valid, sig, None, None
     wts = np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.square(sig), 0.0)
     g = [r.reshape(-1)[s:e] for r in rays]
     wts[:, ~(np.isfinite(g[0]) & np.isfinite(g[1]))] = 0.0
     fb = footprint_bias(rays, rig, z, mod, bg, r0, r1) if footprint else None
-    resid = []
-    for i_axis, (a, g0, gs) in enumerate((("x", g[0], g[2]), ("y", g[1], g[3]))):
-        absval = getattr(samples, f"{a}_ref").reshape(-1)[s:e][None] + read_block(getattr(samples, a), s, e, sel
-                                                                                  ).astype(np.float64)
-        if level_bias:
-            _remove_level_bias(absval, rig, a, z)
-        if fb is not None:
-            absval -= fb[i_axis]
-        resid.append(absval - (g0[None] + gs[None] * z[:, None]))
+    resid = [_corrected_absolute(samples, rig, a, s, e, sel, z, level_bias, fb) - (g0[None] + gs[None] * z[:, None])
+             for a, (g0, gs) in enumerate(((g[0], g[2]), (g[1], g[3])))]
     return valid, sig, wts, resid
 
 
@@ -681,12 +690,6 @@ class SmoothInfo:
     excess_sigma_mm: float = 0.0
 
 
-def _uniform_moments(degree: int) -> np.ndarray:
-    """``M[i, j] = mean of t^(i+j)`` for t uniform on [-1, 1]."""
-    p = np.add.outer(np.arange(degree + 1), np.arange(degree + 1))
-    return np.where(p % 2 == 0, 1.0 / (p + 1.0), 0.0)
-
-
 def _sigma_scale_from(rms_x, rms_y, n: np.ndarray, mean_var: np.ndarray, degree: int) -> float:
     """:func:`sigma_scale` from the plain fit's residual RMS maps, the valid counts and the mean predicted variance."""
     use = np.isfinite(rms_x) & (n > degree + 1)  # rms is NaN where the plain LUT is invalid
@@ -707,8 +710,7 @@ def _check_noise(samples: SampleStack) -> None:
         raise ValueError("samples carry no noise model or modulation: decode them with collect_samples()")
 
 
-def sigma_scale(samples: SampleStack, rig: Rig, positions=None, stage_sigma_mm: float = 0.0,
-                degree: int = 2) -> float:
+def sigma_scale(samples: SampleStack, rig: Rig, positions=None, degree: int = 2) -> float:
     """Factor that makes the predicted sample noise match the fit residuals.
 
     The per-sample prediction (:func:`sample_sigma_from_noise`) relies on the
@@ -731,7 +733,7 @@ def sigma_scale(samples: SampleStack, rig: Rig, positions=None, stage_sigma_mm: 
     z = np.asarray(samples.z, dtype=float)[sel]
 
     def block(r0, r1):
-        valid, sig, _, _ = _block_samples(samples, rig, sel, z, r0, r1, None, stage_sigma_mm)
+        valid, sig, _, _ = _block_samples(samples, rig, sel, z, r0, r1, None)
         n[r0:r1] = valid.sum(axis=0).reshape(r1 - r0, w)
         with np.errstate(all="ignore"):
             mean_var[r0:r1] = _nanmean0(sig * sig).reshape(r1 - r0, w)
@@ -872,8 +874,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     def block(r0, r1, a0, fmaps, final):
         """Rows [r0, r1): the final fit's maps if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
         rows = r1 - r0
-        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, 0.0, level_bias,
-                                                   footprint)
+        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, level_bias, footprint)
         if final:
             n_pos[r0:r1] = valid.sum(axis=0).reshape(rows, w)
             zk = np.broadcast_to(z[:, None], valid.shape)
@@ -1039,12 +1040,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                              read_block(samples.background, s, e, sel), r0, r1) if footprint else None)
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("kj,jp->kp", vander, coef[a][:, r0:r1].reshape(d1, -1))
-            absval = getattr(samples, f"{a}_ref").reshape(-1)[s:e][None] + read_block(getattr(samples, a), s, e, sel
-                                                                                      ).astype(np.float64)
-            if level_bias:
-                _remove_level_bias(absval, rig, a, z)
-            if fb is not None:
-                absval -= fb[i_axis]
+            absval = _corrected_absolute(samples, rig, i_axis, s, e, sel, z, level_bias, fb)
             r = np.where(ok, absval - pred, np.nan)
             with np.errstate(all="ignore"):
                 q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
@@ -1066,7 +1062,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         s2 = own_var * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
         # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
         s2 = np.where(np.isfinite(s2), s2, smooth_diag)
-    del mom, smooth_diag, own_var, own_diag
+    mom = smooth_diag = own_var = own_diag = None
     var = None
     sig1 = (np.sqrt(s2) * noise_scale).astype(np.float32)
     del s2
@@ -1117,19 +1113,16 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     # RMS over the calibrated range: evaluate on a fine uniform grid of z.
     zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
     inside = (zs[:, None, None] >= lut.pixel_z_min) & (zs[:, None, None] <= lut.pixel_z_max)
-    out = []
-    for d, coef in enumerate((lut.x, lut.y)):
-        if stage_sigma_mm:
-            # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
-            slope = coef[1] / lut.z_scale - rig.stage.direction[d]
-            sig_a = np.hypot(sig, np.abs(slope) * stage_sigma_mm)
-        elif out:
-            out.append(out[0].copy())
-            break
-        else:
-            sig_a = sig
-        pred = predicted_poly_sigma(samples, sig_a, lut.degree, positions, zs)  # (E, H, W)
+
+    def rms_map(sample_sigma):
+        pred = predicted_poly_sigma(samples, sample_sigma, lut.degree, positions, zs)  # (E, H, W)
         with np.errstate(all="ignore"):
             s = np.sqrt(_nanmean(np.where(inside, pred * pred, np.nan), axis=0))
-        out.append(np.where(lut.valid, s, np.nan).astype(np.float32))
-    return out[0], out[1]
+        return np.where(lut.valid, s, np.nan).astype(np.float32)
+
+    if not stage_sigma_mm:
+        s = rms_map(sig)
+        return s, s.copy()
+    # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
+    return tuple(rms_map(np.hypot(sig, np.abs(coef[1] / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm))
+                 for d, coef in enumerate((lut.x, lut.y)))
