@@ -45,6 +45,8 @@ _OPTS = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 LOW_MODULATION, SATURATED, UNWRAP, OUTSIDE_LCD, BORDER = 1, 2, 4, 8, 16  # ptpcore.phase.Reason
 
 
+# Two row kernels on purpose: the coarse periods need only S, C, modulation and saturation, and
+# the extra sums of the full kernel (background, noise residual) cost about half its time.
 @njit(**_OPTS)
 def _row_lean(frames, r, ws, wc, sat_thr, two_over_n, ns_row, c_row, mod_row, sat_row):
     n = len(frames)

@@ -270,14 +270,10 @@ class SpillStore:
 
     def write(self, name: str, k: int, array: np.ndarray) -> None:
         """Store position ``k`` of field ``name`` (an ``(H, W)`` array of its dtype)."""
-        dt, _ = self.layout[name]
-        a = np.ascontiguousarray(array, dtype=dt)
-        if a.shape != self.shape:
-            raise ValueError(f"{name}[{k}] has shape {a.shape}, expected {self.shape}")
-        with self._lock:
-            self._fh.seek(self._offset(name, k))
-            self._fh.write(memoryview(a.reshape(-1).view(np.uint8)))
-        self._written.add((name, k))
+        if np.shape(array) != self.shape:
+            raise ValueError(f"{name}[{k}] has shape {np.shape(array)}, expected {self.shape}")
+        self.write_rows(name, k, 0, array)
+        self.mark_written(name, k)
 
     def write_rows(self, name: str, k: int, row0: int, rows: np.ndarray) -> None:
         """Store rows ``[row0, row0 + len(rows))`` of position ``k`` of field ``name``.
