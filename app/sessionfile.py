@@ -41,10 +41,12 @@ __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_e
 STEP_PAGES = {"decode": "acquire", "fit": "calibrate", "compare": "compare", None: "export"}
 
 
-def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3) -> engine.Session:
+def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3, stage_sigma_um: float = 0.0,
+              level_bias: bool = True, footprint: bool = True) -> engine.Session:
     """The wizard's session as an engine session (for :func:`ptpcore.session.save_session`).
 
     ``model``, ``degree``: the LUT model to record when no LUT is fitted yet;
+    ``stage_sigma_um``, ``level_bias``, ``footprint``: the fit's settings (the Calibrate page's);
     ``out``: the LUT file (default: the one the session already names).
     """
     lut = s.lut
@@ -56,6 +58,7 @@ def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3) -> 
         s.lut_file = str(out)
     es = engine.Session(
         rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None, model=model, degree=int(degree),
+        stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
         options=s.decode_options, positions=None if s.lut_positions is None else tuple(s.lut_positions),
         out=s.lut_file, sim_settings=sim, samples=s.samples, lut=lut, comparison=comparison)
     if s.created:
@@ -74,6 +77,9 @@ class OpenedSession:
     model: str
     degree: int
     step: str | None  # ptpcore.session.next_step
+    stage_sigma_um: float = 0.0
+    level_bias: bool = True
+    footprint: bool = True
 
     @property
     def page(self) -> str:
@@ -129,7 +135,8 @@ def read_session_file(path, progress: Callable[[float, str], None] | None = None
         except (OSError, ValueError, KeyError):
             s.truth = None  # optional: the comparison then judges against the measured samples
     report(1.0, f"opened {path.name} (stage '{es.stage}')")
-    return OpenedSession(path, s, es.model, es.degree, engine.next_step(es))
+    return OpenedSession(path, s, es.model, es.degree, engine.next_step(es), es.stage_sigma_um, es.level_bias,
+                         es.footprint)
 
 
 class Autosave(QObject):
@@ -139,7 +146,8 @@ class Autosave(QObject):
     ----------
     model : SessionModel
     fit_choice : callable, optional
-        ``() -> (model, degree)``: the LUT model to record before a LUT is fitted.
+        ``() -> dict`` of :func:`to_engine`'s fit keywords (``model``, ``degree``,
+        ``stage_sigma_um``, ``level_bias``, ``footprint``): the settings to record.
 
     Signals
     -------
@@ -152,7 +160,7 @@ class Autosave(QObject):
     status = Signal(str)
     saved = Signal(object)
 
-    def __init__(self, model: SessionModel, fit_choice: Callable[[], tuple[str, int]] | None = None,
+    def __init__(self, model: SessionModel, fit_choice: Callable[[], dict] | None = None,
                  parent: QObject | None = None):
         super().__init__(parent)
         self.model = model
@@ -185,8 +193,8 @@ class Autosave(QObject):
         if self.job is not None and self.job.running:
             self._again = True
             return self.job
-        model, degree = self.fit_choice() if self.fit_choice else ("poly", 3)
-        es, path = to_engine(self.model.session, model=model, degree=degree), self.path
+        fit = self.fit_choice() if self.fit_choice else {}
+        es, path = to_engine(self.model.session, **fit), self.path
         job = Job(lambda ctx: engine.save_session(es, path), "saving the session", self)
         job.finished.connect(lambda _r: self._saved(path))
         job.errored.connect(lambda msg: self.status.emit(f"session NOT saved: {msg}"))

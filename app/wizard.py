@@ -87,7 +87,7 @@ class StudioWizard(QWizard):
         export.calibrate_page = self.page_by_key["calibrate"]
         self.jumping = False  # go_to() passing pages on its way: their on_enter waits until they are shown
         cal = self.page_by_key["calibrate"]
-        self.autosave = Autosave(self.model, lambda: (cal.model_combo.currentData(), cal.degree.value()), self)
+        self.autosave = Autosave(self.model, cal.fit_settings, self)
         self.page_by_key["rig"].sessionOpened.connect(self._session_opened)
         export.sessionWritten.connect(lambda path: self.autosave.set_path(path, just_saved=True))
 
@@ -141,7 +141,8 @@ class StudioWizard(QWizard):
         s = opened.session
         half = list(range(0, s.rig.stage.n_positions, 2))
         self.page_by_key["calibrate"].configure(opened.model, opened.degree,
-                                                "half" if s.lut_positions == half else "all")
+                                                "half" if s.lut_positions == half else "all",
+                                                opened.stage_sigma_um, opened.level_bias, opened.footprint)
         self.autosave.set_path(opened.path)
         self.go_to(opened.page)
 

@@ -177,27 +177,35 @@ class CalibratePage(StudioPage):
 
     # ---- fitting --------------------------------------------------------------------
     def configure(self, model: str = "poly", degree: int = 3, positions: str = "all",
-                  stage_sigma_um: float = 0.0) -> None:
-        """Set the model controls (the tour and tests use it)."""
+                  stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True) -> None:
+        """Set the model controls (the tour, an opened session file and tests use it)."""
         self.model_combo.setCurrentIndex(self.model_combo.findData(model))
         self.degree.setValue(degree)
         self.stage_sigma.setValue(stage_sigma_um)
+        self.level_bias.setChecked(level_bias)
+        self.footprint.setChecked(footprint)
         self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
+
+    def fit_settings(self) -> dict:
+        """The fit's settings as :func:`ptp_studio.sessionfile.to_engine` records them."""
+        return {"model": self.model_combo.currentData(), "degree": self.degree.value(),
+                "stage_sigma_um": self.stage_sigma.value(), "level_bias": self.level_bias.isChecked(),
+                "footprint": self.footprint.isChecked()}
 
     def fit(self) -> Job | None:
         s = self.model.session
         if self.jobs.busy or s.samples is None:
             return None
-        model = self.model_combo.currentData()
-        degree = self.degree.value()
+        fit = self.fit_settings()
+        model, degree = fit["model"], fit["degree"]
         k = s.rig.stage.n_positions
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
         samples, rig = s.samples, s.rig
-        stage_mm = self.stage_sigma.value() * 1e-3
-        corrections = {"level_bias": self.level_bias.isChecked(), "footprint": self.footprint.isChecked()}
+        stage_mm = fit["stage_sigma_um"] * 1e-3
         gen = self.model.generation
         job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress,
-                                        stage_sigma_mm=stage_mm, **corrections),
+                                        stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
+                                        footprint=fit["footprint"]),
                   f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self.model.set_lut(lut, positions))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))

@@ -122,6 +122,26 @@ def test_landing_page_follows_the_stage_and_autosave_writes_after_a_fit(qtbot, t
     src.close()
 
 
+def test_the_fit_settings_of_the_calibrate_page_are_saved_and_restored(qtbot, tmp_path, small_session_args):
+    src = StudioWizard(tour_session(**small_session_args))
+    qtbot.addWidget(src)
+    _acquire(src, qtbot)
+    save_session(to_engine(src.model.session), tmp_path / "s.ptps.h5")
+    wiz = _fresh_wizard(qtbot)
+    assert run_job(qtbot, wiz.open_session(tmp_path / "s.ptps.h5")) == "finished"
+    cal = wiz.page_by_key["calibrate"]
+    cal.configure("smooth", 1, "all", stage_sigma_um=0.4, level_bias=False, footprint=False)
+    assert run_job(qtbot, cal.fit()) == "finished"
+    _wait_autosave(wiz, qtbot)
+    back = load_session(tmp_path / "s.ptps.h5")
+    assert (back.model, back.stage_sigma_um, back.level_bias, back.footprint) == ("smooth", 0.4, False, False)
+    other = _fresh_wizard(qtbot)
+    assert run_job(qtbot, other.open_session(tmp_path / "s.ptps.h5")) == "finished"
+    assert other.page_by_key["calibrate"].fit_settings() == {
+        "model": "smooth", "degree": 1, "stage_sigma_um": 0.4, "level_bias": False, "footprint": False}
+    src.close()
+
+
 @pytest.mark.parametrize("damage", ["garbage", "truncated"])
 def test_a_bad_file_says_why_and_keeps_everything(wizard, qtbot, tmp_path, damage):
     _acquire(wizard, qtbot)
