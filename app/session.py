@@ -23,7 +23,7 @@ from PySide6.QtCore import QObject, Signal
 from ptpcore.dataset import DatasetSource, SimulatedSource
 from ptpcore.phase import DecodeOptions
 from ptpcore.rig import Camera, Rig
-from ptpcore.simulate import SimSettings, VirtualRig, preset
+from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
 
 __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
 
@@ -297,6 +297,15 @@ class SessionModel(QObject):
     def add_export(self, what: str, path: Path) -> None:
         self.session.exports[what] = Path(path)
         self.exportsChanged.emit()
+
+
+def session_truth(kind: str, rig: Rig, settings: SimSettings, seed: int, folder):
+    """The exact truth of a session's source: the simulator's rays, or a dataset's ``truth.h5``; else None."""
+    if kind == "simulated":
+        return VirtualRig(rig, settings, seed).truth()
+    if folder is not None and (Path(folder) / "truth.h5").is_file():
+        return load_truth(folder)[0]
+    return None
 
 
 def tour_session(width: int = 320, height: int = 240, positions: int = 11,

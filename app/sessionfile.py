@@ -32,7 +32,7 @@ from ptpcore.models import lut_model
 from ptpcore.simulate import PRESETS, preset, settings_from_json
 from ptpcore.views import reason_counts
 
-from .session import Session, SessionModel
+from .session import Session, SessionModel, session_truth
 from .worker import Job
 
 __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_engine"]
@@ -95,8 +95,6 @@ def read_session_file(path, progress: Callable[[float, str], None] | None = None
         The engine's one-line message: not a session, truncated, too new, damaged;
         or simulator settings this version cannot rebuild.
     """
-    from .pages.acquire import session_truth
-
     path = Path(path)
     report = progress or (lambda f, m: None)
     report(0.0, f"reading {path.name}")

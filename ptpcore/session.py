@@ -308,7 +308,6 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
 # --------------------------------------------------------------------------- writing
 
 _OPTS = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
-_SAMPLE_ARRAYS = ("x", "y", "reasons", "modulation", "background")
 
 
 def _fringe_attrs(rig: Rig) -> dict:

@@ -15,7 +15,7 @@ from ptpcore.simulate import simulate_dataset
 from ptpcore.views import REASON_ORDER, mask_rgba, reason_counts
 from ptpcore.phase import REASON_NAMES
 
-from ..session import PositionStatus
+from ..session import PositionStatus, session_truth
 from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
@@ -85,16 +85,6 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
         return samples, truth
 
     return Job(run, "acquisition")
-
-
-def session_truth(kind, rig, settings, seed, folder):
-    from ptpcore.simulate import VirtualRig, load_truth
-
-    if kind == "simulated":
-        return VirtualRig(rig, settings, seed).truth()
-    if folder is not None and (Path(folder) / "truth.h5").is_file():
-        return load_truth(folder)[0]
-    return None
 
 
 class AcquirePage(StudioPage):

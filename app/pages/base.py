@@ -46,7 +46,6 @@ class StudioPage(QWizardPage):
         self.why.setTextInteractionFlags(Qt.TextSelectableByMouse)
         outer.addWidget(self.why)
         self.jobs: JobPanel | None = None
-        self._last_reason: str | None | bool = False
         self.enter_pending = False  # the wizard passed this page without showing it (StudioWizard.go_to)
 
     @property
@@ -86,8 +85,6 @@ class StudioPage(QWizardPage):
             self.why.setText(f"Next is disabled: {r}")
             self.why.show()
         self.setToolTip(r or "")
-        if r != self._last_reason:
-            self._last_reason = r
         self.completeChanged.emit()
 
     def initializePage(self) -> None:  # noqa: N802 - Qt API

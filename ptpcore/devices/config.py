@@ -94,14 +94,8 @@ class CaptureConfig:
     exposure_check: dict = field(default_factory=dict)
 
 
-_SERIAL_KINDS = {
-    "port": "str", "baudrate": "int", "bytesize": "int", "parity": "str", "stopbits": "float",
-    "write_ending": "str", "read_ending": "str", "timeout_s": "float", "move_timeout_s": "float",
-    "home_timeout_s": "float", "poll_interval_s": "float", "units_per_mm": "float", "tolerance_mm": "float",
-    "init_commands": "list[str]", "init_reply": "str", "home_command": "str", "home_reply": "str",
-    "move_command": "str", "move_reply": "str", "position_command": "str", "position_reply": "str",
-    "status_command": "str", "idle_reply": "str", "error_reply": "str",
-}
+# The kinds _Section.get checks, from SerialProtocol's own annotations (a tuple is written as a list).
+_SERIAL_KINDS = {f.name: {"tuple[str, ...]": "list[str]"}.get(f.type, f.type) for f in fields(SerialProtocol) if f.init}
 
 
 def serial_protocol_from_table(table, source: str = "capture.toml", name: str = "stage.serial") -> SerialProtocol:
