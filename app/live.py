@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,10 +31,9 @@ from ptpcore.devices.config import load_capture_config
 from ptpcore.errors import ConfigError, PtpError
 from ptpcore.pipeline import collect_samples
 from ptpcore.simulate import TRUTH_FILE, VirtualRig, save_truth
-from ptpcore.views import mask_rgba, reason_counts
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
-from .session import LiveSettings, PositionStatus
+from .session import FramePreview, LiveSettings, PositionStatus
 from .worker import Job
 
 __all__ = ["LivePanel", "StageAsker", "ReadingDialog", "build_devices", "live_capture_job",
@@ -51,7 +49,6 @@ STAGE_CHOICES = {
     "manual": "Manual stage (you move it and type each reading)",
     "serial": "Serial stage (protocol from a capture.toml)",
 }
-SATURATION_RGBA = (255, 30, 30, 220)
 
 
 # --------------------------------------------------------------------------- manual stage
@@ -204,15 +201,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
         for dev in (display, asker):
             if dev is not None and hasattr(dev, "cancel_event"):
                 dev.cancel_event = ctx.cancel_event
-        last = [0.0]
-        max_level = rig.camera.max_level
-
-        def on_frame(k, spec, frame):
-            now = time.monotonic()
-            if now - last[0] >= frame_interval:
-                last[0] = now
-                sat = frame >= max_level
-                ctx.emit(("frame", k, spec, frame.copy(), mask_rgba(sat, SATURATION_RGBA), float(sat.mean())))
+        on_frame = FramePreview(ctx, rig.camera.max_level, frame_interval)
 
         def on_position(k, state):
             ctx.emit({"capturing": ("start", k), "done": ("captured", k), "kept": ("kept", k)}[state])
@@ -228,9 +217,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
             truth = camera._base.truth()
 
         def decoded(pos):
-            counts = reason_counts(pos.reasons)
-            status = PositionStatus(pos.index, pos.z_mm, "done", counts[0] / pos.reasons.size, counts)
-            ctx.emit(("position", status, pos))
+            ctx.emit(("position", PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons), pos))
 
         samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
                                   on_position=decoded)

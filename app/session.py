@@ -13,6 +13,7 @@ file replaces everything at once (:meth:`SessionModel.restore`).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from ptpcore.dataset import DatasetSource, SimulatedSource
 from ptpcore.phase import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
+from ptpcore.views import mask_rgba, reason_counts
 
 __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
 
@@ -44,6 +46,37 @@ class PositionStatus:
     state: str = "pending"
     valid_fraction: float | None = None
     counts: dict = field(default_factory=dict)
+
+    @classmethod
+    def decoded(cls, index: int, z_mm: float, reasons: np.ndarray) -> "PositionStatus":
+        """A decoded position's status from its (H, W) reason flags."""
+        counts = reason_counts(reasons)
+        return cls(index, z_mm, "done", counts[0] / reasons.size, counts)
+
+
+#: Overlay colour of saturated pixels in the frame previews.
+SATURATION_RGBA = (255, 30, 30, 220)
+
+
+class FramePreview:
+    """Sends at most one frame every ``interval`` seconds to the GUI, with its saturation overlay.
+
+    Called on the worker thread as ``preview(k, spec, frame)``; emits
+    ``("frame", k, spec, copy, overlay RGBA, saturated fraction)`` through ``ctx``.
+    """
+
+    def __init__(self, ctx, max_level: int, interval: float = 0.12):
+        self.ctx = ctx
+        self.max_level = max_level
+        self.interval = interval
+        self._last = 0.0
+
+    def __call__(self, k: int, spec, frame: np.ndarray) -> None:
+        now = time.monotonic()
+        if now - self._last >= self.interval:
+            self._last = now
+            sat = frame >= self.max_level
+            self.ctx.emit(("frame", k, spec, frame.copy(), mask_rgba(sat, SATURATION_RGBA), float(sat.mean())))
 
 
 @dataclass

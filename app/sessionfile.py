@@ -30,9 +30,8 @@ from ptpcore import session as engine
 from ptpcore.errors import FileFormatError
 from ptpcore.models import lut_model
 from ptpcore.simulate import PRESETS, preset, settings_from_json
-from ptpcore.views import reason_counts
 
-from .session import Session, SessionModel, session_truth
+from .session import PositionStatus, Session, SessionModel, session_truth
 from .worker import Job
 
 __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_engine"]
@@ -122,11 +121,9 @@ def read_session_file(path, progress: Callable[[float, str], None] | None = None
                 saved_comparison=es.comparison, decode_options=es.options, created=es.created, lut_file=es.out)
     s.reset_positions()
     if es.samples is not None:
-        for st, reasons in zip(s.positions, es.samples.reasons):
-            if (reasons == 255).all():  # not decoded
-                continue
-            counts = reason_counts(reasons)
-            st.state, st.valid_fraction, st.counts = "done", counts[0] / reasons.size, counts
+        for i, (st, reasons) in enumerate(zip(s.positions, es.samples.reasons)):
+            if not (reasons == 255).all():  # decoded
+                s.positions[i] = PositionStatus.decoded(st.index, st.z_mm, reasons)
         report(0.7, "ground truth" if kind == "simulated" else "looking for truth.h5")
         try:
             s.truth = session_truth(kind, s.rig, settings, seed, folder)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from PySide6.QtGui import QColor
@@ -12,18 +11,15 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
 from ptpcore.dataset import DatasetSource
 from ptpcore.pipeline import collect_samples
 from ptpcore.simulate import simulate_dataset
-from ptpcore.views import REASON_ORDER, mask_rgba, reason_counts
+from ptpcore.views import REASON_ORDER
 from ptpcore.phase import REASON_NAMES
 
-from ..session import PositionStatus, session_truth
+from ..session import FramePreview, PositionStatus, session_truth
 from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
 
 __all__ = ["AcquirePage", "TappedSource", "acquisition_job"]
-
-SATURATION_RGBA = (255, 30, 30, 220)
-
 
 class TappedSource:
     """A frame source that lets frames through and shows some of them to the GUI.
@@ -36,19 +32,13 @@ class TappedSource:
         self.source = source
         self.rig = source.rig
         self.ctx = ctx
-        self.interval = interval
-        self._last = 0.0
+        self.preview = FramePreview(ctx, source.rig.camera.max_level, interval)
 
     def frames(self, k: int):
         self.ctx.emit(("start", k))
-        max_level = self.rig.camera.max_level
         for spec, img in self.source.frames(k):
             self.ctx.check()
-            now = time.monotonic()
-            if now - self._last >= self.interval:
-                self._last = now
-                sat = img >= max_level
-                self.ctx.emit(("frame", k, spec, img.copy(), mask_rgba(sat, SATURATION_RGBA), float(sat.mean())))
+            self.preview(k, spec, img)
             yield spec, img
 
 
@@ -73,9 +63,7 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
             src = DatasetSource(write_folder)
 
         def on_position(pos):
-            counts = reason_counts(pos.reasons)
-            status = PositionStatus(pos.index, pos.z_mm, "done", counts[0] / pos.reasons.size, counts)
-            ctx.emit(("position", status, pos))
+            ctx.emit(("position", PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons), pos))
 
         samples = collect_samples(TappedSource(src, ctx),
                                   progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
