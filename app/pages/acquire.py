@@ -193,8 +193,7 @@ class AcquirePage(StudioPage):
         if self.write_check.isChecked() and self.model.session.source_kind == "simulated":
             text = self.write_edit.text().strip()
             if not text:
-                self.jobs.error.setText("Choose the folder to write the simulated images to.")
-                self.jobs.error.show()
+                self.jobs.show_error("Choose the folder to write the simulated images to.")
                 return None
             write = Path(text)
         self.model.start_acquisition()
@@ -202,17 +201,26 @@ class AcquirePage(StudioPage):
         try:
             job = acquisition_job(self.model.session, write)
         except Exception as exc:  # noqa: BLE001 - a bad folder must reach the user
-            from ..worker import error_message
+            return self._not_started(exc)
+        return self._launch(job, gen)
 
-            self._outcome = "errored"
-            self.jobs.error.setText(error_message(exc))
-            self.jobs.error.show()
-            self.update_complete()
-            return None
+    def _not_started(self, exc: Exception) -> None:
+        """The job could not even be built: say why, here, and stay as we are."""
+        from ..worker import error_message
+
+        self._outcome = "errored"
+        self.jobs.show_error(error_message(exc))
+        self.update_complete()
+        return None
+
+    def _launch(self, job: Job, gen: int, then=None) -> Job:
+        """Wire an acquisition job to this page (``then()`` after it ends, if given) and run it."""
         self._outcome = None
         job.partial.connect(self._partial)
         job.finished.connect(lambda result: self._finished(result, gen))
         job.done.connect(lambda: self._ended(job))
+        if then is not None:
+            job.done.connect(then)
         return self.run_job(job)
 
     def _partial(self, payload) -> None:
@@ -246,7 +254,6 @@ class AcquirePage(StudioPage):
     def _start_live(self) -> Job | None:
         """Build the devices (GUI thread), then capture and decode in one job."""
         from ..live import build_devices, live_capture_job
-        from ..worker import error_message
 
         s = self.model.session
         s.live = self.live.settings()
@@ -256,19 +263,10 @@ class AcquirePage(StudioPage):
             camera, stage, display, asker = build_devices(s, self)
             job = live_capture_job(s, camera, stage, display, asker)
         except Exception as exc:  # noqa: BLE001 - a bad setting must reach the user
-            self._outcome = "errored"
-            self.jobs.error.setText(error_message(exc))
-            self.jobs.error.show()
-            self.update_complete()
-            return None
+            return self._not_started(exc)
         self._live_devices = (camera, stage, display, asker)
         self.asker = asker
-        self._outcome = None
-        job.partial.connect(self._partial)
-        job.finished.connect(lambda result: self._finished(result, gen))
-        job.done.connect(lambda: self._ended(job))
-        job.done.connect(self.live.load)
-        return self.run_job(job)
+        return self._launch(job, gen, then=self.live.load)
 
     def _overlay_toggled(self, *_):
         self.frame_view.set_overlay(self._overlay if self.sat_check.isChecked() else None)

@@ -154,7 +154,6 @@ class ComparePage(StudioPage):
         grid.addLayout(right, 2, 1)
         grid.setRowStretch(2, 1)
 
-        self._outcome = None
         self.run_button.clicked.connect(self.run)
         self.reference.currentIndexChanged.connect(lambda _i: self._show())
         model.compareChanged.connect(self._result_changed)
@@ -181,7 +180,6 @@ class ComparePage(StudioPage):
         gen = self.model.generation
         job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
-        job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
 
     def _result_changed(self) -> None:

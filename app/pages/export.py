@@ -151,8 +151,7 @@ class ExportPage(StudioPage):
             return None
         out = Path(self.folder.text().strip())
         if not str(out):
-            self.jobs.error.setText("Choose the output folder.")
-            self.jobs.error.show()
+            self.jobs.show_error("Choose the output folder.")
             return None
         # Everything the worker writes is captured now, on the GUI thread
         # (widget grabs included: QImages are safe to save from a worker).

@@ -182,8 +182,7 @@ class PhaseMapsPage(StudioPage):
         try:
             source = self.model.session.make_source()
         except Exception as exc:  # noqa: BLE001
-            self.jobs.error.setText(str(exc))
-            self.jobs.error.show()
+            self.jobs.show_error(str(exc))
             return
         self._decoding = k
         job = Job(lambda ctx: decode_position(_CountingSource(source, ctx), k), f"decoding position {k + 1}")

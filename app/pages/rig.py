@@ -447,9 +447,8 @@ class RigPage(StudioPage):
         wiz = self.wizard()
         busy = [p for p in getattr(wiz, "pages", ()) if p is not self and p.jobs is not None and p.jobs.busy]
         if busy:
-            self.jobs.error.setText(f"Wait for '{busy[0].jobs.job.name}' ({busy[0].heading} page) to finish, or"
-                                    " cancel it, before opening a session.")
-            self.jobs.error.show()
+            self.jobs.show_error(f"Wait for '{busy[0].jobs.job.name}' ({busy[0].heading} page) to finish, or"
+                                 " cancel it, before opening a session.")
             return None
         job = Job(lambda ctx: read_session_file(path, ctx.progress), "opening the session")
         job.finished.connect(self.sessionOpened.emit)

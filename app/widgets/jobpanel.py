@@ -53,6 +53,11 @@ class JobPanel(QWidget):
     def busy(self) -> bool:
         return self.job is not None and self.job.running
 
+    def show_error(self, text: str) -> None:
+        """Show ``text`` in the panel's error line (cleared when the next job starts)."""
+        self.error.setText(text)
+        self.error.show()
+
     def run(self, job: Job) -> Job:
         """Start ``job`` (after the previous one has ended)."""
         if self.busy:
