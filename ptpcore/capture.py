@@ -341,9 +341,13 @@ def capture_state(folder) -> dict | None:
     if state is None:
         return None
     rig = rig_from_toml(state["rig_toml"], str(folder / STATE_FILE))
-    done = sum(1 for p in state["positions"] if isinstance(p, dict) and p.get("state") == "done")
-    return {"done": done, "total": len(state["positions"]), "complete": bool(state.get("complete")),
+    return {"done": _done_count(state), "total": len(state["positions"]), "complete": bool(state.get("complete")),
             "meta": state.get("meta") or {}, "rig": rig}
+
+
+def _done_count(state: dict) -> int:
+    """Positions a capture state records as captured."""
+    return sum(1 for p in state["positions"] if isinstance(p, dict) and p.get("state") == "done")
 
 
 def _first_difference(a: str, b: str) -> str:
@@ -460,7 +464,7 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
         if progress is not None:
             progress(min(max(fraction, 0.0), 1.0), message)
 
-    state = _prepare_folder(out, resume, plan_toml, meta)
+    state = _prepare_folder(out, resume, plan_toml, meta, n_pos)
     if state is None:
         state = {"format": STATE_FORMAT, "software": "ptp-studio", "started": _now(), "rig_toml": plan_toml,
                  "meta": meta, "complete": False, "exposure": None,
@@ -578,7 +582,7 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     return CaptureResult(out, final, captured, kept, exposure)
 
 
-def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict) -> dict | None:
+def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict, n_pos: int) -> dict | None:
     """Check what ``out`` holds; return the state to resume (or None to start afresh)."""
     if out.exists() and not out.is_dir():
         raise CaptureError(f"{out}: exists and is not a folder")
@@ -590,7 +594,7 @@ def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict) -> dict
             raise CaptureError(f"{out}: folder is not empty and holds no capture to "
                                f"{'resume' if resume else 'continue'}; choose a new or empty folder")
         return None
-    done = sum(1 for p in state["positions"] if isinstance(p, dict) and p.get("state") == "done")
+    done = _done_count(state)
     total = len(state["positions"])
     if not resume:
         if state.get("complete"):
@@ -606,7 +610,7 @@ def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict) -> dict
         diffs = ", ".join(f"{k}: {old.get(k)!r} then, {meta.get(k)!r} now" for k in keys)
         raise CaptureError(f"{out}: the partial capture was started with other settings ({diffs});"
                            " resume it with the same settings")
-    if len(state["positions"]) != len(rig_from_toml(plan_toml, "plan").stage.z_mm):
+    if total != n_pos:
         raise CaptureError(f"{out / STATE_FILE}: lists {total} positions, the plan has another number")
     return state
 

@@ -382,22 +382,21 @@ class SerialStage:
 
     def _command(self, text: str, reply_key: str | None, timeout: float | None = None):
         """Send one command; read and check its reply line. Returns the match (or None)."""
-        self._send(text)
         pattern = self.protocol.pattern(reply_key) if reply_key else None
-        if reply_key is None or pattern is None:
+        if pattern is None:
+            self._send(text)
             return None
-        line = self._read_line(text, timeout or self.protocol.timeout_s)
-        self._check_error(text, line)
+        line = self._query(text, timeout)
         m = pattern.search(line)
         if m is None:
             raise DeviceError(f"{self.describe()}: unexpected reply {line!r} to {text!r}"
                               f" (expected /{pattern.pattern}/)")
         return m
 
-    def _query(self, text: str) -> str:
-        """Send a command whose reply is any line (status polls)."""
+    def _query(self, text: str, timeout: float | None = None) -> str:
+        """Send a command and read its reply line (any line: status polls), checked for an error reply."""
         self._send(text)
-        line = self._read_line(text, self.protocol.timeout_s)
+        line = self._read_line(text, timeout or self.protocol.timeout_s)
         self._check_error(text, line)
         return line
 
