@@ -273,19 +273,7 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     ConfigError
         Naming the key and what was expected.
     """
-    try:
-        doc = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, ValueError) as exc:  # ValueError: e.g. an integer too long to read
-        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
-    fmt = doc.get("format")
-    if fmt != DATASET_FORMAT:
-        if fmt is None:
-            raise ConfigError(f"{source}: missing key 'format' (expected \"{DATASET_FORMAT}\")")
-        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected \"{DATASET_FORMAT}\"")
-    known = {"format", "camera", "lcd", "stage", "fringes", "images"}
-    for key in doc:
-        if key not in known:
-            raise ConfigError(f"{source}: unknown key {_short_repr(key)} (allowed: {', '.join(sorted(known))})")
+    doc = _toml_document(text, source, DATASET_FORMAT, {"format", "camera", "lcd", "stage", "fringes", "images"})
 
     s = _Section(doc, "camera", source)
     camera = Camera(s.get("width", "int"), s.get("height", "int"), s.get("bit_depth", "int", 8))
@@ -382,13 +370,34 @@ def load_rig(path: str | Path) -> Rig:
     path = Path(path)
     if path.is_dir():
         path = path / "rig.toml"
+    return rig_from_toml(_read_text(path), str(path))
+
+
+def _read_text(path: Path) -> str:
+    """A UTF-8 configuration file's text; a missing or unreadable file is a ConfigError naming it."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
-    return rig_from_toml(text, str(path))
+
+
+def _toml_document(text: str, source: str, expected_format: str, known: set[str]) -> dict:
+    """Parse a versioned TOML file: valid TOML, ``format = expected_format``, no unknown top-level key."""
+    try:
+        doc = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, ValueError) as exc:  # ValueError: e.g. an integer too long to read
+        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
+    fmt = doc.get("format")
+    if fmt != expected_format:
+        if fmt is None:
+            raise ConfigError(f"{source}: missing key 'format' (expected \"{expected_format}\")")
+        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected \"{expected_format}\"")
+    for key in doc:
+        if key not in known:
+            raise ConfigError(f"{source}: unknown key {_short_repr(key)} (allowed: {', '.join(sorted(known))})")
+    return doc
 
 
 def rig_to_toml(rig: Rig) -> str:

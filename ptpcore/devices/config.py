@@ -42,12 +42,11 @@ Unknown keys are errors naming the key, like in ``rig.toml``.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from ..errors import ConfigError
-from ..rig import _Section, _short_repr, _tname
+from ..rig import _read_text, _Section, _short_repr, _tname, _toml_document
 from .stage import SerialProtocol
 
 __all__ = ["CAPTURE_CONFIG_FORMAT", "CaptureConfig", "CameraConfig", "StageConfig", "DisplayConfig",
@@ -126,19 +125,7 @@ def serial_protocol_from_table(table, source: str = "capture.toml", name: str = 
 
 def capture_config_from_toml(text: str, source: str = "capture.toml") -> CaptureConfig:
     """Parse and validate the text of a capture configuration file."""
-    try:
-        doc = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, ValueError) as exc:
-        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
-    fmt = doc.get("format")
-    if fmt != CAPTURE_CONFIG_FORMAT:
-        if fmt is None:
-            raise ConfigError(f"{source}: missing key 'format' (expected \"{CAPTURE_CONFIG_FORMAT}\")")
-        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected \"{CAPTURE_CONFIG_FORMAT}\"")
-    known = {"format", "camera", "display", "stage", "exposure_check"}
-    for key in doc:
-        if key not in known:
-            raise ConfigError(f"{source}: unknown key {_short_repr(key)} (allowed: {', '.join(sorted(known))})")
+    doc = _toml_document(text, source, CAPTURE_CONFIG_FORMAT, {"format", "camera", "display", "stage", "exposure_check"})
 
     s = _Section(doc, "camera", source, required=False)
     kind = s.get("kind", "str", "sim")
@@ -198,10 +185,4 @@ def capture_config_from_toml(text: str, source: str = "capture.toml") -> Capture
 def load_capture_config(path) -> CaptureConfig:
     """Read and validate a capture configuration file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read ({exc})") from None
-    return capture_config_from_toml(text, str(path))
+    return capture_config_from_toml(_read_text(path), str(path))
