@@ -70,15 +70,9 @@ def main(argv=None) -> int:
             return 1
         return 0
 
-    from dataclasses import replace
-
-    from ptpcore.rig import Camera
-
     from .session import Session
 
-    session = Session.from_preset(args.preset)
-    if args.camera:
-        session.rig = replace(session.rig, camera=Camera(*args.camera, session.rig.camera.bit_depth))
+    session = Session.from_preset(args.preset, tuple(args.camera) if args.camera else None)
     session.reset_positions()
     wiz = StudioWizard(session)
     wiz.show()

@@ -160,10 +160,11 @@ class Session:
     lut_file: str | None = None
 
     @classmethod
-    def from_preset(cls, name: str = "realistic", camera: Camera | None = None) -> "Session":
+    def from_preset(cls, name: str = "realistic", size: tuple[int, int] | None = None) -> "Session":
+        """A simulated session of a preset; ``size`` (width, height) replaces its camera's, same bit depth."""
         rig, settings = preset(name)
-        if camera is not None:
-            rig = replace(rig, camera=camera)
+        if size is not None:
+            rig = replace(rig, camera=Camera(int(size[0]), int(size[1]), rig.camera.bit_depth))
         return cls(rig=rig, sim_settings=settings, preset_name=name)
 
     # ---- sources -------------------------------------------------------
@@ -348,8 +349,7 @@ def tour_session(width: int = 320, height: int = 240, positions: int = 11,
     With the view offset the camera sees the LCD's corner and bezel, so the
     validity masks show every kind of rejection, not only valid pixels.
     """
-    s = Session.from_preset(preset_name)
-    s.rig = replace(s.rig, camera=Camera(width, height, s.rig.camera.bit_depth))
+    s = Session.from_preset(preset_name, (width, height))
     if positions != s.rig.stage.n_positions:
         z = s.rig.stage.z_mm
         s.rig = s.rig.with_z(np.linspace(min(z), max(z), positions))
