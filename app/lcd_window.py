@@ -7,7 +7,7 @@ ratio, so Qt's high-DPI scaling never resamples a fringe. An image larger
 than the screen is cut at the right and bottom, a smaller one sits in the
 top-left corner on black; :func:`screen_mismatch` says so before a capture.
 
-:class:`QtDisplay` is the engine's :class:`ptpcore.devices.display.Display`
+:class:`QtDisplay` is the engine's :class:`ptpcore.capture.devices.display.Display`
 on top of it, callable from the capture's worker thread: ``show`` hands the
 image to the GUI thread and returns once it was painted; ``settle`` then waits
 the settle delay on the worker thread.
@@ -24,7 +24,7 @@ from PySide6.QtCore import QObject, QPointF, Qt, QThread, Signal, Slot
 from PySide6.QtGui import QColor, QGuiApplication, QImage, QPainter
 from PySide6.QtWidgets import QWidget
 
-from ptpcore.devices.display import check_lcd_image
+from ptpcore.capture.devices.display import check_lcd_image
 from ptpcore.errors import Cancelled, DeviceError
 
 __all__ = ["ScreenInfo", "list_screens", "screen_mismatch", "LcdWindow", "QtDisplay"]
@@ -164,7 +164,7 @@ class _Bridge(QObject):
 
 
 class QtDisplay:
-    """The LCD window as a :class:`ptpcore.devices.display.Display`, usable from a worker thread.
+    """The LCD window as a :class:`ptpcore.capture.devices.display.Display`, usable from a worker thread.
 
     Create it on the GUI thread.
 

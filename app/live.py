@@ -9,7 +9,7 @@
 - :class:`StageAsker` — a manual stage's ``ask``: a non-modal dialog on the
   GUI thread that the capture's worker thread waits for (and a Cancel of the
   job dismisses).
-- :func:`live_capture_job` — :func:`ptpcore.capture.capture` then the decode
+- :func:`live_capture_job` — :func:`ptpcore.capture.sequence.capture` then the decode
   of the captured folder, as one :class:`~ptp_studio.worker.Job`.
 """
 
@@ -24,13 +24,13 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDialog, QDialogButtonBox, 
                                QFormLayout, QHBoxLayout, QLabel, QLineEdit, QPushButton, QVBoxLayout, QWidget)
 
 from ptpcore.capture import capture, capture_state
-from ptpcore.dataset import DatasetSource
-from ptpcore.devices import (HarvestersCamera, ManualStage, OpenCVCamera, SerialStage, SimulatedCamera,
+from ptpcore.io import DatasetSource
+from ptpcore.capture.devices import (HarvestersCamera, ManualStage, OpenCVCamera, SerialStage, SimulatedCamera,
                              SimulatedDisplay, SimulatedStage, simulated_meta)
-from ptpcore.devices.config import load_capture_config
+from ptpcore.capture.devices.config import load_capture_config
 from ptpcore.errors import ConfigError, PtpError
-from ptpcore.pipeline import collect_samples
-from ptpcore.simulate import TRUTH_FILE, VirtualRig, save_truth
+from ptpcore.run import collect_samples
+from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
 from .session import FramePreview, LiveSettings, PositionStatus

@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 from PySide6.QtCore import QObject, Signal
 
-from ptpcore.dataset import DatasetSource, SimulatedSource
-from ptpcore.phase import DecodeOptions
+from ptpcore.io import DatasetSource, SimulatedSource
+from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
-from ptpcore.views import mask_rgba, reason_counts
+from ptpcore.evaluate import mask_rgba, reason_counts
 
 __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
 
@@ -124,7 +124,7 @@ class Session:
     lut_positions : list of int or None
         Positions the LUT was fitted on (None: all).
     compare : object or None
-        The comparison result (``ptpcore.compare``).
+        The comparison result (``ptpcore.evaluate.protocol``).
     saved_comparison : dict or None
         The comparison report (JSON) read from a session file; replaced when
         the comparison runs again.

@@ -1,9 +1,9 @@
 """Session files in the wizard: open one, save one, and autosave after each completed stage.
 
-The file is the engine's ``ptp-session/1`` (:mod:`ptpcore.session`); this
+The file is the engine's ``ptp-session/1`` (:mod:`ptpcore.run.session`); this
 module only translates between it and the wizard's :class:`~ptp_studio.session.Session`:
 
-- :func:`to_engine` — the wizard's session as a ``ptpcore.session.Session`` (GUI thread);
+- :func:`to_engine` — the wizard's session as a ``ptpcore.run.session.Session`` (GUI thread);
 - :func:`read_session_file` — load a file and build a wizard session from it
   (worker thread: ground truth, position statuses);
 - :class:`Autosave` — once the user has chosen a session file (Export's
@@ -26,23 +26,23 @@ from typing import Callable
 
 from PySide6.QtCore import QObject, Signal
 
-from ptpcore import session as engine
+from ptpcore.run import session as engine
 from ptpcore.errors import FileFormatError
-from ptpcore.models import lut_model
-from ptpcore.simulate import PRESETS, preset, settings_from_json
+from ptpcore.fit import lut_model
+from ptpcore.simulate.virtual_rig import PRESETS, preset, settings_from_json
 
 from .session import PositionStatus, Session, SessionModel, session_truth
 from .worker import Job
 
 __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_engine"]
 
-#: :func:`ptpcore.session.next_step` -> the page the wizard lands on after opening a file.
+#: :func:`ptpcore.run.session.next_step` -> the page the wizard lands on after opening a file.
 STEP_PAGES = {"decode": "acquire", "fit": "calibrate", "compare": "compare", None: "export"}
 
 
 def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3, stage_sigma_um: float = 0.0,
               level_bias: bool = True, footprint: bool = True) -> engine.Session:
-    """The wizard's session as an engine session (for :func:`ptpcore.session.save_session`).
+    """The wizard's session as an engine session (for :func:`ptpcore.run.session.save_session`).
 
     ``model``, ``degree``: the LUT model to record when no LUT is fitted yet;
     ``stage_sigma_um``, ``level_bias``, ``footprint``: the fit's settings (the Calibrate page's);
@@ -75,7 +75,7 @@ class OpenedSession:
     session: Session
     model: str
     degree: int
-    step: str | None  # ptpcore.session.next_step
+    step: str | None  # ptpcore.run.session.next_step
     stage_sigma_um: float = 0.0
     level_bias: bool = True
     footprint: bool = True

@@ -73,7 +73,7 @@ def read_cv2(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
 
 def read_raw(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
     """The lower floor: the file bytes only (plain TIFF: the pixels), no decoding."""
-    from ptpcore.fastio import read_into
+    from ptpcore.io import read_into
 
     def one(i):
         if not read_into(paths[i], out[i]):
@@ -103,7 +103,7 @@ class MemorySource:
 
 
 def task_decode(folder, rig, repeat, positions):
-    from ptpcore.pipeline import decode_position
+    from ptpcore.run import decode_position
 
     paths = image_paths(folder, rig, [0])[0]
     stack = np.empty((len(paths), *rig.camera.shape), np.uint8 if rig.camera.bit_depth <= 8 else np.uint16)
@@ -121,7 +121,7 @@ def task_decode(folder, rig, repeat, positions):
 
 
 def task_unwrap(folder, rig, repeat, positions):
-    from ptpcore.phase import decode_direction, finish_position
+    from ptpcore.decode import decode_direction, finish_position
 
     _, pos = task_decode(folder, rig, 1, positions)
     f = rig.fringes
@@ -141,7 +141,7 @@ def task_unwrap(folder, rig, repeat, positions):
 def synthetic_samples(rig, k, seed=0):
     """A SampleStack straight from the true rays (noise 0.3 um, a few % invalid samples in regions)."""
     from benchmarks.synth import SyntheticStack
-    from ptpcore.lut import SampleStack
+    from ptpcore.io import SampleStack
 
     truth = SyntheticStack(rig, seed).truth
     rng = np.random.default_rng(seed)
@@ -159,7 +159,7 @@ def synthetic_samples(rig, k, seed=0):
 
 
 def task_fit(folder, rig, repeat, positions):
-    from ptpcore.lut import fit_lut
+    from ptpcore.fit import fit_lut
 
     k = len(positions) if positions else rig.stage.n_positions
     s, truth = synthetic_samples(rig, k)
@@ -174,7 +174,7 @@ def task_fit(folder, rig, repeat, positions):
 
 
 def task_evaluate(folder, rig, repeat, positions):
-    from ptpcore.lut import fit_lut
+    from ptpcore.fit import fit_lut
 
     s, _ = synthetic_samples(rig, 6)
     lut = fit_lut(s, "poly", 3)
@@ -190,8 +190,8 @@ def task_evaluate(folder, rig, repeat, positions):
 
 def task_calibrate(folder, rig, repeat, positions):
     """Only the calibration in this process (its peak memory is the calibration's)."""
-    from ptpcore.dataset import DatasetSource
-    from ptpcore.pipeline import calibrate
+    from ptpcore.io import DatasetSource
+    from ptpcore.run import calibrate
 
     src = DatasetSource(folder)
     c0 = time.process_time()
@@ -204,8 +204,8 @@ def task_calibrate(folder, rig, repeat, positions):
 
 def task_calibrate_vs_read(folder, rig, repeat, positions):
     """The whole calibration and its floors, interleaved in one process (best of ``repeat``)."""
-    from ptpcore.dataset import DatasetSource
-    from ptpcore.pipeline import calibrate
+    from ptpcore.io import DatasetSource
+    from ptpcore.run import calibrate
 
     pos_paths = image_paths(folder, rig, positions)
     buf = np.empty((len(pos_paths[0]), *rig.camera.shape), np.uint8 if rig.camera.bit_depth <= 8 else np.uint16)

@@ -1,13 +1,13 @@
-"""The smooth LUT fit (:func:`ptpcore.smooth.fit_smooth_lut`) at benchmark sizes, beside its floors.
+"""The smooth LUT fit (:func:`ptpcore.fit.smooth.fit_smooth_lut`) at benchmark sizes, beside its floors.
 
     python -m benchmarks.smooth_fit --sizes 0.3,5 --positions 21            # every task, a fresh process each
     python -m benchmarks.smooth_fit --task smooth --mp 5 --positions 21     # one measurement (one JSON line)
 
 The samples are built straight from the true rays of :mod:`benchmarks.synth`
 (no images): X, Y with Gaussian noise of each sample's own predicted sigma
-(from its modulation, background and a :class:`ptpcore.noise.NoiseModel`), a
+(from its modulation, background and a :class:`ptpcore.decode.noise.NoiseModel`), a
 few % of invalid samples in regions that move with z. Above 256 MiB they are
-spilled to a temporary file exactly as :func:`ptpcore.pipeline.collect_samples`
+spilled to a temporary file exactly as :func:`ptpcore.run.pipeline.collect_samples`
 does (``numpy.memmap`` arrays), so the peak RSS is the fit's own, not the
 samples' (``--in-memory`` keeps them in the process instead).
 
@@ -81,8 +81,8 @@ def maxrss_mb() -> float:
 def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool | None = None):
     """(SampleStack with modulation, background and noise model, Rig, Truth)."""
     from benchmarks.synth import SyntheticStack, make_rig
-    from ptpcore.lut import SampleStack
-    from ptpcore.noise import NoiseModel
+    from ptpcore.io import SampleStack
+    from ptpcore.decode import NoiseModel
 
     rig = make_rig(mp, k)
     synth = SyntheticStack(rig, seed)
@@ -93,7 +93,7 @@ def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool 
     f = rig.fringes
     bg = synth.a.astype(np.float32)
     mod = synth.b.astype(np.float32)
-    # The smooth fit's own noise prediction (ptpcore.smooth.sample_sigma_from_noise).
+    # The smooth fit's own noise prediction (ptpcore.fit.smooth.sample_sigma_from_noise).
     sig = (np.sqrt(2.0 / f.steps[-1]) * noise.sigma_dn(bg) / mod * f.periods_px[-1] / (2 * np.pi)
            * max(rig.lcd.pitch_mm)).astype(np.float32)
     del synth
@@ -101,7 +101,7 @@ def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool 
     fields = {"x": np.float32, "y": np.float32, "reasons": np.uint8, "modulation": np.float32,
               "background": np.float32}
     if spill:
-        from ptpcore.fastio import SpillStore
+        from ptpcore.io import SpillStore
 
         store = SpillStore(k, (h, w), fields, {})
     else:
@@ -135,7 +135,7 @@ def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool 
 
 def _copy_floor(samples) -> None:
     """Every sample array once, block by block (file reads when spilled), into one buffer."""
-    from ptpcore.fastio import read_block
+    from ptpcore.io import read_block
 
     k = samples.z.size
     p = samples.shape[0] * samples.shape[1]
@@ -159,7 +159,7 @@ def run_task(task: str, mp: float, k: int, spill: bool | None, degree: int = 2) 
     t0 = time.perf_counter()
     c0 = time.process_time()
     if task in ("smooth", "smooth-corrected"):
-        from ptpcore.smooth import fit_smooth_lut
+        from ptpcore.fit import fit_smooth_lut
 
         # The samples are exact rays plus noise: no displayed levels were rounded and no pixel
         # footprint was integrated, so the level-bias and footprint corrections (the product's
@@ -170,7 +170,7 @@ def run_task(task: str, mp: float, k: int, spill: bool | None, degree: int = 2) 
         out["scale_px"] = info.scale_px
         out["cv_score"] = [None if not np.isfinite(v) else float(v) for v in info.cv_rms_mm]
     elif task == "poly":
-        from ptpcore.lut import fit_lut
+        from ptpcore.fit import fit_lut
 
         lut = fit_lut(samples, "poly", degree)
     elif task == "copy":

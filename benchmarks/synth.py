@@ -1,6 +1,6 @@
 """Synthetic fringe stacks at realistic sensor sizes, fast enough to build for benchmarks.
 
-The simulator (:mod:`ptpcore.simulate`) integrates LCD pixels, blur and lens
+The simulator (:mod:`ptpcore.simulate.virtual_rig`) integrates LCD pixels, blur and lens
 effects exactly and is far too slow to render 1000 frames of 5-12 MP. Here the
 stack is analytic instead: every camera pixel looks along a straight ray (a
 pinhole camera with radial and a little tangential distortion, 500 mm above
@@ -70,7 +70,7 @@ class Truth:
 
 
 class SyntheticStack:
-    """Renders the frames of :func:`make_rig`'s rig (a :class:`ptpcore.dataset.FrameSource`).
+    """Renders the frames of :func:`make_rig`'s rig (a :class:`ptpcore.io.dataset.FrameSource`).
 
     Parameters
     ----------

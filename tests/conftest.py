@@ -6,8 +6,8 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest
 
-from ptpcore.dataset import SimulatedSource
-from ptpcore.pipeline import collect_samples
+from ptpcore.io import SimulatedSource
+from ptpcore.run import collect_samples
 from ptpcore.simulate import VirtualRig, scaled_preset
 
 

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from ptpcore.accuracy import held_out_accuracy, predicted_poly_sigma, sample_sigma
-from ptpcore.lut import fit_lut
+from ptpcore.evaluate import held_out_accuracy
+from ptpcore.fit import predicted_poly_sigma, sample_sigma
+from ptpcore.fit import fit_lut
 
 
 def _prediction(vr, samples, degree, cal, held):

@@ -22,18 +22,18 @@ import numpy as np
 import pytest
 
 from ptpcore.errors import FileFormatError
-from ptpcore.lut import load_lut
-from ptpcore.session import load_session
+from ptpcore.io import load_lut
+from ptpcore.run import load_session
 
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL (POSIX)")
 
 _COMMON = """
 import sys
 import numpy as np
-from ptpcore.lut import Lut, SampleStack, save_lut
+from ptpcore.io.lutfile import Lut, SampleStack, save_lut
 from ptpcore.rig import Camera
-from ptpcore.session import Session, save_session
-from ptpcore.simulate import preset
+from ptpcore.run.session import Session, save_session
+from ptpcore.simulate.virtual_rig import preset
 import dataclasses
 
 def big_lut(h, w, degree, seed):
@@ -139,7 +139,7 @@ def test_calibration_killed_while_decoding_resumes(tmp_path):
     proc = _run_child(f"""
         import time
         from pathlib import Path
-        from ptpcore.session import new_session, run_session
+        from ptpcore.run.session import new_session, run_session
         s = new_session({str(ds)!r}, degree=1, out={str(out)!r})
         save_session(s, {str(session)!r})
         def slow(fraction, message):

@@ -23,10 +23,10 @@ import pytest
 import tomli_w
 
 from ptpcore.cli import main
-from ptpcore.dataset import validate_dataset
+from ptpcore.io import validate_dataset
 from ptpcore.errors import DatasetError
 from ptpcore.rig import Camera, rig_to_toml
-from ptpcore.session import load_session, new_session, save_session
+from ptpcore.run import load_session, new_session, save_session
 from ptpcore.simulate import preset, simulate_dataset
 
 FIRST = "z000/x_T4096_n00.png"  # an image every case can break

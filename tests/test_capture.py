@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from ptpcore import cli
-from ptpcore.capture import (STATE_FILE, ExposureError, ExposureLimits, capture, capture_state, exposure_report,
-                             pattern_image)
-from ptpcore.devices import ManualStage, SimulatedCamera, SimulatedDisplay, SimulatedStage, simulated_devices
-from ptpcore.devices.camera import FrameError
-from ptpcore.devices.stage import StageTimeout
+from ptpcore.capture import (STATE_FILE, ExposureError, ExposureLimits, capture, capture_state,
+    exposure_report, pattern_image)
+from ptpcore.capture.devices import ManualStage, SimulatedCamera, SimulatedDisplay, SimulatedStage, simulated_devices
+from ptpcore.capture.devices.camera import FrameError
+from ptpcore.capture.devices.stage import StageTimeout
 from ptpcore.errors import Cancelled, CaptureError, ConfigError, DeviceError
-from ptpcore.lut import load_lut
+from ptpcore.io import load_lut
 from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset
 
 ARGS = ["--preset", "mild", "--width", "48", "--positions", "5", "--seed", "3"]

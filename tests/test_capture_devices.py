@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from ptpcore import cli
-from ptpcore.devices import HarvestersCamera, OpenCVCamera, SimulatedDisplay
-from ptpcore.devices.config import capture_config_from_toml, load_capture_config
+from ptpcore.capture.devices import HarvestersCamera, OpenCVCamera, SimulatedDisplay
+from ptpcore.capture.devices.config import capture_config_from_toml, load_capture_config
 from ptpcore.errors import ConfigError, DeviceError
 from ptpcore.rig import load_rig
 

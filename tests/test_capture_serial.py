@@ -11,12 +11,12 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pseudo-terminal
 
 from fake_stage_controller import FakeController  # noqa: E402
 
-from ptpcore.capture import capture  # noqa: E402
-from ptpcore.devices import SerialStage, SimulatedCamera, SimulatedDisplay  # noqa: E402
-from ptpcore.devices.config import capture_config_from_toml  # noqa: E402
-from ptpcore.devices.stage import StageTimeout  # noqa: E402
+from ptpcore.capture import capture
+from ptpcore.capture.devices import SerialStage, SimulatedCamera, SimulatedDisplay  # noqa: E402
+from ptpcore.capture.devices.config import capture_config_from_toml  # noqa: E402
+from ptpcore.capture.devices.stage import StageTimeout  # noqa: E402
 from ptpcore.errors import ConfigError, DeviceError  # noqa: E402
-from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset  # noqa: E402
+from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset
 
 CONFIG = r'''
 format = "ptp-capture-config/1"

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 
 from ptpcore.cli import main
-from ptpcore.lut import load_lut
+from ptpcore.io import load_lut
 
 
 def test_simulate_calibrate_inspect(tmp_path, capsys):

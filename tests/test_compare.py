@@ -1,4 +1,4 @@
-"""Tests for ptpcore.compare: PTP and PTP smooth against 3DSTC on held-out heights (METHOD.md sections 6-7).
+"""Tests for ptpcore.evaluate.protocol: PTP and PTP smooth against 3DSTC on held-out heights (METHOD.md sections 6-7).
 
 Two simulated rigs at 320x240 (same field of view as the presets):
 
@@ -9,7 +9,7 @@ Two simulated rigs at 320x240 (same field of view as the presets):
   Brown model can follow.
 
 Every tolerance comes from a noise prediction (phase noise propagated through
-the fit, :mod:`ptpcore.accuracy`) or from a reported standard deviation.
+the fit, :mod:`ptpcore.evaluate.accuracy`) or from a reported standard deviation.
 """
 
 from __future__ import annotations
@@ -23,16 +23,16 @@ import cv2
 import numpy as np
 import pytest
 
-from ptpcore.accuracy import predicted_poly_sigma, sample_sigma
+from ptpcore.fit import predicted_poly_sigma, sample_sigma
 from ptpcore.cli import main
-from ptpcore.compare import (METHOD_LABELS, METHODS, PAIR_KINDS, CompareResult, compare, coordinate_stats,
-                             error_stats, format_summary, smooth_degree_for, split_positions)
-from ptpcore.dataset import SimulatedSource
-from ptpcore.lut import fit_lut
+from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, CompareResult, compare, coordinate_stats,
+    error_stats, format_summary, smooth_degree_for, split_positions)
+from ptpcore.io import SimulatedSource
+from ptpcore.fit import fit_lut
 from ptpcore.pinhole import PinholeModel, dlt_initial_guess, opencv_calibrate
-from ptpcore.pipeline import collect_samples
+from ptpcore.run import collect_samples
 from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset
-from ptpcore.smooth import fit_smooth_lut
+from ptpcore.fit import fit_smooth_lut
 
 WIDTH = 320
 
@@ -548,7 +548,7 @@ def test_fit_warnings_are_reported(mild, monkeypatch):
     """A 3DSTC fit warning (e.g. no convergence) lands in the report instead of a log."""
     import warnings
 
-    import ptpcore.compare as cmp
+    import ptpcore.evaluate.protocol as cmp
 
     real = cmp.fit_pinhole
 

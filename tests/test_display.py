@@ -1,4 +1,4 @@
-"""The LCD's integer levels bias the decoded coordinates; ptpcore.display predicts the bias.
+"""The LCD's integer levels bias the decoded coordinates; ptpcore.decode.display predicts the bias.
 
 Checked against the simulator: the same noise-free rig rendered twice, once
 with the rounded levels a real LCD shows and once with the continuous
@@ -11,11 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-import ptpcore.simulate as sim
-from ptpcore.dataset import SimulatedSource
-from ptpcore.display import level_bias_at, level_bias_px, level_phase_errors_px
-from ptpcore.patterns import fringe_values
-from ptpcore.pipeline import collect_samples
+import ptpcore.simulate.virtual_rig as sim
+from ptpcore.io import SimulatedSource
+from ptpcore.decode import level_bias_at, level_bias_px, level_phase_errors_px
+from ptpcore.decode import fringe_values
+from ptpcore.run import collect_samples
 
 
 def _decode(rig, settings, unrounded, monkeypatch):

@@ -1,6 +1,6 @@
 """Frames mapped from their files and the per-pixel N-step kernel.
 
-- :func:`ptpcore.fastio.map_frame` gives a plain TIFF's pixels (as ``read_into`` reads
+- :func:`ptpcore.io.fastio.map_frame` gives a plain TIFF's pixels (as ``read_into`` reads
   them) and declines every other file.
 - The numba N-step kernel (pixel by pixel over a tuple of frames) against a float32
   numpy reference with the same operations in the same order: bit for bit.
@@ -15,15 +15,15 @@ import cv2
 import numpy as np
 import pytest
 
-from ptpcore.fastio import map_frame, read_into
-from ptpcore.phase import WrappedPhase, _nstep_weights, wrapped_phase
+from ptpcore.io import map_frame, read_into
+from ptpcore.decode.phase import WrappedPhase, _nstep_weights, wrapped_phase
 
 
 @pytest.fixture
 def kernels(monkeypatch):
     """The numba kernels, switched on (skips without numba)."""
     pytest.importorskip("numba")
-    from ptpcore.phase import fused_kernels
+    from ptpcore.decode.phase import fused_kernels
 
     monkeypatch.delenv("PTP_NO_NUMBA", raising=False)
     kern = fused_kernels()
@@ -82,7 +82,7 @@ def _reference_sums(frames: np.ndarray, sat_thr: int):
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 @pytest.mark.parametrize("n", [3, 4, 5, 8])
 def test_nstep_kernel_equals_the_float32_reference_exactly(dtype, n, kernels):
-    from ptpcore.phase import _kernel_frames
+    from ptpcore.decode.phase import _kernel_frames
 
     rng = np.random.default_rng(n)
     level = 255 if dtype == np.uint8 else 4095
@@ -147,11 +147,11 @@ def test_separate_frames_give_the_stack_result(fast, monkeypatch, tmp_path):
 
 def test_mapped_folder_calibration_equals_the_buffered_one(tmp_path, kernels, monkeypatch):
     """Frames mapped from the TIFFs or read into buffers: the same samples, bit for bit."""
-    import ptpcore.fastio as fastio
+    import ptpcore.io.fastio as fastio
     from dataclasses import replace
 
-    from ptpcore.dataset import DatasetSource
-    from ptpcore.pipeline import collect_samples
+    from ptpcore.io import DatasetSource
+    from ptpcore.run import collect_samples
     from ptpcore.rig import save_rig
     from ptpcore.simulate import VirtualRig, scaled_preset
 
@@ -187,7 +187,7 @@ def test_spill_rows_written_from_threads_make_the_maps(tmp_path):
     """SpillStore.write_rows: row blocks in any order, from several threads at once."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ptpcore.fastio import SpillStore, read_block
+    from ptpcore.io import SpillStore, read_block
 
     rng = np.random.default_rng(7)
     k, h, w = 3, 50, 37

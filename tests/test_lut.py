@@ -6,7 +6,9 @@ import pytest
 from scipy.interpolate import PchipInterpolator
 
 from ptpcore.errors import FileFormatError
-from ptpcore.lut import SampleStack, fit_lut, load_lut, save_lut
+from ptpcore.io import load_lut, save_lut
+from ptpcore.fit import fit_lut
+from ptpcore.io import SampleStack
 
 
 def _stack(k=9, h=6, w=7, seed=0, missing=0.2, noise=0.0, degree=2):

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import ptpcore.lut as lut_mod
-from ptpcore.lut import SampleStack, fit_lut
+import ptpcore.io.lutfile as lut_mod
+from ptpcore.fit import fit_lut
+from ptpcore.io import SampleStack
 
 FIELDS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y", "loo_x", "loo_y")
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ptpcore.patterns import design_check, fringe_image, fringe_profile, fringe_values
+from ptpcore.decode import design_check, fringe_image, fringe_profile, fringe_values
 from ptpcore.rig import FringeDesign, Lcd, Rig
 
 

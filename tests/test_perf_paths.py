@@ -14,12 +14,15 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from ptpcore.dataset import DatasetSource, SimulatedSource
-from ptpcore.fastio import SpillStore, read_block, read_into
-from ptpcore.lut import SampleStack, _horner, fit_lut
-from ptpcore.phase import (DecodeOptions, PhaseAccumulator, Reason, _nstep_chain, decode_direction,
-                           finish_position, row_tiles, run_tiles, unwrap_hierarchical, wrapped_phase)
-from ptpcore.pipeline import collect_samples, decode_position
+from ptpcore.io import DatasetSource, SimulatedSource
+from ptpcore.io import SpillStore, read_block, read_into
+from ptpcore.io.lutfile import _horner
+from ptpcore.fit import fit_lut
+from ptpcore.io import SampleStack
+from ptpcore.decode.phase import (DecodeOptions, PhaseAccumulator, Reason, _nstep_chain, decode_direction,
+    finish_position, unwrap_hierarchical, wrapped_phase)
+from ptpcore.parallel import row_tiles, run_tiles
+from ptpcore.run import collect_samples, decode_position
 from ptpcore.rig import save_rig
 from ptpcore.simulate import VirtualRig, scaled_preset
 
@@ -304,7 +307,7 @@ def test_tiled_evaluation_equals_horner():
 
 
 # ---------------------------------------------------------------------------- numba kernels
-# The optional fused kernels (ptpcore._fused, `pip install ".[fast]"`) against the numpy/OpenCV
+# The optional fused kernels (ptpcore.decode._fused, `pip install ".[fast]"`) against the numpy/OpenCV
 # path on the same inputs: N-step sums to float32 rounding, unwrapping, classification and
 # the stored samples bit for bit.
 
@@ -313,7 +316,7 @@ def test_tiled_evaluation_equals_horner():
 def kernels(monkeypatch):
     """The numba kernels, switched on (skips without numba)."""
     pytest.importorskip("numba")
-    from ptpcore.phase import fused_kernels
+    from ptpcore.decode.phase import fused_kernels
 
     monkeypatch.delenv("PTP_NO_NUMBA", raising=False)
     kern = fused_kernels()
@@ -336,7 +339,7 @@ def numpy_path(monkeypatch):
 
 
 def test_numba_can_be_switched_off(monkeypatch):
-    from ptpcore.phase import fused_kernels
+    from ptpcore.decode.phase import fused_kernels
 
     monkeypatch.setenv("PTP_NO_NUMBA", "1")
     assert fused_kernels() is None
@@ -383,7 +386,7 @@ def _wrapped_levels(vr, k):
 
 
 def test_numba_unwrap_and_classification_equal_the_numpy_path_exactly(realistic, kernels):
-    from ptpcore.phase import decode_and_finish
+    from ptpcore.decode.phase import decode_and_finish
 
     rig = realistic.rig
     f = rig.fringes
@@ -428,7 +431,7 @@ def test_numba_unwrapping_of_odd_phases_equals_the_reference(kernels):
 
 
 def test_numba_store_equals_the_numpy_path_exactly(realistic, kernels):
-    from ptpcore.pipeline import _store_rows, _store_rows_fused
+    from ptpcore.run.pipeline import _store_rows, _store_rows_fused
 
     rig = realistic.rig
     f = rig.fringes

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from ptpcore.dataset import SimulatedSource
-from ptpcore.phase import Reason, unwrap_hierarchical, wrapped_phase
-from ptpcore.pipeline import decode_position
+from ptpcore.io import SimulatedSource
+from ptpcore.decode import Reason, unwrap_hierarchical, wrapped_phase
+from ptpcore.run import decode_position
 from ptpcore.simulate import VirtualRig, scaled_preset
 
 

@@ -1,4 +1,4 @@
-"""Tests for ptpcore.pinhole: the 3DSTC pinhole + Brown baseline."""
+"""Tests for ptpcore.pinhole.camera: the 3DSTC pinhole + Brown baseline."""
 
 from __future__ import annotations
 

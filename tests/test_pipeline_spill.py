@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ptpcore.dataset import DatasetSource
-from ptpcore.lut import fit_lut
-from ptpcore.pipeline import collect_samples
+from ptpcore.io import DatasetSource
+from ptpcore.fit import fit_lut
+from ptpcore.run import collect_samples
 from ptpcore.rig import save_rig
 from ptpcore.simulate import VirtualRig, scaled_preset
 
@@ -33,7 +33,7 @@ def tiff_folder(tmp_path_factory):
 
 @pytest.mark.parametrize("numba", [True, False])
 def test_spilled_stack_equals_the_one_in_memory(tiff_folder, tmp_path, monkeypatch, numba):
-    import ptpcore.phase as phase
+    import ptpcore.decode.phase as phase
 
     if numba:
         pytest.importorskip("numba")
@@ -42,7 +42,7 @@ def test_spilled_stack_equals_the_one_in_memory(tiff_folder, tmp_path, monkeypat
         monkeypatch.setenv("PTP_NO_NUMBA", "1")
     # Small row tiles on the numpy path: many tiles write their rows (157 at 5 MP).
     monkeypatch.setattr(phase, "TILE_PIXELS", 160 * 7)
-    monkeypatch.setattr("ptpcore.pipeline.TILE_PIXELS", 160 * 7)
+    monkeypatch.setattr("ptpcore.run.pipeline.TILE_PIXELS", 160 * 7)
     src = DatasetSource(tiff_folder)
     mem = collect_samples(src, spill=False)
     part = collect_samples(src, spill=True, spill_dir=tmp_path, positions=[0, 1, 3, 4])

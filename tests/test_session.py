@@ -14,12 +14,12 @@ import h5py
 import numpy as np
 import pytest
 
-from ptpcore import session as sess
+from ptpcore.run import session as sess
 from ptpcore.cli import main
 from ptpcore.errors import FileFormatError
-from ptpcore.lut import load_lut, save_lut
+from ptpcore.io import load_lut, save_lut
 from ptpcore.rig import Camera
-from ptpcore.session import load_session, new_session, next_step, run_session, save_session
+from ptpcore.run import load_session, new_session, next_step, run_session, save_session
 from ptpcore.simulate import preset, simulate_dataset
 
 

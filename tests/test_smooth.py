@@ -8,11 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
-from ptpcore.accuracy import held_out_accuracy
-from ptpcore.lut import _z_normalisation, fit_lut
+from ptpcore.evaluate import held_out_accuracy
+from ptpcore.fit.perpixel import _z_normalisation, fit_lut
 from ptpcore.pinhole import fit_pinhole
-import ptpcore.smooth as ptpcore_smooth
-from ptpcore.smooth import fit_smooth_lut, local_linear_smooth, poly_sigma_maps
+import ptpcore.fit.smooth as ptpcore_smooth
+from ptpcore.fit import fit_smooth_lut, local_linear_smooth, poly_sigma_maps
 
 
 def _split(samples):
@@ -80,7 +80,7 @@ def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig):
     """At 0.03 um the prediction (phase noise through the smoothing, the stage's readings) holds.
 
     It needs the display's level bias and the footprint-centroid bias removed
-    (both ~0.05 um, ptpcore.display and smooth.footprint_bias) and a global
+    (both ~0.05 um, ptpcore.decode.display and smooth.footprint_bias) and a global
     model fitted to enough points: without them the observed error is 4x the
     prediction.
     """
@@ -203,7 +203,7 @@ def test_plain_lut_sigma_maps_agree_with_observed_errors_everywhere(rough_rig):
 
 def test_binned_smoothing_keeps_linear_trends_and_follows_the_per_pixel_one():
     """The large-image path (bins of b x b px, interpolated back) is exact for planes, close otherwise."""
-    from ptpcore.smooth import _smooth_binned
+    from ptpcore.fit.smooth import _smooth_binned
 
     rng = np.random.default_rng(2)
     h, w = 96, 130  # not multiples of the bin
@@ -230,7 +230,7 @@ def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_r
     """Large images cross-validate large scales on bins and small ones per pixel in strips of rows:
     forced onto the 320x240 presets (2 and 4 px bins, strips of 40 rows) it picks the same scale, and
     the per-pixel scales score exactly as on the whole image."""
-    import ptpcore.smooth as smooth
+    import ptpcore.fit.smooth as smooth
 
     vr, samples = rough_rig if which == "rough" else mild_rig
     cal, _ = _split(samples)
@@ -246,7 +246,7 @@ def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_r
 def test_footprint_bias_is_half_the_second_moment_times_the_laplacian():
     """An analytic map X = 0.05 c + 1e-6 (c^2 + r^2) (mm) and a contrast that says m2 = 0.25 px^2."""
     from ptpcore.simulate import preset
-    from ptpcore.smooth import FOOTPRINT_M2_MAX_PX2, footprint_bias
+    from ptpcore.fit.smooth import FOOTPRINT_M2_MAX_PX2, footprint_bias
 
     rig, _ = preset("mild")
     f = rig.fringes

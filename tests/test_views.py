@@ -1,14 +1,15 @@
-"""ptpcore.views: arrays for views (reason colours, levels, histograms, one pixel's curves). No Qt."""
+"""ptpcore.evaluate.views: arrays for views (reason colours, levels, histograms, one pixel's curves). No Qt."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ptpcore.lut import SampleStack, fit_lut
-from ptpcore.phase import REASON_NAMES, Reason
-from ptpcore.views import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, histogram, pixel_series,
-                           reason_counts, reason_rgba, reason_text, robust_levels)
+from ptpcore.fit import fit_lut
+from ptpcore.io import SampleStack
+from ptpcore.decode import REASON_NAMES, Reason
+from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, histogram, pixel_series,
+    reason_counts, reason_rgba, reason_text, robust_levels)
 
 
 def test_reason_colours_cover_every_flag_and_follow_the_order():

@@ -8,11 +8,11 @@ from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView,
                                QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
 
-from ptpcore.dataset import DatasetSource
-from ptpcore.pipeline import collect_samples
+from ptpcore.io import DatasetSource
+from ptpcore.run import collect_samples
 from ptpcore.simulate import simulate_dataset
-from ptpcore.views import REASON_ORDER
-from ptpcore.phase import REASON_NAMES
+from ptpcore.evaluate import REASON_ORDER
+from ptpcore.decode import REASON_NAMES
 
 from ..session import FramePreview, PositionStatus, session_truth
 from ..widgets.maps import MapView

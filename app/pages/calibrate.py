@@ -7,8 +7,8 @@ import pyqtgraph as pg
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox,
                                QHBoxLayout, QLabel, QPushButton, QSpinBox, QVBoxLayout)
 
-from ptpcore.models import describe_lut, fit_model
-from ptpcore.views import pixel_series, reason_text
+from ptpcore.fit import describe_lut, fit_model
+from ptpcore.evaluate import pixel_series, reason_text
 
 from ..widgets.maps import HeatmapPanel
 from ..worker import Job

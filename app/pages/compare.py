@@ -10,8 +10,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
                                QPushButton, QSpinBox, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from ptpcore.compare import METHOD_LABELS, METHODS, compare
-from ptpcore.views import histogram, robust_levels
+from ptpcore.evaluate import METHOD_LABELS, METHODS, compare
+from ptpcore.evaluate import histogram, robust_levels
 
 from ..widgets.maps import PEN, MapView, colormap
 from ..worker import Job

@@ -11,10 +11,10 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
                                QPushButton, QVBoxLayout)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
-from ptpcore.lut import save_lut
-from ptpcore.models import describe_lut
+from ptpcore.io import save_lut
+from ptpcore.fit import describe_lut
 from ptpcore.rig import rig_to_toml
-from ptpcore.session import save_session
+from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
 from ..worker import Job

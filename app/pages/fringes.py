@@ -12,9 +12,9 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QHBoxLayout, QHeaderView, QLabel, QLineEdit, QSlider, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
-from ptpcore.patterns import design_check, fringe_image, fringe_profile
+from ptpcore.decode import design_check, fringe_image, fringe_profile
 from ptpcore.rig import FringeDesign, rig_from_toml, rig_to_toml
-from ptpcore.views import predicted_signal
+from ptpcore.evaluate import predicted_signal
 
 from ..widgets.maps import MapView
 from .base import StudioPage

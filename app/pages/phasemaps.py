@@ -6,9 +6,10 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, QLabel, QVBoxLayout)
 
-from ptpcore.phase import REASON_NAMES
-from ptpcore.pipeline import decode_position
-from ptpcore.views import REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba, reason_text
+from ptpcore.decode import REASON_NAMES
+from ptpcore.run import decode_position
+from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
+    reason_text)
 
 from ..widgets.maps import Legend, MapView, line_profile
 from ..worker import Job

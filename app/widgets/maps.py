@@ -4,7 +4,7 @@ Every map is an ``(H, W)`` array indexed ``[row, col]`` (pyqtgraph runs in
 row-major mode) drawn so that view coordinates are camera pixel coordinates
 with pixel centres at integers (METHOD.md section 2). Large maps stay fluid:
 ``ImageItem(autoDownsample=True)``, colour levels computed once with numpy on
-a subsample (:func:`ptpcore.views.robust_levels`), histograms likewise; no
+a subsample (:func:`ptpcore.evaluate.views.robust_levels`), histograms likewise; no
 per-pixel Python anywhere.
 """
 
@@ -19,7 +19,7 @@ from PySide6.QtCore import QPointF, QRectF, Qt, Signal
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
 from scipy import ndimage
 
-from ptpcore import views
+from ptpcore.evaluate import views
 
 __all__ = ["MapView", "HeatmapPanel", "line_profile", "colormap"]
 

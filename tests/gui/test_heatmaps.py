@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from ptpcore.views import robust_levels
+from ptpcore.evaluate import robust_levels
 from ptp_studio.widgets.maps import HeatmapPanel
 
 H, W = 2048, 2448  # 5 MP

@@ -9,7 +9,7 @@ import pytest
 from gui_helpers import run_job
 
 from ptpcore.capture import capture, capture_state
-from ptpcore.devices import SimulatedCamera, SimulatedStage
+from ptpcore.capture.devices import SimulatedCamera, SimulatedStage
 from ptpcore.errors import DeviceError
 from ptpcore.rig import load_rig
 from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset

@@ -9,7 +9,7 @@ import pytest
 from gui_helpers import run_job
 
 from ptpcore.errors import FileFormatError
-from ptpcore.session import load_session, save_session
+from ptpcore.run import load_session, save_session
 from ptp_studio.__main__ import build_parser
 from ptp_studio.session import Session, tour_session
 from ptp_studio.sessionfile import to_engine

@@ -10,12 +10,13 @@ from gui_helpers import run_job
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QWizard
 
-from ptpcore.compare import METHODS
-from ptpcore.lut import fit_lut, load_lut
-from ptpcore.session import load_session
-from ptpcore.phase import REASON_NAMES, Reason
-from ptpcore.pipeline import decode_position
-from ptpcore.views import REASON_ORDER, pixel_series, reason_rgba, reason_text
+from ptpcore.evaluate import METHODS
+from ptpcore.io import load_lut
+from ptpcore.fit import fit_lut
+from ptpcore.run import load_session
+from ptpcore.decode import REASON_NAMES, Reason
+from ptpcore.run import decode_position
+from ptpcore.evaluate import REASON_ORDER, pixel_series, reason_rgba, reason_text
 
 
 def _next_enabled(wiz) -> bool:

@@ -1,0 +1,625 @@
+"""Live capture: every fringe pattern on the LCD, at every stage position, photographed.
+
+:func:`capture` drives a :class:`~ptpcore.devices.display.Display`, a
+:class:`~ptpcore.devices.camera.Camera` and a
+:class:`~ptpcore.devices.stage.Stage` through the rig's plan and writes a
+``ptp-dataset/1`` folder as it goes:
+
+1. the folder gets ``capture-state.json`` first (the plan: the rig as
+   ``rig.toml`` text, and per position its state and stage reading), updated
+   atomically after every position;
+2. at the first position it captures, an exposure check photographs the
+   brightest and the darkest level the patterns use (uniform screens) and
+   judges saturated and too-dark pixels (:func:`check_exposure`); a failing
+   verdict stops before the long run unless accepted;
+3. per position: move, read the stage (the reading is what ``rig.toml``
+   records, and what the patterns' carrier uses), record it, then for every
+   pattern show, settle, grab (dropped frames are asked for again) and write
+   the image atomically (:mod:`ptpcore.atomic`);
+4. ``rig.toml`` is written last, with the readings: a folder without it is
+   visibly an unfinished capture.
+
+A crash, a kill or a device error loses at most the position being captured.
+``capture(..., resume=True)`` continues: positions recorded as done whose
+images all read back correctly are kept, everything else is captured again.
+Every device failure ends as a :class:`~ptpcore.errors.DeviceError` whose
+message names the device and says how much is saved.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import math
+import warnings
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ptpcore.atomic import write_bytes_atomic, write_text_atomic
+from ptpcore.io.dataset import check_calibration_design, read_image
+from ptpcore.capture.devices import describe
+from ptpcore.capture.devices.camera import FrameError
+from ptpcore.errors import CaptureError, ConfigError, DeviceError, PtpError
+from ptpcore.decode.patterns import fringe_profile
+from ptpcore.rig.rigfile import FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
+
+__all__ = [
+    "STATE_FILE",
+    "ExposureLimits",
+    "ExposureReport",
+    "ExposureError",
+    "CaptureResult",
+    "display_levels",
+    "exposure_report",
+    "check_exposure",
+    "capture",
+    "capture_state",
+    "pattern_image",
+]
+
+STATE_FILE = "capture-state.json"
+STATE_FORMAT = "ptp-capture-state/1"
+
+Progress = Callable[[float, str], None]
+
+
+class ExposureError(CaptureError):
+    """The exposure check failed (and was not accepted)."""
+
+
+# --------------------------------------------------------------------------- exposure
+
+@dataclass(frozen=True)
+class ExposureLimits:
+    """Thresholds of the exposure check (fractions).
+
+    Attributes
+    ----------
+    max_saturated : float
+        Pixels at full scale on the brightest pattern, at most (they would
+        clip every fringe's crest).
+    min_signal : float
+        The 99th percentile of the contrast (brightest minus darkest pattern)
+        must reach this fraction of full scale.
+    max_clipped_black : float
+        Pixels that see the LCD but read 0 on the darkest pattern, at most.
+    dark_contrast : float
+        A pixel whose contrast is below this fraction of full scale is too
+        dark to decode (bezel, vignetted corner, or underexposed).
+    max_dark : float
+        Too-dark pixels, at most (more means the camera barely sees the LCD).
+    """
+
+    max_saturated: float = 0.001
+    min_signal: float = 0.2
+    max_clipped_black: float = 0.01
+    dark_contrast: float = 0.05
+    max_dark: float = 0.9
+
+    def validate(self, source: str = "exposure limits") -> "ExposureLimits":
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ConfigError(f"{source}: key '{f.name}' must be a fraction between 0 and 1, got {v!r}")
+        return self
+
+
+@dataclass
+class ExposureReport:
+    """The verdict of the exposure check.
+
+    Attributes
+    ----------
+    ok : bool
+    verdict : {"ok", "overexposed", "no signal", "underexposed", "black clipped"}
+    message : str
+        One line: what was found and what to do.
+    saturated_fraction, clipped_black_fraction, dark_fraction : float
+        Fractions of all pixels (clipped black: of the pixels that see the LCD).
+    signal : float
+        99th percentile of the contrast, fraction of full scale.
+    exposure_us : float or None
+        The exposure it was taken with (None: the camera's own).
+    suggested_exposure_us : float or None
+        A better exposure, when one can be said.
+    levels : (int, int)
+        The darkest and brightest displayed levels photographed.
+    bright, dark : (H, W) arrays
+        The two frames.
+    """
+
+    ok: bool
+    verdict: str
+    message: str
+    saturated_fraction: float
+    clipped_black_fraction: float
+    dark_fraction: float
+    signal: float
+    exposure_us: float | None
+    suggested_exposure_us: float | None
+    levels: tuple[int, int]
+    bright: np.ndarray = field(repr=False)
+    dark: np.ndarray = field(repr=False)
+
+    def summary(self) -> dict:
+        """The numbers (no frames), JSON-ready."""
+        d = {k: v for k, v in asdict(self).items() if k not in ("bright", "dark")}
+        d["levels"] = list(self.levels)
+        return d
+
+
+def display_levels(design: FringeDesign) -> tuple[int, int]:
+    """The darkest and brightest grey levels the design's patterns put on the LCD."""
+    from ptpcore.rig.rigfile import Lcd
+
+    lo, hi = 255, 0
+    for d, _j, t, s, n in design.frames():
+        p = fringe_profile(Lcd(max(t, 3), 1, (1.0, 1.0)), design, "x", t, s, n, 0.0)
+        lo, hi = min(lo, int(p.min())), max(hi, int(p.max()))
+    return lo, hi
+
+
+def _pct(v: float) -> str:
+    return f"{100 * v:.2f} %" if v < 0.1 else f"{100 * v:.0f} %"
+
+
+def exposure_report(bright, dark, max_level: int, limits: ExposureLimits = ExposureLimits(),
+                    exposure_us: float | None = None, levels: tuple[int, int] = (0, 255)) -> ExposureReport:
+    """Judge two frames: the brightest and the darkest displayed level.
+
+    Parameters
+    ----------
+    bright, dark : (H, W) uint8 or uint16
+    max_level : int
+        The camera's full scale (``2**bit_depth - 1``).
+    limits : ExposureLimits
+    exposure_us : float, optional
+        The exposure used (for a suggestion).
+
+    Returns
+    -------
+    ExposureReport
+    """
+    bright = np.asarray(bright)
+    dark = np.asarray(dark)
+    contrast = bright.astype(np.float64) - dark
+    full = float(max_level)
+    saturated = float(np.mean(bright >= max_level))
+    seeing = contrast >= limits.dark_contrast * full
+    dark_fraction = 1.0 - float(seeing.mean())
+    clipped = float(np.mean(dark[seeing] <= 0)) if seeing.any() else 0.0
+    signal = float(np.percentile(contrast, 99)) / full
+    top = float(np.percentile(bright, 99.9)) / full
+    suggest = None
+    if exposure_us is not None and top > 0:
+        suggest = float(exposure_us) * min(0.8 / top, 10.0) if top < 1.0 else float(exposure_us) * 0.7
+    hint = f" (e.g. {suggest:.0f} µs)" if suggest is not None else ""
+    if saturated > limits.max_saturated:
+        verdict = "overexposed"
+        message = (f"overexposed: {_pct(saturated)} of the pixels saturate on the brightest pattern"
+                   f" (at most {_pct(limits.max_saturated)}): shorten the exposure{hint}"
+                   " or lower the fringe amplitude")
+    elif dark_fraction > limits.max_dark:
+        verdict = "no signal"
+        message = (f"no signal: {_pct(dark_fraction)} of the pixels change by less than"
+                   f" {_pct(limits.dark_contrast)} of full scale between the darkest and the brightest"
+                   " pattern: is the camera looking at the LCD, the lens open, the LCD showing the patterns?")
+    elif signal < limits.min_signal:
+        verdict = "underexposed"
+        message = (f"underexposed: the contrast between the darkest and the brightest pattern reaches only"
+                   f" {_pct(signal)} of full scale (at least {_pct(limits.min_signal)}):"
+                   f" lengthen the exposure{hint}")
+    elif clipped > limits.max_clipped_black:
+        verdict = "black clipped"
+        message = (f"black level clipped: {_pct(clipped)} of the pixels that see the LCD read 0 on the darkest"
+                   " pattern: raise the camera's black level (offset) or the exposure")
+    else:
+        verdict = "ok"
+        message = (f"exposure ok: contrast {_pct(signal)} of full scale, {_pct(saturated)} saturated,"
+                   f" {_pct(dark_fraction)} of the pixels too dark to decode")
+    return ExposureReport(verdict == "ok", verdict, message, saturated, clipped, dark_fraction, signal,
+                          exposure_us, suggest if verdict != "ok" else None, tuple(levels), bright, dark)
+
+
+def _uniform(rig: Rig, level: int) -> np.ndarray:
+    return np.broadcast_to(np.uint8(level), (rig.lcd.height, rig.lcd.width))
+
+
+def check_exposure(rig: Rig, camera, display, *, limits: ExposureLimits = ExposureLimits(),
+                   exposure_us: float | None = None, retries: int = 2) -> ExposureReport:
+    """Photograph the brightest and darkest levels the patterns use, and judge the exposure.
+
+    The devices must be open; the stage stays where it is.
+
+    Raises
+    ------
+    DeviceError
+    """
+    lo, hi = display_levels(rig.fringes)
+    frames = []
+    for level in (hi, lo):
+        _call(display, "show", _uniform(rig, level))
+        _call(display, "settle")
+        frames.append(_check_frame(_grab(camera, f"the exposure check (level {level})", retries), rig, camera))
+    return exposure_report(frames[0], frames[1], rig.camera.max_level, limits, exposure_us, (lo, hi))
+
+
+# --------------------------------------------------------------------------- helpers
+
+def pattern_image(rig: Rig, direction: str, period: int, step: int, n_steps: int, z_mm: float) -> np.ndarray:
+    """The LCD image ``(lcd.height, lcd.width)`` uint8 of one pattern (a read-only broadcast view)."""
+    prof = fringe_profile(rig.lcd, rig.fringes, direction, period, step, n_steps, z_mm)
+    shape = (rig.lcd.height, rig.lcd.width)
+    return np.broadcast_to(prof[None, :] if direction == "x" else prof[:, None], shape)
+
+
+def _call(device, method: str, *args):
+    """Call a device method; anything but our own errors becomes a DeviceError naming the device."""
+    try:
+        return getattr(device, method)(*args)
+    except PtpError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - drivers raise anything
+        raise DeviceError(f"{describe(device)}: {method} failed ({type(exc).__name__}: {exc})") from exc
+
+
+def _grab(camera, what: str, retries: int) -> np.ndarray:
+    last = "no frame"
+    for _ in range(retries + 1):
+        try:
+            frame = _call(camera, "grab")
+        except FrameError as exc:
+            last = str(exc)
+            continue
+        if frame is None:
+            last = "no frame delivered"
+            continue
+        return frame
+    raise FrameError(f"{describe(camera)}: no frame for {what} after {retries + 1} tries ({last})")
+
+
+def _check_frame(frame, rig: Rig, camera) -> np.ndarray:
+    frame = np.asarray(frame)
+    if frame.ndim == 3 and frame.shape[2] == 1:
+        frame = frame[:, :, 0]
+    want = np.uint8 if rig.camera.bit_depth == 8 else np.uint16
+    h, w = rig.camera.shape
+    if frame.shape != (h, w):
+        raise DeviceError(f"{describe(camera)}: delivers frames of shape {frame.shape},"
+                          f" but rig.toml says camera {w}x{h} (a grey image of {h} rows, {w} columns)")
+    if frame.dtype != want:
+        raise DeviceError(f"{describe(camera)}: delivers {frame.dtype} frames, but rig.toml says"
+                          f" camera.bit_depth = {rig.camera.bit_depth} ({np.dtype(want).name} expected)")
+    if rig.camera.bit_depth not in (8, 16) and int(frame.max()) > rig.camera.max_level:
+        raise DeviceError(f"{describe(camera)}: frame values up to {int(frame.max())}, above the"
+                          f" {rig.camera.bit_depth}-bit full scale {rig.camera.max_level} (rig.toml"
+                          " camera.bit_depth): set the camera's pixel format to match")
+    return np.ascontiguousarray(frame)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+# --------------------------------------------------------------------------- state file
+
+def _read_state(folder: Path) -> dict | None:
+    path = folder / STATE_FILE
+    if not path.exists():
+        return None
+    try:
+        state = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(f"{path}: unreadable capture state ({exc})") from None
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        raise CaptureError(f"{path}: not a capture state file (expected format \"{STATE_FORMAT}\")")
+    if not isinstance(state.get("positions"), list) or not isinstance(state.get("rig_toml"), str):
+        raise CaptureError(f"{path}: capture state is incomplete (no plan or positions)")
+    return state
+
+
+def _write_state(folder: Path, state: dict) -> None:
+    state["updated"] = _now()
+    write_text_atomic(folder / STATE_FILE, json.dumps(state, indent=1) + "\n")
+
+
+def capture_state(folder) -> dict | None:
+    """What a folder holds of a capture: ``None`` if no capture was started there.
+
+    Returns
+    -------
+    dict with ``done`` (positions recorded as captured), ``total``,
+    ``complete`` (bool), ``meta`` and ``rig`` (the planned Rig).
+    """
+    folder = Path(folder)
+    state = _read_state(folder)
+    if state is None:
+        return None
+    rig = rig_from_toml(state["rig_toml"], str(folder / STATE_FILE))
+    return {"done": _done_count(state), "total": len(state["positions"]), "complete": bool(state.get("complete")),
+            "meta": state.get("meta") or {}, "rig": rig}
+
+
+def _done_count(state: dict) -> int:
+    """Positions a capture state records as captured."""
+    return sum(1 for p in state["positions"] if isinstance(p, dict) and p.get("state") == "done")
+
+
+def _first_difference(a: str, b: str) -> str:
+    for la, lb in zip(a.splitlines(), b.splitlines()):
+        if la != lb:
+            return f"'{la.strip()}' then, '{lb.strip()}' now"
+    return "different length"
+
+
+# --------------------------------------------------------------------------- capture
+
+@dataclass
+class CaptureResult:
+    """What :func:`capture` did.
+
+    Attributes
+    ----------
+    folder : Path
+        The ``ptp-dataset/1`` folder (complete).
+    rig : Rig
+        Its ``rig.toml`` (stage readings as recorded).
+    captured : list of int
+        Positions captured by this call.
+    kept : list of int
+        Positions already complete (resume), verified and kept.
+    exposure : ExposureReport or None
+    """
+
+    folder: Path
+    rig: Rig
+    captured: list
+    kept: list
+    exposure: ExposureReport | None = None
+
+
+def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
+            exposure_us: float | None = None, check: bool = True, accept_exposure: bool = False,
+            limits: ExposureLimits = ExposureLimits(), retries: int = 2, home: bool = True,
+            position_tolerance_mm: float | None = None, image_ext: str = ".png", meta: dict | None = None,
+            progress: Progress | None = None, on_frame: Callable | None = None,
+            on_exposure: Callable[[ExposureReport], None] | None = None,
+            on_position: Callable[[int, str], None] | None = None) -> CaptureResult:
+    """Capture a whole ``ptp-dataset/1`` folder with live (or simulated) devices.
+
+    Parameters
+    ----------
+    out_dir : path
+        The dataset folder: new or empty, or (``resume=True``) a partial capture.
+    rig : Rig
+        The plan: camera, LCD, fringes, and the stage heights ``z_mm`` to visit.
+    camera, stage, display
+        Unopened devices (:mod:`ptpcore.devices`); opened here and closed at the end.
+    resume : bool
+        Continue the partial capture in ``out_dir``.
+    exposure_us : float, optional
+        Set the camera's exposure first.
+    check : bool
+        Run the exposure check at the first position captured.
+    accept_exposure : bool
+        Go on when the exposure check fails (its verdict is still reported).
+    limits : ExposureLimits
+    retries : int
+        Dropped frames asked for again, per pattern, before giving up.
+    home : bool
+        Home the stage first.
+    position_tolerance_mm : float, optional
+        How far a stage reading may be from the planned height (default a
+        quarter of the smallest step between positions).
+    image_ext : {".png", ".tif"}
+    meta : dict, optional
+        Anything JSON can hold that a resumed capture must match (e.g. the
+        simulator settings); stored in the state file.
+    progress : callable, optional
+        ``progress(fraction, message)``; may raise :class:`Cancelled` (the
+        capture stops, resumable).
+    on_frame : callable, optional
+        ``on_frame(k, (dir, level, period, step, N), frame)`` after each frame is written.
+    on_exposure : callable, optional
+        ``on_exposure(report)`` after the exposure check.
+    on_position : callable, optional
+        ``on_position(k, state)`` with state ``"kept"``, ``"capturing"`` or ``"done"``.
+
+    Returns
+    -------
+    CaptureResult
+
+    Raises
+    ------
+    ConfigError
+        The rig cannot be calibrated (checked before anything moves).
+    CaptureError
+        The folder holds something else, or a partial capture of another plan.
+    ExposureError
+        The exposure check failed (nothing of that position was written).
+    DeviceError
+        A device failed; the message says what is saved and that the capture resumes.
+    Cancelled
+    """
+    out = Path(out_dir)
+    if image_ext not in (".png", ".tif", ".tiff"):
+        raise ValueError(f"image_ext must be .png or .tif, got {image_ext!r}")
+    if image_ext != Path(rig.template).suffix:
+        rig = replace(rig, template=str(Path(rig.template).with_suffix(image_ext)))
+    check_calibration_design(rig, "rig")
+    limits.validate()
+    plan_toml = rig_to_toml(rig)
+    meta = json.loads(json.dumps(meta or {}))
+    z_plan = [float(z) for z in rig.stage.z_mm]
+    n_pos = len(z_plan)
+    if position_tolerance_mm is None:
+        position_tolerance_mm = 0.25 * min(abs(b - a) for a, b in zip(z_plan, z_plan[1:]))
+
+    def report(fraction, message):
+        if progress is not None:
+            progress(min(max(fraction, 0.0), 1.0), message)
+
+    state = _prepare_folder(out, resume, plan_toml, meta, n_pos)
+    if state is None:
+        state = {"format": STATE_FORMAT, "software": "ptp-studio", "started": _now(), "rig_toml": plan_toml,
+                 "meta": meta, "complete": False, "exposure": None,
+                 "positions": [{"state": "pending", "z_mm": None} for _ in range(n_pos)]}
+        out.mkdir(parents=True, exist_ok=True)
+        _write_state(out, state)
+    elif state.get("complete") and (out / "rig.toml").is_file():
+        report(1.0, "capture already complete")
+        from ptpcore.rig.rigfile import load_rig
+
+        return CaptureResult(out, load_rig(out), [], list(range(n_pos)), None)
+
+    # Resume: keep the positions whose readings are recorded and whose images all read back.
+    kept = []
+    if resume:
+        for stale in out.rglob(".*.part"):
+            with contextlib.suppress(OSError):
+                stale.unlink()
+        for k, pos in enumerate(state["positions"]):
+            report(0.0, f"verifying position {k + 1}/{n_pos}")
+            if pos.get("state") == "done" and _position_complete(out, rig, k):
+                kept.append(k)
+                if on_position:
+                    on_position(k, "kept")
+            else:
+                pos.update(state="pending")
+        _write_state(out, state)
+    todo = [k for k in range(n_pos) if k not in kept]
+    frames_per_pos = rig.fringes.frames_per_position
+    total = max(1, len(todo) * frames_per_pos)
+    state["devices"] = {"camera": describe(camera), "stage": describe(stage), "display": describe(display)}
+
+    def saved_note() -> str:
+        done = [k for k, p in enumerate(state["positions"]) if p.get("state") == "done"]
+        if not done:
+            return f"nothing is captured yet in {out}; resume the capture once fixed"
+        return (f"{len(done)} of {n_pos} positions are saved in {out}; fix the cause and resume the"
+                " capture to get the rest")
+
+    exposure = None
+    captured = []
+    opened = []
+    try:
+        for dev in (display, camera, stage):
+            _call(dev, "open")
+            opened.append(dev)
+        if exposure_us is not None:
+            _call(camera, "set_exposure", float(exposure_us))
+        if home and todo:
+            report(0.0, "homing the stage")
+            _call(stage, "home")
+        done_frames = 0
+        for i, k in enumerate(todo):
+            report(done_frames / total, f"position {k + 1}/{n_pos}: moving the stage to z = {z_plan[k]:g} mm")
+            _call(stage, "move_to", z_plan[k])
+            z = float(_call(stage, "position"))
+            if not math.isfinite(z) or abs(z - z_plan[k]) > position_tolerance_mm:
+                raise DeviceError(f"{describe(stage)}: reads z = {z:g} mm after the move to {z_plan[k]:g} mm"
+                                  f" (more than {position_tolerance_mm:g} mm away)")
+            if i == 0 and check:
+                report(done_frames / total, "checking the exposure")
+                exposure = check_exposure(rig, camera, display, limits=limits, exposure_us=exposure_us,
+                                          retries=retries)
+                state["exposure"] = exposure.summary()
+                _write_state(out, state)
+                if on_exposure:
+                    on_exposure(exposure)
+                if not exposure.ok and not accept_exposure:
+                    raise ExposureError(f"exposure check at z = {z:g} mm: {exposure.message}")
+            state["positions"][k] = {"state": "capturing", "z_mm": z}
+            _write_state(out, state)
+            if on_position:
+                on_position(k, "capturing")
+            for spec in rig.fringes.frames():
+                d, _j, t, s, big_n = spec
+                report(done_frames / total, f"position {k + 1}/{n_pos} (z = {z:g} mm): {d} period {t} px,"
+                                            f" step {s + 1}/{big_n}")
+                _call(display, "show", pattern_image(rig, d, t, s, big_n, z))
+                _call(display, "settle")
+                frame = _check_frame(_grab(camera, f"position {k + 1}, {d} period {t} step {s + 1}", retries),
+                                     rig, camera)
+                ok, buf = cv2.imencode(image_ext, frame)
+                if not ok:
+                    raise OSError(f"could not encode the frame of position {k + 1} as {image_ext}")
+                path = out / rig.image_name(k, d, t, s, big_n)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_bytes_atomic(path, buf.tobytes())
+                done_frames += 1
+                if on_frame:
+                    on_frame(k, spec, frame)
+            state["positions"][k] = {"state": "done", "z_mm": z}
+            _write_state(out, state)
+            captured.append(k)
+            if on_position:
+                on_position(k, "done")
+    except DeviceError as exc:
+        raise type(exc)(f"{exc} — {saved_note()}") from exc
+    except ExposureError as exc:
+        raise ExposureError(f"{exc} — {saved_note()}") from None
+    except OSError as exc:  # the folder: disk full, permissions, a vanished drive
+        raise CaptureError(f"{exc} — {saved_note()}") from exc
+    finally:
+        for dev in reversed(opened):
+            try:
+                _call(dev, "close")
+            except PtpError as exc:
+                warnings.warn(str(exc), stacklevel=2)
+
+    readings = [p["z_mm"] for p in state["positions"]]
+    final = rig.with_z(readings)
+    save_rig(final, out / "rig.toml")
+    state["complete"] = True
+    _write_state(out, state)
+    report(1.0, "capture complete")
+    return CaptureResult(out, final, captured, kept, exposure)
+
+
+def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict, n_pos: int) -> dict | None:
+    """Check what ``out`` holds; return the state to resume (or None to start afresh)."""
+    if out.exists() and not out.is_dir():
+        raise CaptureError(f"{out}: exists and is not a folder")
+    state = _read_state(out) if out.is_dir() else None
+    if state is None:
+        if (out / "rig.toml").exists():
+            raise CaptureError(f"{out}: already holds a dataset (rig.toml); choose another folder")
+        if out.is_dir() and any(out.iterdir()):
+            raise CaptureError(f"{out}: folder is not empty and holds no capture to "
+                               f"{'resume' if resume else 'continue'}; choose a new or empty folder")
+        return None
+    done = _done_count(state)
+    total = len(state["positions"])
+    if not resume:
+        if state.get("complete"):
+            raise CaptureError(f"{out}: holds a complete capture; choose another folder")
+        raise CaptureError(f"{out}: holds a partial capture ({done} of {total} positions); resume it"
+                           " or choose another folder")
+    if state["rig_toml"] != plan_toml:
+        raise CaptureError(f"{out}: the partial capture was started with another rig"
+                           f" ({_first_difference(state['rig_toml'], plan_toml)}); resume it with the same rig")
+    if (state.get("meta") or {}) != meta:
+        old = state.get("meta") or {}
+        keys = sorted(k for k in set(old) | set(meta) if old.get(k) != meta.get(k))
+        diffs = ", ".join(f"{k}: {old.get(k)!r} then, {meta.get(k)!r} now" for k in keys)
+        raise CaptureError(f"{out}: the partial capture was started with other settings ({diffs});"
+                           " resume it with the same settings")
+    if total != n_pos:
+        raise CaptureError(f"{out / STATE_FILE}: lists {total} positions, the plan has another number")
+    return state
+
+
+def _position_complete(out: Path, rig: Rig, k: int) -> bool:
+    """Every image of position ``k`` exists and decodes to the camera's size and depth."""
+    for d, _j, t, s, big_n in rig.fringes.frames():
+        try:
+            read_image(out / rig.image_name(k, d, t, s, big_n), rig)
+        except PtpError:
+            return False
+    return True

@@ -1,0 +1,340 @@
+"""The ``ptp`` command line.
+
+Every command is a thin layer over one engine call; bad input ends with exit
+code 2 and one line naming the culprit, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ptpcore import __version__
+from ptpcore.cli.progress import progress_bar
+from ptpcore.errors import Cancelled, PtpError
+
+EXIT_BAD_INPUT = 2
+
+
+# --------------------------------------------------------------------------- commands
+
+def cmd_simulate(args) -> int:
+    from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
+
+    rig, settings = preset(args.preset)
+    if args.width or args.height or args.positions:
+        # Same field of view and lens with another sensor size (see scaled_preset).
+        rig, settings = scaled_preset(args.preset, args.width or rig.camera.width, args.height,
+                                      args.positions)
+    bar = progress_bar(args)
+    try:
+        out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
+                               image_ext=".tif" if args.tiff else ".png")
+    finally:
+        bar.close()
+    n = rig.stage.n_positions * rig.fringes.frames_per_position
+    print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
+          f" and truth.h5 to {out}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from ptpcore.run.session import new_session, save_session
+
+    if args.session and Path(args.session).exists():
+        raise FileExistsError(f"{args.session}: session file exists; continue it with `ptp resume"
+                              f" {args.session}` or choose another name")
+    # Validates rig.toml, the design and every image in one pass, before the long decode.
+    session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
+                          stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
+                          footprint=not args.no_footprint)
+    if args.session:
+        save_session(session, args.session)
+    return _finish_session(args, session, args.session, Path(args.out), validate=False)
+
+
+def cmd_resume(args) -> int:
+    from ptpcore.run.session import load_session
+
+    session = load_session(args.session_file)
+    out = args.out or session.out
+    if not out:
+        raise ValueError(f"{args.session_file}: the session names no LUT file; give --out FILE.lut.h5")
+    print(f"{args.session_file}: resuming after stage '{session.stage}'")
+    return _finish_session(args, session, args.session_file, Path(out), validate=True)
+
+
+def _finish_session(args, session, session_path, out: Path, validate: bool) -> int:
+    """Run a session's remaining stages (saved after each), then write the LUT."""
+    from ptpcore.io.lutfile import save_lut
+    from ptpcore.run.session import run_session
+
+    bar = progress_bar(args)
+    try:
+        run_session(session, session_path, progress=bar, validate=validate)
+    finally:
+        bar.close()
+    save_lut(session.lut, out)
+    print(_lut_summary(session.lut, out))
+    return 0
+
+
+def _lut_summary(lut, path) -> str:
+    from ptpcore.fit.models import describe_lut
+
+    v = lut.valid
+    model = describe_lut(lut)
+    lines = [
+        f"{path}: ptp-lut/1, {model}, {lut.shape[1]}x{lut.shape[0]} px, z {lut.z_min:g} .. {lut.z_max:g} mm",
+        f"  valid pixels        {v.sum()} ({100 * v.mean():.1f} %)",
+    ]
+    if v.any():
+        npos = lut.n_positions[v]
+        lines.append(f"  positions per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
+        for name in ("rms", "loo"):
+            for a in "xy":
+                arr = getattr(lut, f"{name}_{a}")[v]
+                arr = arr[np.isfinite(arr)]
+                if arr.size:
+                    label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
+                    lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
+                                 f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
+        for a in "xy":
+            sig = getattr(lut, f"sigma_{a}")
+            arr = sig[v][np.isfinite(sig[v])] if sig is not None else np.zeros(0)
+            if arr.size:
+                lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
+                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm (from the phase noise)")
+    return "\n".join(lines)
+
+
+def cmd_inspect(args) -> int:
+    from ptpcore.io.lutfile import load_lut
+
+    lut = load_lut(args.lut_file)
+    print(_lut_summary(lut, args.lut_file))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from ptpcore.evaluate.accuracy import held_out_accuracy
+    from ptpcore.fit.sigma import predicted_poly_sigma, sample_sigma
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.fit.perpixel import fit_lut
+    from ptpcore.decode.patterns import design_check
+    from ptpcore.run.pipeline import collect_samples
+    from ptpcore.simulate.virtual_rig import load_truth, preset, simulate_dataset
+
+    rig, settings = preset(args.preset)
+    workdir = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ptp-demo-"))
+    bar = progress_bar(args)
+    try:
+        print(f"simulating the '{args.preset}' rig into {workdir} ...", flush=True)
+        simulate_dataset(workdir, rig, settings, seed=args.seed, progress=bar)
+        source = DatasetSource(workdir)
+        print("decoding every position ...", flush=True)
+        samples = collect_samples(source, progress=bar)
+    finally:
+        bar.close()
+    truth, settings, _ = load_truth(workdir)
+    rig = source.rig
+    k = rig.stage.n_positions
+    cal = list(range(0, k, 2))
+    held = list(range(1, k, 2))
+    lut = fit_lut(samples, "poly", args.degree, positions=cal)
+    f = rig.fringes
+    sig = sample_sigma(samples, lambda a: settings.noise_dn(rig.camera, a), f.steps[-1], f.periods_px[-1],
+                       rig.lcd.pitch_mm[0], settings.stage_error_um * 1e-3, truth.sx - rig.stage.direction[0])
+    pred = predicted_poly_sigma(samples, sig, args.degree, cal, [rig.stage.z_mm[i] for i in held])
+    acc = held_out_accuracy(lut, truth, rig.stage.z_mm, held, pred)
+    med_b = float(np.nanmedian(samples.modulation[samples.valid]))
+    med_a = float(np.nanmedian(samples.background[samples.valid]))
+    report = design_check(rig, modulation_dn=med_b, noise_dn=float(settings.noise_dn(rig.camera, med_a)))
+    valid_frac = samples.valid.mean(axis=(1, 2))
+    print()
+    print(f"PTP demo: '{args.preset}' rig, camera {rig.camera.width}x{rig.camera.height} {rig.camera.bit_depth}-bit,"
+          f" {k} positions z = {min(rig.stage.z_mm):g} .. {max(rig.stage.z_mm):g} mm")
+    print(f"  design check        {'ok' if report.ok else 'PROBLEMS: ' + '; '.join(i.message for i in report.failures())}")
+    print(f"  valid pixels        {100 * valid_frac.min():.1f} .. {100 * valid_frac.max():.1f} % per position")
+    print(f"  median modulation   {med_b:.1f} grey levels; predicted sample noise"
+          f" {1e3 * np.nanmedian(sig):.2f} µm (median)")
+    print(f"  LUT                 poly degree {args.degree}, fitted on {len(cal)} positions, "
+          f"valid for {100 * lut.valid.mean():.1f} % of pixels")
+    print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays:")
+    print(f"    RMS {acc.rms_um:.2f} µm   95th percentile {acc.p95_um:.2f} µm   max {acc.max_um:.2f} µm")
+    print(f"    predicted from phase noise: RMS {acc.predicted_rms_um:.2f} µm"
+          f"  (observed / predicted = {acc.rms_um / acc.predicted_rms_um:.2f})")
+    print("    per position: " + ", ".join(f"z={rig.stage.z_mm[p]:g}: {e:.2f}" for p, e in
+                                           zip(held, acc.per_position_rms_um)) + " µm")
+    if args.compare:
+        _demo_compare(args, workdir, samples, rig, truth)
+    return 0
+
+
+def _demo_compare(args, workdir, samples, rig, truth) -> None:
+    from ptpcore.evaluate.protocol import compare, format_summary
+
+    print()
+    result = compare(samples, rig, truth=truth, seed=args.seed, degree=args.degree)
+    print(format_summary(result))
+
+
+def cmd_compare(args) -> int:
+    import json
+
+    from ptpcore.atomic import write_text_atomic
+    from ptpcore.evaluate.protocol import compare, format_summary
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.errors import DatasetError
+    from ptpcore.run.pipeline import collect_samples
+    from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
+
+    source = DatasetSource(args.dataset_dir)
+    truth = None
+    truth_path = Path(args.dataset_dir) / TRUTH_FILE
+    if truth_path.exists():
+        try:
+            truth, _, _ = load_truth(truth_path)
+        except (OSError, KeyError, ValueError) as exc:
+            raise DatasetError(f"{truth_path}: unreadable ground truth ({exc})") from None
+    bar = progress_bar(args)
+    try:
+        samples = collect_samples(source, progress=bar)
+        result = compare(samples, source.rig, truth=truth, seed=args.seed, split=args.split,
+                         n_points=args.points, rational=args.rational, model=args.model, degree=args.degree,
+                         with_smooth=args.smooth, progress=bar)
+    finally:
+        bar.close()
+    write_text_atomic(args.out, json.dumps(result.to_json_dict(), indent=1, allow_nan=False) + "\n")
+    print(format_summary(result))
+    print(f"report written to {args.out}" + ("" if truth is None else f" (with {TRUTH_FILE} as exact truth)"))
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+
+def build_parser() -> argparse.ArgumentParser:
+    from ptpcore.io.lutfile import MODELS
+    from ptpcore.fit.models import LUT_MODELS
+    from ptpcore.simulate.virtual_rig import PRESETS
+
+    p = argparse.ArgumentParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
+    p.add_argument("--version", action="version", version=f"ptp {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", help="render a ptp-dataset/1 folder with the virtual rig",
+                       description="Render a ptp-dataset/1 folder (rig.toml, images, truth.h5) with the virtual rig.")
+    s.add_argument("out_dir", metavar="OUT_DIR")
+    s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--width", type=int, help="camera width in pixels, same field of view (default: the preset's)")
+    s.add_argument("--height", type=int, help="camera height in pixels (default: keeps the aspect ratio)")
+    s.add_argument("--positions", type=int, help="number of stage positions (default: the preset's)")
+    s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_simulate)
+
+    c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
+                       description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
+    c.add_argument("dataset_dir", metavar="DATASET_DIR")
+    c.add_argument("--out", required=True, metavar="FILE.lut.h5")
+    c.add_argument("--model", default="poly", choices=list(LUT_MODELS),
+                   help="poly: per-pixel polynomial; pchip, linear: interpolated tables; smooth: per-pixel"
+                        " polynomial regularised across neighbouring pixels (default poly)")
+    c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
+                   help="polynomial degree 1-5 (poly and smooth, default 3)")
+    c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
+                   help="1-sigma error of the stage readings in um (its specification); part of the LUT's"
+                        " predicted sigma maps (default 0)")
+    c.add_argument("--no-level-bias", action="store_true",
+                   help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")
+    c.add_argument("--no-footprint", action="store_true",
+                   help="smooth: keep each pixel's footprint-centroid bias (its size is read from the fringe"
+                        " contrast; turn off when ambient light or a camera black level lower the contrast)")
+    c.add_argument("--session", metavar="FILE.ptps.h5",
+                   help="save a session file after each completed stage (continue it with `ptp resume`)")
+    c.add_argument("-q", "--quiet", action="store_true")
+    c.set_defaults(func=cmd_calibrate)
+
+    r = sub.add_parser("resume", help="continue a calibration session from its last completed stage",
+                       description="Continue a ptp-session file from its last completed stage (decoding,"
+                                   " LUT fit), saving it after each stage, then write the LUT file.")
+    r.add_argument("session_file", metavar="FILE.ptps.h5")
+    r.add_argument("--out", metavar="FILE.lut.h5", help="LUT file to write (default: the one the session names)")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_resume)
+
+    i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
+    i.add_argument("lut_file", metavar="FILE.lut.h5")
+    i.set_defaults(func=cmd_inspect)
+
+    cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
+                        description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"
+                                    " pinhole + Brown from feature points) on some positions, judge them at the others"
+                                    " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
+                                    " folder (simulated data) adds errors against the exact truth.")
+    cm.add_argument("dataset_dir", metavar="DATASET_DIR")
+    cm.add_argument("--out", required=True, metavar="REPORT.json")
+    cm.add_argument("--seed", type=int, default=0, help="seed of the feature points and point pairs (default 0)")
+    cm.add_argument("--points", type=int, default=2000, metavar="M", help="3DSTC feature points (default 2000)")
+    cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
+                    help="hold out every second position (default) or leave one position out")
+    cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
+    cm.add_argument("--model", default="poly", choices=list(MODELS), help="plain PTP LUT model (default poly)")
+    cm.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
+                    help="polynomial degree 1-5 (poly only, default 3)")
+    cm.add_argument("--no-smooth", dest="smooth", action="store_false",
+                    help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
+    cm.add_argument("-q", "--quiet", action="store_true")
+    cm.set_defaults(func=cmd_compare)
+
+    d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
+                       description="Simulate a rig, calibrate on every second position and report the accuracy"
+                                   " at the others against the simulator's exact truth.")
+    d.add_argument("--preset", default="realistic", choices=list(PRESETS))
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D")
+    d.add_argument("--out", help="keep the simulated dataset in this folder (default: a temporary folder)")
+    d.add_argument("--no-compare", dest="compare", action="store_false", help="skip the 3DSTC comparison")
+    d.add_argument("-q", "--quiet", action="store_true")
+    d.set_defaults(func=cmd_demo)
+
+    from ptpcore.cli.capture import add_parser as add_capture_parser
+
+    add_capture_parser(sub)  # ptp capture (ptpcore/capture_cli.py)
+    return p
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Engine warnings (e.g. colour images converted to grey) as one ``ptp: warning:`` line."""
+    print(f"ptp: warning: {message}", file=file or sys.stderr)
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    warnings.simplefilter("default")
+    warnings.showwarning = _show_warning
+    try:
+        return args.func(args)
+    except Cancelled:
+        print("ptp: cancelled", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("ptp: interrupted", file=sys.stderr)
+        return 130
+    except PtpError as exc:
+        print(f"ptp: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (ValueError, OSError) as exc:
+        print(f"ptp: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,64 @@
+"""Judging LUTs: the 3DSTC comparison, accuracy against truth, and the arrays the GUI draws.
+
+- :mod:`.protocol` — the evaluation protocol (METHOD.md section 7): folds, feature points,
+  fitting every method on the calibration positions, judging them on the held-out ones;
+- :mod:`.statistics` — error statistics, distance pairs and curves, the verdict;
+- :mod:`.report` — the comparison's result objects, JSON and text summary;
+- :mod:`.accuracy` — a LUT's error at held-out heights against the simulator's exact rays;
+- :mod:`.views` — heatmaps, reason colours, histograms, per-pixel series as arrays.
+
+May import :mod:`ptpcore.simulate` and everything below it; never :mod:`ptpcore.run`,
+:mod:`ptpcore.capture` or :mod:`ptpcore.cli`.
+"""
+
+from .protocol import (COMPARE_FORMAT, SPLITS, METHODS, METHOD_LABELS, REFERENCES, PAIR_KINDS,
+    ErrorStats, CoordinateStats, DistanceCurve, PairSet, DistanceErrors, MethodReport, Verdict,
+    ReferenceReport, FeaturePoints, Fold, Coverage, CompareResult, split_positions, draw_features,
+    coordinate_stats, error_stats, compare, smooth_degree_for, format_summary)
+from .accuracy import HeldOutAccuracy, held_out_accuracy
+from .views import (REASON_ORDER, REASON_COLOURS, VALID_COLOUR, reason_rgba, reason_counts,
+    reason_text, mask_rgba, subsample, robust_levels, histogram, PixelSeries, pixel_series,
+    predicted_signal)
+
+__all__ = [
+    "COMPARE_FORMAT",
+    "SPLITS",
+    "METHODS",
+    "METHOD_LABELS",
+    "REFERENCES",
+    "PAIR_KINDS",
+    "ErrorStats",
+    "CoordinateStats",
+    "DistanceCurve",
+    "PairSet",
+    "DistanceErrors",
+    "MethodReport",
+    "Verdict",
+    "ReferenceReport",
+    "FeaturePoints",
+    "Fold",
+    "Coverage",
+    "CompareResult",
+    "split_positions",
+    "draw_features",
+    "coordinate_stats",
+    "error_stats",
+    "compare",
+    "smooth_degree_for",
+    "format_summary",
+    "HeldOutAccuracy",
+    "held_out_accuracy",
+    "REASON_ORDER",
+    "REASON_COLOURS",
+    "VALID_COLOUR",
+    "reason_rgba",
+    "reason_counts",
+    "reason_text",
+    "mask_rgba",
+    "subsample",
+    "robust_levels",
+    "histogram",
+    "PixelSeries",
+    "pixel_series",
+    "predicted_signal",
+]

@@ -1,0 +1,32 @@
+"""Fitting LUTs to samples (METHOD.md section 5).
+
+- :mod:`.perpixel` — the per-pixel ``poly``, ``pchip`` and ``linear`` LUTs with residual and LOO;
+- :mod:`.sigma` — each sample's noise propagated through a per-pixel fit;
+- :mod:`.smooth` — the smooth LUT: global pinhole model plus a per-pixel correction smoothed
+  at a cross-validated scale, with its physical corrections and sigma maps;
+- :mod:`.models` — one entry point for every LUT model the CLI and the wizard offer.
+
+May import :mod:`ptpcore.pinhole`, :mod:`ptpcore.io`, :mod:`ptpcore.decode`, :mod:`ptpcore.rig`.
+"""
+
+from .perpixel import fit_lut
+from .sigma import sample_sigma, predicted_poly_sigma
+from .smooth import (sample_sigma_from_noise, fit_smooth_lut, SmoothInfo, poly_sigma_maps,
+    local_linear_smooth, global_pinhole)
+from .models import LUT_MODELS, fit_model, lut_model, describe_lut
+
+__all__ = [
+    "fit_lut",
+    "sample_sigma",
+    "predicted_poly_sigma",
+    "sample_sigma_from_noise",
+    "fit_smooth_lut",
+    "SmoothInfo",
+    "poly_sigma_maps",
+    "local_linear_smooth",
+    "global_pinhole",
+    "LUT_MODELS",
+    "fit_model",
+    "lut_model",
+    "describe_lut",
+]

@@ -1,0 +1,94 @@
+"""One entry point for every LUT kind the product offers.
+
+``poly``, ``pchip`` and ``linear`` are the paper's per-pixel models
+(:mod:`ptpcore.lut`); ``smooth`` is the regularised per-pixel model
+(:mod:`ptpcore.smooth`), written as ``poly`` coefficients. Plain ``poly`` LUTs
+also get their predicted sigma maps when the samples carry a noise model.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ptpcore.io.lutfile import Lut
+from ptpcore.fit.perpixel import fit_lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig, rig_to_toml
+
+__all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut"]
+
+LUT_MODELS = ("poly", "pchip", "linear", "smooth")
+
+
+def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
+              progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
+              level_bias: bool = True, footprint: bool = True) -> Lut:
+    """Fit a LUT of any kind to decoded samples.
+
+    Parameters
+    ----------
+    samples : SampleStack
+    rig : Rig
+    model : {"poly", "pchip", "linear", "smooth"}
+    degree : int
+        Polynomial degree for ``poly`` and ``smooth`` (1 to 5).
+    positions : sequence of int, optional
+        Calibration positions (default all).
+    progress : callable, optional
+        ``progress(fraction, message)``; may raise to cancel.
+    stage_sigma_mm : float
+        1-sigma error of the stage readings (mm, the stage's specification):
+        part of the predicted sigma maps (``poly`` and ``smooth``).
+    level_bias : bool
+        ``smooth``: remove the display's level bias first (:mod:`ptpcore.display`).
+    footprint : bool
+        ``smooth``: move samples from the footprint centroid to the centre ray
+        (:func:`ptpcore.smooth.footprint_bias`).
+
+    Returns
+    -------
+    Lut
+        ``smooth`` comes back with ``kind == "poly"`` and
+        ``extra_attrs["method"] == "smooth"``.
+    """
+    if model not in LUT_MODELS:
+        raise ValueError(f"model must be one of {', '.join(LUT_MODELS)}, got {model!r}")
+    toml = rig_to_toml(rig)
+    if model == "smooth":
+        from ptpcore.fit.smooth import fit_smooth_lut
+
+        lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
+                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+        return lut
+    lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
+    if model == "poly" and samples.noise is not None and samples.modulation is not None:
+        from ptpcore.fit.smooth import poly_sigma_maps
+
+        lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm)
+    return lut
+
+
+def lut_model(lut: Lut) -> str:
+    """The model name a LUT was fitted with (one of :data:`LUT_MODELS`).
+
+    A ``smooth`` LUT is stored as ``kind = "poly"``; its ``/model`` attribute
+    ``method = "smooth"`` tells it apart.
+    """
+    method = lut.extra_attrs.get("method") if lut.extra_attrs else None
+    if isinstance(method, bytes):
+        method = method.decode("utf-8", "replace")
+    return "smooth" if lut.kind == "poly" and str(method) == "smooth" else lut.kind
+
+
+def describe_lut(lut: Lut) -> str:
+    """A short description of a LUT's model, e.g. ``"smooth, poly degree 2, smoothing scale 16 px"``."""
+    model = lut_model(lut)
+    if model == "smooth":
+        text = f"smooth, poly degree {lut.degree}"
+        scale = lut.extra_attrs.get("smoothing_scale_px")
+        try:
+            scale = float(scale)
+        except (TypeError, ValueError):
+            return text
+        return text + (f", smoothing scale {scale:g} px" if scale > 0 else ", not smoothed (scale 0 px)")
+    return f"poly degree {lut.degree}" if lut.kind == "poly" else lut.kind

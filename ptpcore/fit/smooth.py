@@ -1,0 +1,1130 @@
+"""The ``smooth`` LUT: a global camera model plus a per-pixel correction smoothed over the image.
+
+Why: a plain per-pixel LUT is noise-limited (each pixel fits only its own
+noisy samples); a pinhole model is bias-limited (it cannot follow a real
+lens). Here
+
+1. a pinhole + Brown model (:mod:`ptpcore.pinhole`) is fitted to a large
+   random subset of all calibration samples: it carries the bulk of the
+   geometry with almost no noise;
+2. every pixel fits a polynomial in z to its residuals against that model,
+   weighted by each sample's predicted phase noise (from the modulation and
+   the camera noise measured in the data, :mod:`ptpcore.noise`);
+3. each coefficient map of that correction is smoothed over the image by a
+   locally linear, inverse-variance weighted Gaussian regression (built from
+   ``scipy.ndimage.gaussian_filter`` moments), so the correction keeps
+   non-parametric lens features larger than the smoothing scale;
+4. the smoothing scale is chosen by cross-validation on held-out calibration
+   positions (the prediction error against measured samples is the true
+   error plus the measurement noise, so both have the same minimum).
+
+The result is written as ordinary ``poly`` coefficients per pixel, so
+scanners read it unchanged; ``/model`` carries ``method = "smooth"`` and the
+chosen scale as extra attributes.
+
+This module also propagates the per-sample phase noise to per-pixel
+uncertainty maps ``sigma_x``, ``sigma_y`` for plain and smooth LUTs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import warnings
+
+import cv2
+import numpy as np
+
+from ptpcore.decode.display import level_bias_at
+from ptpcore.io.lutfile import Lut
+from ptpcore.fit.perpixel import _z_normalisation, fit_lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.pinhole.camera import PinholeModel, fit_pinhole
+from ptpcore.rig.rigfile import Rig
+
+def _nanmean(a, axis=None):
+    """``np.nanmean`` without the all-NaN warning (all-NaN pixels are invalid anyway)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(a, axis=axis)
+
+
+def _nanmean0(a: np.ndarray) -> np.ndarray:
+    """``np.nanmean(a, axis=0)`` (same arithmetic), NaN where all NaN, without warnings (thread-safe)."""
+    nan = np.isnan(a)
+    cnt = a.shape[0] - nan.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(nan, 0.0, a).sum(axis=0) / cnt
+
+
+def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z) -> np.ndarray:
+    """Absolute world X or Y samples minus the display's level bias (:mod:`ptpcore.display`), in place.
+
+    Parameters
+    ----------
+    values : (K, n) float64, mm
+        Absolute ``X`` (``axis = "x"``) or ``Y`` of ``n`` pixels at the heights ``z`` (K,).
+    """
+    d = "xy".index(axis)
+    slope, pitch = rig.stage.direction[d], rig.lcd.pitch_mm[d]
+    for i, zk in enumerate(np.asarray(z, dtype=float)):
+        coord = (values[i] - slope * zk) / pitch  # the decoded LCD coordinate
+        values[i] -= level_bias_at(rig.fringes, rig.lcd, axis, zk, coord) * pitch
+    return values
+
+
+def stage_leverage(t: np.ndarray, degree: int) -> float:
+    """How a per-position stage error reaches a pixel's fitted value: ``mean_t g(t)' g(t)``.
+
+    A stage reading that is off by ``dz`` at position ``k`` moves every
+    pixel's sample by ``(dX/dz - a) dz`` at once, so smoothing over
+    neighbouring pixels does not average it away: it passes through each
+    pixel's fit in z like an independent error per position. ``g(t)`` are
+    the unweighted least-squares weights of the fitted value at ``t``; the
+    mean is over ``t`` uniform on the calibrated range.
+
+    Parameters
+    ----------
+    t : (K,) normalised heights of the calibration positions
+    degree : int
+
+    Returns
+    -------
+    float
+        Multiply by ``((dX/dz - a) * sigma_stage)**2`` for the variance (mm^2).
+    """
+    lo, hi = float(np.min(t)), float(np.max(t))
+    pinv = np.linalg.pinv(np.vander(np.asarray(t, float), degree + 1, increasing=True))
+    g = np.vander(np.linspace(lo, hi, 257), degree + 1, increasing=True) @ pinv
+    return float(np.mean(np.sum(g * g, axis=1)))
+
+
+__all__ = ["sample_sigma_from_noise", "fit_smooth_lut", "SmoothInfo", "poly_sigma_maps",
+           "local_linear_smooth", "global_pinhole"]
+
+
+def _phase_sigma_mm(samples: SampleStack, rig: Rig, background, modulation) -> np.ndarray:
+    """``sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` (mm) for the finest period (METHOD.md section 4)."""
+    f = rig.fringes
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (np.sqrt(2.0 / f.steps[-1]) * samples.noise.sigma_dn(background)
+                / modulation * f.periods_px[-1] / (2 * np.pi) * max(rig.lcd.pitch_mm))
+
+
+def sample_sigma_from_noise(samples: SampleStack, rig: Rig) -> np.ndarray:
+    """Predicted 1-sigma error (mm) of every sample, from the measured camera noise.
+
+    ``sigma_X = sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` for the finest
+    period (METHOD.md section 4), with ``sigma(A)`` from ``samples.noise``.
+    The stage readings' error is not in it: it is common to every pixel of a
+    position (:func:`stage_leverage`, :func:`poly_sigma_maps`).
+
+    Returns
+    -------
+    (K, H, W) float64, NaN where invalid.
+    """
+    _check_noise(samples)
+    return np.where(samples.valid, _phase_sigma_mm(samples, rig, samples.background, samples.modulation), np.nan)
+
+
+_BLOCK_PIXELS = 1 << 15
+"""Pixels per block of the per-pixel passes (fits, residuals, final evaluation)."""
+
+CV_PIXELS = 320_000
+"""Above this many pixels the cross-validation runs on a grid binned so it has about this many
+points (a 5 MP image: 4 x 4 bins), and the final smoothing at scales of at least 4 bins runs on
+the same binned grid (interpolated back bilinearly). Up to 640 x 480 everything is per pixel."""
+
+
+_STRIP_ROWS = 256
+"""Rows per strip of the per-pixel cross-validation on binned (large) images."""
+
+
+def _bin_factor(shape) -> int:
+    """Side of the square bins of the cross-validation grid: 1 up to :data:`CV_PIXELS` pixels."""
+    return max(1, int(round(np.sqrt(shape[0] * shape[1] / CV_PIXELS))))
+
+
+def _row_blocks(h: int, w: int, mult: int = 1) -> list[tuple[int, int]]:
+    """Row ranges of about :data:`_BLOCK_PIXELS` pixels, each a multiple of ``mult`` rows (but the last)."""
+    rows = max(mult, (_BLOCK_PIXELS // max(w, 1)) // mult * mult)
+    return [(r, min(h, r + rows)) for r in range(0, h, rows)]
+
+
+def _run_blocks(fn, blocks) -> None:
+    """``fn(r0, r1)`` for every block, on the engine's tile pool (results go to disjoint rows)."""
+    from ptpcore.parallel import tile_workers, worker_pool
+
+    if len(blocks) == 1 or tile_workers() == 1:
+        for b in blocks:
+            fn(*b)
+        return
+    for _ in worker_pool().map(lambda b: fn(*b), blocks):
+        pass
+
+
+def _weighted_poly(t: np.ndarray, values_list, weights: np.ndarray, degree: int, full: bool = False):
+    """Per-pixel weighted least squares of several value arrays sharing the weights (X and Y).
+
+    The normal equations of every pixel are solved together by Gauss-Jordan
+    elimination vectorised over the pixels (symmetric positive definite: no
+    pivoting); batched LAPACK calls cost far more than the arithmetic.
+
+    Parameters
+    ----------
+    t : (K,) ; values_list : list of (K, P) (anything where ``weights == 0``) ; weights : (K, P)
+
+    Returns
+    -------
+    coefs : list of (D+1, P), NaN where fewer than D+1 samples
+    var : (D+1, P) diagonal of the inverse normal matrix (coefficient variances for inverse-variance weights)
+    n : (P,) samples used
+    cov : (D+1, D+1, P), only with ``full``: the whole inverse normal matrix
+    """
+    d1 = degree + 1
+    p = weights.shape[1]
+    used = weights > 0
+    n = used.sum(axis=0)
+    ok = n >= d1
+    tp = t[:, None] ** np.arange(2 * degree + 1)  # (K, 2D+1)
+    m = np.einsum("kp,km->mp", weights, tp)
+    a = m[np.add.outer(np.arange(d1), np.arange(d1))]  # (D+1, D+1, P)
+    inv = np.zeros((d1, d1, p))
+    inv[np.arange(d1), np.arange(d1)] = 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(d1):
+            piv = a[i, i].copy()
+            a[i] /= piv
+            inv[i] /= piv
+            for r in range(d1):
+                if r != i:
+                    f = a[r, i].copy()
+                    a[r] -= f * a[i]
+                    inv[r] -= f * inv[i]
+    inv[:, :, ~ok] = np.nan
+    coefs = []
+    for values in values_list:
+        wv = weights * np.where(used, values, 0.0)
+        b = np.einsum("kp,kj->jp", wv, tp[:, :d1])
+        coefs.append(np.einsum("ijp,jp->ip", inv, b))
+    var = inv[np.arange(d1), np.arange(d1)]
+    if full:
+        return coefs, var, n, inv
+    return coefs, var, n
+
+
+def _range_moments(ta: np.ndarray, tb: np.ndarray, order: int) -> np.ndarray:
+    """Mean of ``t**m`` for ``t`` uniform on ``[ta, tb]`` (per pixel), ``m = 0 .. order``.
+
+    Returns
+    -------
+    (order + 1, *ta.shape) float64; where ``tb == ta`` the value ``ta**m``.
+    """
+    span = tb - ta
+    wide = span > 1e-9
+    out = np.empty((order + 1, *np.shape(ta)))
+    with np.errstate(all="ignore"):
+        for m in range(order + 1):
+            out[m] = np.where(wide, (tb ** (m + 1) - ta ** (m + 1)) / ((m + 1) * np.where(wide, span, 1.0)),
+                              ta ** m)
+    return out
+
+
+def _gauss(arr: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian filter with zeros outside the image (truncated at 3 sigma).
+
+    OpenCV's separable SIMD filter is used rather than ``scipy.ndimage``: it is
+    several times faster at the large scales the cross-validation tries.
+    """
+    k = 2 * int(np.ceil(3.0 * sigma)) + 1
+    return cv2.GaussianBlur(np.ascontiguousarray(arr, dtype=np.float64), (k, k), sigma, sigmaY=sigma,
+                            borderType=cv2.BORDER_CONSTANT)
+
+
+def _first_row_of_inverse(a00, a01, a02, a11, a12, a22):
+    """Row 0 of the inverse of symmetric 3x3 matrices given by their six entries, and the determinants.
+
+    Closed-form cofactors: batched LAPACK calls cost far more than the
+    arithmetic for millions of 3x3 systems.
+    """
+    c0 = a11 * a22 - a12 * a12
+    c1 = a02 * a12 - a01 * a22
+    c2 = a01 * a12 - a02 * a11
+    det = a00 * c0 + a01 * c1 + a02 * c2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (c0 / det, c1 / det, c2 / det), det
+
+
+def _local_moments(s0, sx, sy, sxx, sxy, syy, x, y):
+    """Entries (00, 01, 02, 11, 12, 22) of the 3x3 moment matrices about each point from raw weighted moments."""
+    mx = sx - x * s0
+    my = sy - y * s0
+    mxx = sxx - 2 * x * sx + x * x * s0
+    myy = syy - 2 * y * sy + y * y * s0
+    mxy = sxy - x * sy - y * sx + x * y * s0
+    return s0, mx, my, mxx, mxy, myy
+
+
+def _ll_grid(values: np.ndarray, weights: np.ndarray, sigma: float, xc: np.ndarray, yc: np.ndarray,
+             xb=None, yb=None, with_variance: bool = True):
+    """Locally linear weighted Gaussian regression on a grid of points (the core of :func:`local_linear_smooth`).
+
+    Parameters
+    ----------
+    values : (n, h, w) float64 (anything where ``weights == 0``)
+    weights : (h, w) float64 >= 0
+    sigma : float
+        Gaussian sigma in grid steps (> 0).
+    xc, yc : (w,), (h,)
+        Coordinates of the grid columns and rows, in units of the smoothing scale.
+    xb, yb : (h, w), optional
+        Where each grid point's datum sits (e.g. the weighted centroid of a bin);
+        default the grid point itself.
+    with_variance : bool
+
+    Returns
+    -------
+    out : (n, h, w) the fitted value at every grid point, NaN without support
+    var : (h, w) or None
+    """
+    h, w = weights.shape
+    xg = xc[None, :]
+    yg = yc[:, None]
+    x = xg if xb is None else xb
+    y = yg if yb is None else yb
+    blocks = _row_blocks(h, w)
+
+    def raw(filt, wv):
+        return [filt(wv), filt(wv * x), filt(wv * y), filt(wv * x * x), filt(wv * x * y), filt(wv * y * y)]
+
+    g = lambda arr: _gauss(arr, sigma)  # noqa: E731
+    mom = raw(g, weights)
+    s0 = mom[0]
+    s0_max = max(float(s0.max()), 1e-300)
+    row = np.empty((3, h, w))
+    good = np.empty((h, w), bool)
+    for r0, r1 in blocks:
+        a = _local_moments(*[m[r0:r1] for m in mom], xg, yg[r0:r1])
+        (c0, c1, c2), det = _first_row_of_inverse(*a)
+        row[0, r0:r1], row[1, r0:r1], row[2, r0:r1] = c0, c1, c2
+        s0b = s0[r0:r1]
+        good[r0:r1] = (s0b > 1e-12 * s0_max) & (np.abs(det) > 1e-12 * np.maximum(s0b, 1e-300) ** 3)
+    del mom[1:], a
+    weak = ~good & (s0 > 0)
+    any_good = bool(good.any())
+    out = np.full(values.shape, np.nan)
+    for i, v in enumerate(values):
+        wv = weights * v
+        t0 = g(wv)
+        if any_good:
+            t1 = g(wv * x)
+            t2 = g(wv * y)
+            for r0, r1 in blocks:
+                tb = t0[r0:r1]
+                with np.errstate(invalid="ignore", over="ignore"):  # rows of singular systems: not used
+                    est = (row[0, r0:r1] * tb + row[1, r0:r1] * (t1[r0:r1] - xg * tb)
+                           + row[2, r0:r1] * (t2[r0:r1] - yg[r0:r1] * tb))
+                out[i, r0:r1] = np.where(good[r0:r1], est, np.nan)
+            del t1, t2
+        # Locally constant estimate where the linear system is singular.
+        if weak.any():
+            out[i][weak] = t0[weak] / s0[weak]
+        del wv, t0
+    var = None
+    if with_variance:
+        var = np.full((h, w), np.nan)
+        # var(value_q) = 1 / w_q gives var = (A^-1 B A^-1)[0, 0], B the same
+        # moments under G^2, and G_s^2 = G_{s/sqrt2} / (4 pi s^2).
+        g2 = lambda arr: _gauss(arr, sigma / np.sqrt(2.0)) / (4 * np.pi * sigma ** 2)  # noqa: E731
+        if any_good or weak.any():
+            b = raw(g2, weights) if any_good else [g2(weights)]
+            for r0, r1 in blocks:
+                gb = good[r0:r1]
+                if any_good and gb.any():
+                    b00, b01, b02, b11, b12, b22 = _local_moments(*[m[r0:r1] for m in b], xg, yg[r0:r1])
+                    r_0, r_1, r_2 = row[0, r0:r1], row[1, r0:r1], row[2, r0:r1]
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        v = (r_0 * (b00 * r_0 + b01 * r_1 + b02 * r_2) + r_1 * (b01 * r_0 + b11 * r_1 + b12 * r_2)
+                             + r_2 * (b02 * r_0 + b12 * r_1 + b22 * r_2))
+                    var[r0:r1][gb] = v[gb]
+                wb = weak[r0:r1]
+                if wb.any():
+                    var[r0:r1][wb] = b[0][r0:r1][wb] / s0[r0:r1][wb] ** 2
+            del b
+        var = np.where(np.isfinite(out[0]), var, np.nan)
+    return out, var
+
+
+def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float,
+                        with_variance: bool = True):
+    """Inverse-variance weighted, locally linear Gaussian smoothing of a map.
+
+    At every pixel fits ``a + b*(col - c0) + c*(row - r0)`` to the neighbours
+    with weights ``w_q * G(q - p)``; unbiased for linear trends, also at the
+    edge of the valid region (where a plain normalised convolution is not).
+
+    Parameters
+    ----------
+    values : (H, W) or (n, H, W) float64 (anything where ``weights == 0``)
+        One map or a stack of maps that share the weights (smoothed together:
+        the moment matrices are built once).
+    weights : (H, W) float64 >= 0, e.g. inverse variances
+    scale_px : float
+        Gaussian sigma in camera pixels; 0 returns the input.
+    with_variance : bool
+        Also compute the variance (costs six more filters).
+
+    Returns
+    -------
+    smoothed : same shape as ``values``, float64, NaN where there is no support
+    variance : (H, W) float64 or None
+        Variance of the estimate if ``weights`` are inverse variances.
+    """
+    if scale_px <= 0:
+        with np.errstate(divide="ignore"):
+            return np.where(weights > 0, values, np.nan), np.where(weights > 0, 1.0 / weights, np.nan)
+    h, w = weights.shape
+    weights = np.asarray(weights, dtype=np.float64)
+    vals = np.where(weights > 0, values, 0.0)
+    stacked = vals.ndim == 3
+    vals = vals if stacked else vals[None]
+    # Coordinates in units of the scale keep the 3x3 systems well conditioned.
+    out, var = _ll_grid(vals, weights, scale_px, np.arange(w) / scale_px, np.arange(h) / scale_px,
+                        with_variance=with_variance)
+    return (out if stacked else out[0]), var
+
+
+def _bin(a: np.ndarray, b: int) -> np.ndarray:
+    """Sums over ``b x b`` bins of the last two axes (zero-padded up to multiples of ``b``)."""
+    if b == 1:
+        return a
+    h, w = a.shape[-2:]
+    hc, wc = -(-h // b), -(-w // b)
+    if (hc * b, wc * b) != (h, w):
+        pad = np.zeros((*a.shape[:-2], hc * b, wc * b), a.dtype)
+        pad[..., :h, :w] = a
+        a = pad
+    return a.reshape(*a.shape[:-2], hc, b, wc, b).sum(axis=(-3, -1))
+
+
+def _binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0):
+    """Bin ``(n, h, w)`` values with ``(h, w)`` weights into inverse-variance weighted means.
+
+    Returns the bins' summed weights, their weighted-mean values ``(n, hc, wc)``
+    (0 where empty) and the weighted centroids (column, row in pixels; the bin
+    centre where empty). ``r0``: the image row of the first row (a multiple of ``b``).
+    """
+    h, w = weights.shape
+    wsum = _bin(weights, b)
+    cols = np.arange(w, dtype=float)[None, :]
+    rows = np.arange(r0, r0 + h, dtype=float)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(wsum > 0, 1.0 / wsum, 0.0)
+        mean = _bin(weights * values, b) * inv
+        hc, wc = wsum.shape
+        cx = np.arange(wc) * b + (b - 1) / 2.0
+        cy = r0 + np.arange(hc) * b + (b - 1) / 2.0
+        xbar = np.where(wsum > 0, _bin(weights * cols, b) * inv, cx[None, :])
+        ybar = np.where(wsum > 0, _bin(weights * rows, b) * inv, cy[:, None])
+    return wsum, mean, xbar, ybar
+
+
+def _binned_sigma(scale_px: float, b: int, interpolated: bool) -> float:
+    """Gaussian sigma (in bins) on a grid of ``b x b`` bins that smooths like ``scale_px`` per pixel.
+
+    A pixel weighted by the Gaussian at its bin's centre widens the kernel by
+    the bin's variance ``(b^2 - 1) / 12``; bilinear interpolation back to the
+    pixels adds ``b^2 / 6`` on average (its curvature bias): both are taken off.
+    """
+    extra = (b * b - 1) / 12.0 + (b * b / 6.0 if interpolated else 0.0)
+    return float(np.sqrt(max(scale_px ** 2 - extra, 0.25 * scale_px ** 2))) / b
+
+
+def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: int, with_variance: bool = True):
+    """:func:`local_linear_smooth` on a grid of ``b x b`` bins (each bin a point at its weighted centroid,
+    with the bin's weighted-mean value and summed weight), interpolated back to every pixel (bilinear).
+
+    Exact for linear trends like the per-pixel version; the Gaussian weight of a
+    pixel is taken at its bin's centre. For scales of several bins.
+    """
+    if b == 1 or scale_px <= 0:
+        return local_linear_smooth(values, weights, scale_px, with_variance)
+    h, w = weights.shape
+    vals = np.where(weights > 0, values, 0.0)
+    stacked = vals.ndim == 3
+    vals = vals if stacked else vals[None]
+    wsum, mean, xbar, ybar = _binned_points(weights, vals, b)
+    hc, wc = wsum.shape
+    cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
+    cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
+    out_c, var_c = _ll_grid(mean, wsum, _binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
+                            ybar / scale_px, with_variance)
+    out = np.stack([_upsample(o, b, h, w) for o in out_c])
+    var = None if var_c is None else np.where(np.isfinite(out[0]), _upsample(var_c, b, h, w), np.nan)
+    return (out if stacked else out[0]), var
+
+
+def _upsample(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
+    """Bilinear interpolation of a map of ``b x b`` bin centres back to ``(h, w)`` pixels.
+
+    Linearly extrapolated half a bin past the outer centres (exact for planes up
+    to the image edge); pixels next to a bin without a value take their own bin's value.
+    """
+    hc, wc = coarse.shape
+    p = np.empty((hc + 2, wc + 2))
+    p[1:-1, 1:-1] = coarse
+    p[0, 1:-1] = 2 * coarse[0] - coarse[1] if hc > 1 else coarse[0]
+    p[-1, 1:-1] = 2 * coarse[-1] - coarse[-2] if hc > 1 else coarse[-1]
+    p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
+    p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
+    lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
+    bad = np.isnan(lin)
+    if bad.any():
+        near = np.repeat(np.repeat(coarse, b, axis=0), b, axis=1)[:h, :w]
+        lin[bad] = near[bad]
+    return lin
+
+
+def _global_rays(model: PinholeModel, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``x0, y0, sx, sy`` (H, W) float64 of the global model's rays ``X = x0 + sx z``, built in row blocks."""
+    h, w = shape
+    x0, y0, sx, sy = (np.empty((h, w)) for _ in range(4))
+
+    def block(r0, r1):
+        rr, cc = np.mgrid[r0:r1, 0:w].astype(float)
+        a0, b0 = model.pixel_to_world_at_z(cc, rr, 0.0)
+        a1, b1 = model.pixel_to_world_at_z(cc, rr, 1.0)
+        x0[r0:r1], y0[r0:r1], sx[r0:r1], sy[r0:r1] = a0, b0, a1 - a0, b1 - b0
+
+    _run_blocks(block, _row_blocks(h, w))
+    return x0, y0, sx, sy
+
+
+#: Largest footprint second moment (camera px^2) the correction believes: a blur sigma of 2 px.
+#: Ambient light or a camera black level lower the contrast like blur does; this bounds the damage.
+FOOTPRINT_M2_MAX_PX2 = 4.0
+
+
+def _laplacian(a: np.ndarray, r0: int, r1: int) -> np.ndarray:
+    """Laplacian (per camera px^2) of rows ``[r0, r1)`` of a smooth (H, W) map.
+
+    Second differences at the image's edges repeat the nearest interior one.
+    """
+    lo, hi = max(r0 - 1, 0), min(r1 + 1, a.shape[0])
+    blk = a[lo:hi]
+    d2 = np.zeros_like(blk)
+    if blk.shape[1] >= 3:
+        d2[:, 1:-1] = blk[:, 2:] - 2.0 * blk[:, 1:-1] + blk[:, :-2]
+        d2[:, 0], d2[:, -1] = d2[:, 1], d2[:, -2]
+    if blk.shape[0] >= 3:
+        d2r = np.empty_like(blk)
+        d2r[1:-1] = blk[2:] - 2.0 * blk[1:-1] + blk[:-2]
+        d2r[0], d2r[-1] = d2r[1], d2r[-2]
+        d2 += d2r
+    sl = slice(r0 - lo, r0 - lo + (r1 - r0))
+    return d2[sl]
+
+
+def footprint_bias(rays, rig: Rig, z: np.ndarray, modulation: np.ndarray, background: np.ndarray,
+                   r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """How far each decoded sample sits from its pixel's centre ray: the footprint's curvature term.
+
+    A camera pixel reports the phase averaged over its footprint on the LCD
+    (the pixel's square plus the lens blur), i.e. the footprint's centroid,
+    not the point its centre ray hits. Where the mapping pixel -> LCD bends
+    (lens distortion), the two differ by ``m2 / 2 * laplacian(X)`` with
+    ``m2`` the footprint's second moment (camera px^2; 1/12 for the bare
+    square). The same footprint lowers the fringe contrast: the finest
+    period's contrast ``B / A`` against the displayed ``amplitude / offset``
+    is ``exp(-2 pi^2 m2_X / (T pitch)^2)``, which gives ``m2_X`` on the LCD
+    (mm^2) and ``m2 = m2_X / |grad X|^2``. The derivatives come from the
+    global model (smooth, noise-free). On the presets this removes a
+    0.001 LCD px (0.05 um) bias that grows towards the image's edges.
+
+    Parameters
+    ----------
+    rays : (x0, y0, sx, sy) (H, W) float64 maps of the global model
+    rig : Rig
+    z : (K,) heights (mm)
+    modulation, background : (K, n) finest-period ``B`` and ``A`` of rows ``[r0, r1)`` (n = rows * W)
+    r0, r1 : int
+
+    Returns
+    -------
+    bias_x, bias_y : (K, n) float64, mm
+        To subtract from the samples; 0 where the contrast says nothing.
+    """
+    f = rig.fringes
+    period_mm = f.periods_px[-1] * np.asarray(rig.lcd.pitch_mm, float)
+    c0 = f.amplitude / f.offset  # the emitted contrast when the display follows the pre-compensated gamma
+    with np.errstate(all="ignore"):
+        neg_log = -np.log(np.clip(modulation / background / c0, 0.05, 1.0))  # (K, n)
+    out = []
+    for a, (x0, slope) in enumerate(((rays[0], rays[2]), (rays[1], rays[3]))):
+        # X(z) = x0 + slope z: its Laplacian and gradient are those of the two maps, combined per z.
+        lap0 = _laplacian(x0, r0, r1)
+        lap1 = _laplacian(slope, r0, r1)
+        g0r, g0c = _gradients(x0, r0, r1)
+        g1r, g1c = _gradients(slope, r0, r1)
+        bias = np.empty_like(neg_log)
+        for i, zk in enumerate(np.asarray(z, float)):
+            g2 = ((g0r + g1r * zk) ** 2 + (g0c + g1c * zk) ** 2).ravel()
+            with np.errstate(all="ignore"):
+                m2 = np.minimum(neg_log[i] * period_mm[a] ** 2 / (2.0 * np.pi ** 2) / g2, FOOTPRINT_M2_MAX_PX2)
+                bias[i] = 0.5 * m2 * (lap0 + lap1 * zk).ravel()
+        out.append(np.nan_to_num(bias, nan=0.0, posinf=0.0, neginf=0.0))
+    return out[0], out[1]
+
+
+def _gradients(a: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """d/drow and d/dcol (per camera px) of rows ``[r0, r1)`` of an (H, W) map (central differences)."""
+    lo, hi = max(r0 - 1, 0), min(r1 + 1, a.shape[0])
+    blk = a[lo:hi]
+    gr = np.gradient(blk, axis=0) if blk.shape[0] >= 2 else np.zeros_like(blk)
+    gc = np.gradient(blk, axis=1) if blk.shape[1] >= 2 else np.zeros_like(blk)
+    sl = slice(r0 - lo, r0 - lo + (r1 - r0))
+    return gr[sl], gc[sl]
+
+
+def _corrected_absolute(samples: SampleStack, rig: Rig, axis: int, s: int, e: int, sel, z,
+                        level_bias: bool, footprint) -> np.ndarray:
+    """Absolute X (``axis`` 0) or Y (1) of flat pixels ``[s, e)`` at positions ``sel``, corrected.
+
+    Returns
+    -------
+    (K, e - s) float64, mm: minus the level bias if ``level_bias``, minus
+    ``footprint[axis]`` (from :func:`footprint_bias`) unless it is None.
+    """
+    from ptpcore.io.fastio import read_block
+
+    name = "xy"[axis]
+    values = getattr(samples, f"{name}_ref").reshape(-1)[s:e][None] + read_block(
+        getattr(samples, name), s, e, sel).astype(np.float64)
+    if level_bias:
+        _remove_level_bias(values, rig, name, z)
+    if footprint is not None:
+        values -= footprint[axis]
+    return values
+
+
+def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays,
+                   level_bias: bool = False, footprint: bool = False):
+    """Rows ``[r0, r1)`` of the chosen positions: validity, sample sigma, weights and residuals to the global model.
+
+    Returns
+    -------
+    valid : (K, n) bool ; sigma : (K, n) float64 (NaN where invalid) ; wts : (K, n) float64
+    (0 where invalid or off the global model) ; resid : (rx, ry) (K, n) float64 or None without ``rays``
+    """
+    from ptpcore.io.fastio import read_block
+
+    w = samples.shape[1]
+    s, e = r0 * w, r1 * w
+    valid = read_block(samples.reasons, s, e, sel) == 0
+    mod = read_block(samples.modulation, s, e, sel)
+    bg = read_block(samples.background, s, e, sel)
+    sig = np.where(valid, _phase_sigma_mm(samples, rig, bg, mod), np.nan)
+    if rays is None:
+        return valid, sig, None, None
+    wts = np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.square(sig), 0.0)
+    g = [r.reshape(-1)[s:e] for r in rays]
+    wts[:, ~(np.isfinite(g[0]) & np.isfinite(g[1]))] = 0.0
+    fb = footprint_bias(rays, rig, z, mod, bg, r0, r1) if footprint else None
+    resid = [_corrected_absolute(samples, rig, a, s, e, sel, z, level_bias, fb) - (g0[None] + gs[None] * z[:, None])
+             for a, (g0, gs) in enumerate(((g[0], g[2]), (g[1], g[3])))]
+    return valid, sig, wts, resid
+
+
+def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed: int = 0,
+                   rig: Rig | None = None) -> PinholeModel:
+    """Fit the pinhole + Brown model to a random subset of valid calibration samples.
+
+    With ``rig``, the samples lose the display's level bias first (:mod:`ptpcore.display`).
+    """
+    rng = np.random.default_rng(seed)
+    h, w = samples.shape
+    pts, pix = [], []
+    positions = list(positions)
+    per = max(n_points // len(positions), 10)
+    from ptpcore.io.fastio import read_block
+
+    for k in positions:
+        idx = np.flatnonzero(read_block(samples.reasons, 0, h * w, [k])[0] == 0)
+        if idx.size == 0:
+            continue
+        pick = rng.choice(idx, size=min(per, idx.size), replace=False)
+        r, c = np.divmod(pick, w)
+        x = samples.x_ref.ravel()[pick] + read_block(samples.x, 0, h * w, [k])[0][pick]
+        y = samples.y_ref.ravel()[pick] + read_block(samples.y, 0, h * w, [k])[0][pick]
+        if rig is not None:
+            x = _remove_level_bias(x[None], rig, "x", [samples.z[k]])[0]
+            y = _remove_level_bias(y[None], rig, "y", [samples.z[k]])[0]
+        pts.append(np.stack([x, y, np.full(pick.size, samples.z[k])], 1))
+        pix.append(np.stack([c, r], 1).astype(float))
+    return fit_pinhole(np.concatenate(pts), np.concatenate(pix)).model
+
+
+@dataclass
+class SmoothInfo:
+    """How the smooth LUT was made.
+
+    Attributes
+    ----------
+    pinhole : PinholeModel
+        The global model.
+    scale_px : float
+        Chosen smoothing scale (camera px); 0 means no smoothing.
+    scales_px : (S,) candidate scales
+    cv_rms_mm : (S,) cross-validated prediction error against held-out samples,
+        as mean squared error over each sample's noise variance (chi-square per sample)
+    noise_scale : float
+        Factor applied to the predicted sample noise (see :func:`sigma_scale`).
+    excess_sigma_mm : float
+        Model error beyond the noise, measured by cross-validation.
+    """
+
+    pinhole: PinholeModel
+    scale_px: float
+    scales_px: np.ndarray
+    cv_rms_mm: np.ndarray
+    noise_scale: float = 1.0
+    excess_sigma_mm: float = 0.0
+
+
+def _sigma_scale_from(rms_x, rms_y, n: np.ndarray, mean_var: np.ndarray, degree: int) -> float:
+    """:func:`sigma_scale` from the plain fit's residual RMS maps, the valid counts and the mean predicted variance."""
+    use = np.isfinite(rms_x) & (n > degree + 1)  # rms is NaN where the plain LUT is invalid
+    if not use.any():
+        return 1.0
+    num = 0.0
+    den = 0.0
+    for rms in (rms_x, rms_y):
+        r = rms.astype(np.float64)
+        ok = use & np.isfinite(r) & np.isfinite(mean_var)
+        num += float(np.sum(n[ok] * r[ok] ** 2))
+        den += float(np.sum((n[ok] - degree - 1) * mean_var[ok]))
+    return float(np.sqrt(num / den)) if den > 0 else 1.0
+
+
+def _check_noise(samples: SampleStack) -> None:
+    if samples.noise is None or samples.modulation is None:
+        raise ValueError("samples carry no noise model or modulation: decode them with collect_samples()")
+
+
+def sigma_scale(samples: SampleStack, rig: Rig, positions=None, degree: int = 2) -> float:
+    """Factor that makes the predicted sample noise match the fit residuals.
+
+    The per-sample prediction (:func:`sample_sigma_from_noise`) relies on the
+    N-step residual variance, which also contains harmonics of a non-linear
+    display or camera response (they barely move the phase of an N-step fit).
+    Every pixel's own degree-2 fit over z leaves ``n - 3`` degrees of freedom
+    whose residuals measure the noise that really reaches X and Y; pooled over
+    all pixels they calibrate the prediction:
+    ``s^2 = sum_p n_p rms_p^2 / sum_p (n_p - D - 1) mean_k sigma_pk^2``.
+    """
+    _check_noise(samples)
+    positions = list(range(samples.z.size)) if positions is None else list(positions)
+    lut = fit_lut(samples, "poly", degree, positions=positions)
+    rms_x, rms_y = np.where(lut.valid, lut.rms_x, np.nan), np.where(lut.valid, lut.rms_y, np.nan)
+    del lut
+    h, w = samples.shape
+    n = np.empty((h, w), np.int64)
+    mean_var = np.empty((h, w))
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
+
+    def block(r0, r1):
+        valid, sig, _, _ = _block_samples(samples, rig, sel, z, r0, r1, None)
+        n[r0:r1] = valid.sum(axis=0).reshape(r1 - r0, w)
+        with np.errstate(all="ignore"):
+            mean_var[r0:r1] = _nanmean0(sig * sig).reshape(r1 - r0, w)
+
+    _run_blocks(block, _row_blocks(h, w))
+    return _sigma_scale_from(rms_x, rms_y, n, mean_var, degree)
+
+
+def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=None, *,
+                   scales_px=(0.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0), stage_sigma_mm: float = 0.0,
+                   level_bias: bool = True, footprint: bool = True, global_points: int = 100_000,
+                   seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
+                   progress: Callable[[float, str], None] | None = None) -> tuple[Lut, SmoothInfo]:
+    """Fit the ``smooth`` LUT (see the module docstring).
+
+    Parameters
+    ----------
+    samples : SampleStack
+        From :func:`ptpcore.pipeline.collect_samples` (needs its noise model).
+        File-backed (spilled) stacks are read block by block, never whole.
+    rig : Rig
+    degree : int
+        Degree in z of the correction and of the stored polynomials (1 to 5).
+    positions : sequence of int, optional
+        Calibration positions (default all).
+    scales_px : sequence of float
+        Candidate smoothing scales (camera px) for cross-validation.
+    stage_sigma_mm : float
+        1-sigma error of the stage readings (mm), from the stage's specification.
+        It is common to every pixel of a position, so smoothing does not
+        reduce it: it is added to the sigma maps through each pixel's fit in z
+        (:func:`stage_leverage`) and slope, and left out of the weights.
+    level_bias : bool
+        Remove the bias that the LCD's integer levels put into the decoded
+        coordinates (:mod:`ptpcore.display`) before fitting. Off for a display
+        that dithers.
+    footprint : bool
+        Move every sample from its pixel's footprint centroid to the pixel's
+        centre ray (:func:`footprint_bias`, the footprint measured from the
+        fringe contrast). Off where ambient light or a camera black level
+        lower the contrast (it would be taken for blur).
+    global_points : int
+        Samples the global model is fitted to (random, all calibration
+        positions). Its error varies slowly over the image, where smoothing
+        cannot tell it from the lens: on the mild preset 20 000 points leave
+        0.047 um at held-out heights, 100 000 (1 s) 0.026 um, 200 000 the same.
+    seed : int
+        For the global model's random sample.
+    cv_bin : int, optional
+        Side (px) of the bins the cross-validation runs on; default 1 up to
+        :data:`CV_PIXELS` pixels, about ``sqrt(pixels / CV_PIXELS)`` above
+        (4 at 5 MP). The final smoothing at a chosen scale of at least 4
+        bins also runs on bins (of at most ``scale / 4`` px).
+    progress : callable, optional
+
+    Returns
+    -------
+    lut : Lut
+        ``kind = "poly"``, with ``sigma_x``/``sigma_y`` maps.
+    info : SmoothInfo
+    """
+    if not 1 <= degree <= 5:
+        raise ValueError(f"smooth degree must be 1 to 5, got {degree}")
+    positions = list(range(samples.z.size)) if positions is None else list(positions)
+    if len(positions) < degree + 2:
+        raise ValueError(f"smooth LUT of degree {degree} needs at least {degree + 2} positions, got {len(positions)}")
+    _check_noise(samples)
+    report = progress or (lambda f, m: None)
+    report(0.0, "fitting the global camera model")
+    model = global_pinhole(samples, positions, n_points=global_points, seed=seed,
+                           rig=rig if level_bias else None)
+    shape = samples.shape
+    h, w = shape
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
+    zc, zs = _z_normalisation(z)
+    t = (z - zc) / zs
+    k = z.size
+    d1 = degree + 1
+    # The plain degree-2 fit that calibrates the predicted noise (sigma_scale): its residual RMS only.
+    report(0.02, "calibrating the noise prediction")
+    plain = fit_lut(samples, "poly", 2, positions=positions)
+    rms_x = np.where(plain.valid, plain.rms_x, np.float32(np.nan))
+    rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
+    del plain
+    rays = _global_rays(model, shape)
+    gx0, gy0, gsx, gsy = rays
+
+    # Cross-validation over the smoothing scale: two folds of alternate positions
+    # (each fold keeps the z range covered by the other).
+    # Each fold keeps half the positions: with few positions the folds fit a
+    # lower degree in z (the scale that suits the image-wide field barely
+    # depends on it); with fewer than 4 positions no scale can be validated.
+    scales = np.asarray(scales_px, dtype=float)
+    cv_degree = min(degree, k // 2 - 1)
+    folds = [np.arange(k) % 2 == f for f in (0, 1)] if cv_degree >= 1 else []
+    if not folds:
+        warnings.warn(f"smooth LUT: {k} calibration positions are too few to cross-validate the smoothing"
+                      " scale (need 4); the correction is not smoothed", RuntimeWarning, stacklevel=2)
+    b = int(cv_bin) if cv_bin else _bin_factor(shape)
+    hc, wc = -(-h // b), -(-w // b)
+    dc = cv_degree + 1
+    # Scales of fewer than 4 bins are cross-validated per pixel (in strips of rows
+    # with a halo the Gaussian cannot see past), larger ones on the binned grid.
+    fine = np.flatnonzero(scales < 4 * b) if b > 1 else np.arange(scales.size)
+    coarse = np.flatnonzero(scales >= 4 * b) if b > 1 else np.arange(0)
+    halo = 0 if b == 1 else int(np.ceil(3.0 * max(scales[fine].max(initial=0.0), 0.0))) + 1
+    strip = h if b == 1 else max(b, (max(_STRIP_ROWS, 8 * halo) // b) * b)
+    # Sums over test samples, per scale: sum w (v.c - r)^2, samples, sum w.
+    q_sum = np.zeros(scales.size)
+    n_sum = np.zeros(scales.size)
+    w_sum = np.zeros(scales.size)
+
+    # One pass over the samples, in strips of rows (blocks within them): every
+    # pixel's own weighted fit of its residuals to the global model (all
+    # positions); for each fold the training fit and the test samples'
+    # sufficient statistics, so that the squared error of any prediction c is
+    # c'Mc - 2c'B + R: per pixel over the strip (fine scales), binned (coarse).
+    fit = np.empty((2, d1, h, w))
+    var = np.empty((d1, h, w))
+    n_pos = np.empty((h, w), np.int32)
+    pz_min = np.empty((h, w), np.float32)
+    pz_max = np.empty((h, w), np.float32)
+    mean_var = np.empty((h, w))
+    own_var = np.empty((h, w))   # the pixel's own fit: exact variance over its range
+    own_diag = np.empty((h, w))  # the same with the coefficients taken as uncorrelated
+
+    def fold_maps(rows):
+        return {"w": np.zeros((dc, rows, w)), "mean": np.zeros((2, dc, rows, w)),
+                "m": np.zeros((2 * cv_degree + 1, rows, w)), "b": np.zeros((2, dc, rows, w)),
+                "r": np.zeros((2, rows, w)), "n": np.zeros((rows, w))}
+
+    binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)), "xbar": np.zeros((dc, hc, wc)),
+               "ybar": np.zeros((dc, hc, wc)), "m": np.zeros((2 * cv_degree + 1, hc, wc)),
+               "b": np.zeros((2, dc, hc, wc)), "r": np.zeros((2, hc, wc)), "n": np.zeros((hc, wc))}
+              for _ in folds] if coarse.size else []
+
+    def block(r0, r1, a0, fmaps, final):
+        """Rows [r0, r1): the final fit's maps if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
+        rows = r1 - r0
+        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, level_bias, footprint)
+        if final:
+            n_pos[r0:r1] = valid.sum(axis=0).reshape(rows, w)
+            zk = np.broadcast_to(z[:, None], valid.shape)
+            pz_min[r0:r1] = np.min(np.where(valid, zk, np.inf), axis=0).reshape(rows, w)
+            pz_max[r0:r1] = np.max(np.where(valid, zk, -np.inf), axis=0).reshape(rows, w)
+            with np.errstate(all="ignore"):
+                mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
+            del zk
+            (cx, cy), v, _, cov = _weighted_poly(t, [rx, ry], wts, degree, full=True)
+            fit[0, :, r0:r1] = cx.reshape(d1, rows, w)
+            fit[1, :, r0:r1] = cy.reshape(d1, rows, w)
+            var[:, r0:r1] = v.reshape(d1, rows, w)
+            # The pixel's own fit's variance, averaged over its own calibrated
+            # range, with the covariances (a pixel seen at a few positions at
+            # one end of the range has strongly correlated coefficients).
+            mom = _range_moments(((pz_min[r0:r1] - zc) / zs).ravel().astype(np.float64),
+                                 ((pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
+            idx = np.add.outer(np.arange(d1), np.arange(d1))
+            own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
+            own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
+            del cov, mom
+        del sig, valid
+        s0, s1 = r0 - a0, r1 - a0
+        for test, st in zip(folds, fmaps):
+            train = ~test
+            (fx, fy), fv, _ = _weighted_poly(t[train], [rx[train], ry[train]], wts[train], cv_degree)
+            for j in range(dc):
+                both = np.stack([fx[j], fy[j]]).reshape(2, rows, w)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    wj = np.where(np.isfinite(both).all(axis=0) & (fv[j] > 0).reshape(rows, w),
+                                  1.0 / fv[j].reshape(rows, w), 0.0)
+                st["w"][j, s0:s1] = wj
+                st["mean"][:, j, s0:s1] = np.where(wj > 0, both, 0.0)
+            wt = wts[test]
+            tp = t[test][:, None] ** np.arange(2 * cv_degree + 1)
+            st["m"][:, s0:s1] = np.einsum("kp,km->mp", wt, tp).reshape(-1, rows, w)
+            st["n"][s0:s1] = (wt > 0).sum(axis=0).reshape(rows, w)
+            for a, r in enumerate((rx[test], ry[test])):
+                wr = wt * np.where(wt > 0, r, 0.0)
+                st["b"][a, :, s0:s1] = np.einsum("kp,kj->jp", wr, tp[:, :dc]).reshape(dc, rows, w)
+                st["r"][a, s0:s1] = (wr * np.where(wt > 0, r, 0.0)).sum(axis=0).reshape(rows, w)
+
+    def score(st, c, sl, acc_index):
+        """Add the test error of predictions ``c`` (2, dc, rows, cols) at rows ``sl`` of the stats ``st``."""
+        for a in range(2):
+            ca = c[a]
+            use = np.isfinite(ca).all(axis=0)
+            cu = ca[:, use]
+            m = st["m"][:, sl][:, use]
+            # Sum over the test samples of w (v.c - r)^2: a chi-square-like score.
+            quad = st["r"][a][sl][use] - 2 * np.einsum("jp,jp->p", cu, st["b"][a][:, sl][:, use])
+            for i in range(dc):
+                for j in range(dc):
+                    quad += m[i + j] * cu[i] * cu[j]
+            q_sum[acc_index] += np.sum(quad)
+            n_sum[acc_index] += np.sum(st["n"][sl][use])
+            w_sum[acc_index] += np.sum(m[0])
+
+    report(0.05, "fitting every pixel and cross-validating")
+    strips = [(r, min(h, r + strip)) for r in range(0, h, strip)]
+    for i_strip, (r0, r1) in enumerate(strips):
+        a0, a1 = max(0, r0 - halo), min(h, r1 + halo)
+        fmaps = [fold_maps(a1 - a0) for _ in folds]
+        # Halo rows (above and below the strip) only feed the folds' smoothing.
+        jobs = [(p0 + g0, p1 + g0, fin) for g0, g1, fin in ((a0, r0, False), (r0, r1, True), (r1, a1, False))
+                if g1 > g0 for p0, p1 in _row_blocks(g1 - g0, w)]
+        _run_blocks(lambda p0, p1, fin: block(p0, p1, a0, fmaps, fin), jobs)
+        inner = slice(r0 - a0, r1 - a0)
+        xs = np.arange(w, dtype=float)
+        ys = np.arange(a0, a1, dtype=float)
+        for fi, st in enumerate(fmaps):
+            for si in fine:
+                sc = scales[si]
+                report(0.05 + 0.7 * i_strip / len(strips), f"cross-validating smoothing scale {sc:g} px")
+                c = np.empty((2, dc, r1 - r0, w))
+                for j in range(dc):
+                    if sc <= 0:
+                        c[:, j] = np.where(st["w"][j, inner] > 0, st["mean"][:, j, inner], np.nan)
+                    else:
+                        c[:, j] = _ll_grid(st["mean"][:, j], st["w"][j], sc, xs / sc, ys / sc,
+                                           with_variance=False)[0][:, inner]
+                score(st, c, inner, si)
+            if coarse.size:
+                bn = binned[fi]
+                c0, c1 = r0 // b, -(-r1 // b)
+                for j in range(dc):
+                    ws, mean, xb, yb = _binned_points(st["w"][j, inner], st["mean"][:, j, inner], b, r0)
+                    bn["w"][j, c0:c1], bn["mean"][:, j, c0:c1], bn["xbar"][j, c0:c1], bn["ybar"][j, c0:c1] = \
+                        ws, mean, xb, yb
+                for name in ("m", "b", "r", "n"):
+                    bn[name][..., c0:c1, :] = _bin(st[name][..., inner, :], b)
+        fmaps = None
+    noise_scale = _sigma_scale_from(rms_x, rms_y, n_pos, mean_var, 2)
+    rms_x = rms_y = mean_var = None
+
+    xg = np.arange(wc) * b + (b - 1) / 2.0
+    yg = np.arange(hc) * b + (b - 1) / 2.0
+    for fi, bn in enumerate(binned):
+        for ci, si in enumerate(coarse):
+            sc = scales[si]
+            report(0.75 + 0.15 * (fi * coarse.size + ci) / (len(folds) * coarse.size),
+                   f"cross-validating smoothing scale {sc:g} px (on {b} x {b} px bins)")
+            c = np.empty((2, dc, hc, wc))
+            for j in range(dc):
+                c[:, j] = _ll_grid(bn["mean"][:, j], bn["w"][j], _binned_sigma(sc, b, False), xg / sc, yg / sc,
+                                   bn["xbar"][j] / sc,
+                                   bn["ybar"][j] / sc, False)[0]
+            score(bn, c, slice(None), si)
+    del binned
+    # Inverse-variance weighted excess of the error over the sample noise: the
+    # fold fit's own noise plus its bias (an upper bound on the final fit's
+    # model error, which uses twice the data).
+    excess = q_sum - noise_scale ** 2 * n_sum
+    if folds:
+        score_ = np.where(n_sum > 0, q_sum / np.maximum(n_sum, 1), np.nan)
+        best = int(np.nanargmin(score_))
+        excess_var = max(excess[best] / w_sum[best], 0.0) if w_sum[best] > 0 else 0.0
+    else:
+        best = 0
+        excess_var = 0.0
+    scale = float(scales[best])
+
+    report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
+    # Bins for the final smoothing: at most the cross-validation's, at most a quarter of the scale.
+    fb = 1
+    while fb * 2 <= b and fb * 2 * 4 <= scale:
+        fb *= 2
+    for j in range(d1):
+        vj = var[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
+        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j]), wj, scale, fb, True)
+        del wj
+    coef = {"x": fit[0], "y": fit[1]}
+    # Global ray as a polynomial in t: X = x0 + sx * (zc + zs t).
+    for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
+        c = coef[a]
+        for r0, r1 in _row_blocks(h, w):
+            c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
+            c[1, r0:r1] += gs[r0:r1] * zs
+    stage_var = {}
+    if stage_sigma_mm:
+        # Per-position stage errors move all pixels together (see stage_leverage).
+        lev = stage_leverage(t, degree)
+        for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
+            stage_var[a] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
+    gx0 = gy0 = gsx = gsy = None
+    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
+    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
+    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (n_pos >= d1)
+    pz_min[~valid] = np.nan
+    pz_max[~valid] = np.nan
+    # Residuals and leave-one-out-like quality against the pixel's own samples.
+    vander = np.vander(t, d1, increasing=True)
+    q = {a: np.empty((h, w), np.float32) for a in "xy"}
+
+    def quality(r0, r1):
+        from ptpcore.io.fastio import read_block
+
+        s, e = r0 * w, r1 * w
+        ok = read_block(samples.reasons, s, e, sel) == 0
+        fb = (footprint_bias(rays, rig, z, read_block(samples.modulation, s, e, sel),
+                             read_block(samples.background, s, e, sel), r0, r1) if footprint else None)
+        for i_axis, a in enumerate("xy"):
+            pred = np.einsum("kj,jp->kp", vander, coef[a][:, r0:r1].reshape(d1, -1))
+            absval = _corrected_absolute(samples, rig, i_axis, s, e, sel, z, level_bias, fb)
+            r = np.where(ok, absval - pred, np.nan)
+            with np.errstate(all="ignore"):
+                q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
+
+    _run_blocks(quality, _row_blocks(h, w))
+    rays = None
+    # Predicted sigma: RMS over the calibrated range (uniform in t) of the
+    # smoothed correction's noise propagated from the phase noise. The model
+    # error beyond it (smoothing bias) is estimated by cross-validation and
+    # reported in SmoothInfo.excess_sigma_mm, not folded into the map: the
+    # fold fits use half the positions, so it is an upper bound.
+    # Smoothing averages neighbouring pixels' coefficients, each map on its
+    # own: its variance reduction is measured on the uncorrelated form and
+    # applied to the pixel's own exact variance over its calibrated range.
+    with np.errstate(all="ignore"):
+        mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64),
+                             2 * degree)
+        smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
+        s2 = own_var * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+        # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
+        s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+    mom = smooth_diag = own_var = own_diag = None
+    var = None
+    sig1 = (np.sqrt(s2) * noise_scale).astype(np.float32)
+    del s2
+    sig = {"x": sig1, "y": sig1.copy()}
+    for a, sv in stage_var.items():
+        sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
+    for a in "xy":
+        coef[a][:, ~valid] = np.nan
+        sig[a][~valid] = np.nan
+        q[a][~valid] = np.nan
+    lut = Lut(
+        kind="poly", degree=degree, z_center=zc, z_scale=zs, z_min=float(z.min()), z_max=float(z.max()),
+        x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
+        n_positions=np.where(valid, n_pos, 0).astype(np.uint16),
+        pixel_z_min=pz_min, pixel_z_max=pz_max,
+        rms_x=q["x"], rms_y=q["y"],
+        # The smooth fit barely moves when one position is left out: its
+        # leave-one-out error is its residual against the held-out sample.
+        loo_x=q["x"].copy(), loo_y=q["y"].copy(),
+        sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
+        extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
+    )
+    report(1.0, "smooth LUT fitted")
+    # Reported as the chi-square per test sample (1 = prediction as good as the noise allows).
+    cv_rms = score_ if folds else np.full(scales.size, np.nan)
+    return lut, SmoothInfo(model, scale, scales, cv_rms, noise_scale, float(np.sqrt(excess_var)))
+
+
+def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
+                    stage_sigma_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted 1-sigma maps (mm) of a plain, unweighted ``poly`` LUT.
+
+    The variance of the fitted value at each calibrated node, propagated from
+    every sample's phase noise through the pixel's own least-squares fit, and
+    averaged (RMS) over the pixel's calibrated range. With ``stage_sigma_mm``
+    (the stage readings' 1-sigma error) each sample also carries
+    ``|dX/dz - a| * stage_sigma_mm``, with the pixel's own slope ``dX/dz``.
+
+    Returns
+    -------
+    sigma_x, sigma_y : (H, W) float32
+    """
+    from ptpcore.fit.sigma import predicted_poly_sigma
+
+    positions = list(range(samples.z.size)) if positions is None else list(positions)
+    scale = sigma_scale(samples, rig, positions)
+    sig = sample_sigma_from_noise(samples, rig) * scale
+    # RMS over the calibrated range: evaluate on a fine uniform grid of z.
+    zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
+    inside = (zs[:, None, None] >= lut.pixel_z_min) & (zs[:, None, None] <= lut.pixel_z_max)
+
+    def rms_map(sample_sigma):
+        pred = predicted_poly_sigma(samples, sample_sigma, lut.degree, positions, zs)  # (E, H, W)
+        with np.errstate(all="ignore"):
+            s = np.sqrt(_nanmean(np.where(inside, pred * pred, np.nan), axis=0))
+        return np.where(lut.valid, s, np.nan).astype(np.float32)
+
+    if not stage_sigma_mm:
+        s = rms_map(sig)
+        return s, s.copy()
+    # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
+    return tuple(rms_map(np.hypot(sig, np.abs(coef[1] / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm))
+                 for d, coef in enumerate((lut.x, lut.y)))

@@ -1,0 +1,41 @@
+"""Files and the data structures that cross them: dataset folders, samples, LUT files,
+fast readers and spill stores.
+
+- :mod:`.dataset` — frame sources (dataset folders, the virtual rig) and one-pass validation;
+- :mod:`.fastio` — page-cache mapped frame reads, block reads, the spill store for big sensors;
+- :mod:`.samples` — :class:`SampleStack`, every pixel's samples over all positions;
+- :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files.
+
+May import :mod:`ptpcore.decode`, :mod:`ptpcore.rig` and the base modules.
+"""
+
+from .dataset import (FrameSource, DatasetSource, SimulatedSource, ImageHeader, DatasetReport,
+    read_image, read_header, validate_dataset, check_calibration_design, open_source)
+from .fastio import read_into, map_frame, tiff_layout, SpillStore, read_block
+from .samples import SampleStack
+from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
+
+__all__ = [
+    "FrameSource",
+    "DatasetSource",
+    "SimulatedSource",
+    "ImageHeader",
+    "DatasetReport",
+    "read_image",
+    "read_header",
+    "validate_dataset",
+    "check_calibration_design",
+    "open_source",
+    "read_into",
+    "map_frame",
+    "tiff_layout",
+    "SpillStore",
+    "read_block",
+    "SampleStack",
+    "LUT_FORMAT",
+    "Lut",
+    "LutEvaluation",
+    "save_lut",
+    "load_lut",
+    "MODELS",
+]

@@ -1,0 +1,571 @@
+"""Image sources: a ``ptp-dataset/1`` folder on disk, or the virtual rig directly.
+
+A source answers one question: "give me frame (k, dir, period, step)". The
+pipeline asks for one position's frames at a time, so nothing ever holds a
+whole stack in memory.
+
+Before a long run, :func:`validate_dataset` checks the whole folder in one
+pass (file headers and structure, not pixels) and reports every unusable
+image together, so a bad capture costs seconds, not a failed run per file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import struct
+import threading
+import warnings
+import weakref
+import zlib
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Protocol
+
+import cv2
+import numpy as np
+
+from ptpcore.errors import ConfigError, DatasetError
+from ptpcore.rig.rigfile import Rig, load_rig
+
+__all__ = [
+    "FrameSource",
+    "DatasetSource",
+    "SimulatedSource",
+    "ImageHeader",
+    "DatasetReport",
+    "read_image",
+    "read_header",
+    "validate_dataset",
+    "check_calibration_design",
+    "open_source",
+]
+
+# Our own messages name the file and say what is wrong; OpenCV's and libtiff's
+# console chatter about the same file would only add lines to the CLI's one.
+try:  # pragma: no cover - depends on the OpenCV build
+    import cv2.utils.logging as _cv_logging
+
+    _cv_logging.setLogLevel(_cv_logging.LOG_LEVEL_SILENT)
+except (ImportError, AttributeError):  # pragma: no cover
+    pass
+
+MAX_LISTED = 10  # unusable images named in one DatasetError; the rest are counted
+
+
+class FrameSource(Protocol):
+    """Anything that yields camera frames of a rig."""
+
+    rig: Rig
+
+    def frames(self, k: int) -> Iterator[tuple[tuple[str, int, int, int, int], np.ndarray]]:
+        """Yield ``((dir, level, period, step, N), image (H, W))`` for position ``k``."""
+        ...
+
+
+# --------------------------------------------------------------------------- headers
+
+class _Unusable(Exception):
+    """One image's problem: ``kind`` (a short category) and ``detail``."""
+
+    def __init__(self, kind: str, detail: str):
+        super().__init__(detail)
+        self.kind = kind
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What a PNG or TIFF header says about an image.
+
+    Attributes
+    ----------
+    fmt : {"png", "tiff"}
+    width, height : int
+        Pixels.
+    bits : int
+        Bits per sample (PNG palette images: 8).
+    channels : int
+        Samples per pixel (1 grey; 2 grey + alpha; 3 colour; 4 colour + alpha).
+    sample_format : {"uint", "int", "float"}
+    """
+
+    fmt: str
+    width: int
+    height: int
+    bits: int
+    channels: int
+    sample_format: str = "uint"
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}  # colour type -> channels after decoding
+
+
+def _png_header(fh, size: int) -> ImageHeader:
+    """IHDR, then a walk over every chunk's length field to the IEND chunk.
+
+    The walk reads 8 bytes per chunk and seeks over the data, so it is cheap
+    and still finds a file cut anywhere (inside a chunk or between chunks).
+    """
+    head = fh.read(33)
+    if len(head) < 33:
+        raise _Unusable("truncated", f"truncated PNG ({size} bytes, header incomplete)")
+    length, ctype = struct.unpack(">I4s", head[8:16])
+    if ctype != b"IHDR" or length != 13:
+        raise _Unusable("unreadable", "corrupt PNG (first chunk is not IHDR)")
+    w, h, depth, colour = struct.unpack(">IIBB", head[16:26])
+    if colour not in _PNG_CHANNELS:
+        raise _Unusable("unreadable", f"corrupt PNG (colour type {colour})")
+    pos, saw_idat = 8, False
+    while True:
+        if pos + 12 > size:
+            raise _Unusable("truncated", f"truncated PNG (ends at byte {size} before the IEND chunk)")
+        fh.seek(pos)
+        length, ctype = struct.unpack(">I4s", fh.read(8))
+        end = pos + 12 + length
+        if end > size:
+            name = ctype.decode("latin-1") if ctype.isalpha() else "?"
+            raise _Unusable("truncated",
+                            f"truncated PNG (chunk {name} needs {end} bytes, file has {size})")
+        if ctype == b"IDAT":
+            saw_idat = True
+        if ctype == b"IEND":
+            break
+        pos = end
+    if not saw_idat:
+        raise _Unusable("unreadable", "corrupt PNG (no image data)")
+    bits = 8 if colour == 3 else depth
+    return ImageHeader("png", w, h, bits, _PNG_CHANNELS[colour])
+
+
+def _png_check_bytes(buf: memoryview) -> None:
+    """Structure and CRC of every chunk of a PNG already in memory (about 1 ms per 10 MB)."""
+    size = len(buf)
+    pos = 8
+    while True:
+        if pos + 12 > size:
+            raise _Unusable("truncated", f"truncated PNG (ends at byte {size} before the IEND chunk)")
+        length, ctype = struct.unpack(">I4s", buf[pos:pos + 8])
+        end = pos + 12 + length
+        if end > size:
+            name = ctype.decode("latin-1") if ctype.isalpha() else "?"
+            raise _Unusable("truncated", f"truncated PNG (chunk {name} needs {end} bytes, file has {size})")
+        (crc,) = struct.unpack(">I", buf[end - 4:end])
+        if zlib.crc32(buf[pos + 4:end - 4]) != crc:
+            name = ctype.decode("latin-1") if ctype.isalpha() else "?"
+            raise _Unusable("unreadable", f"corrupt PNG (checksum of chunk {name} at byte {pos} is wrong)")
+        if ctype == b"IEND":
+            return
+        pos = end
+
+
+_TIFF_TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 16: 8}
+_TIFF_TYPE_CODE = {1: "B", 3: "H", 4: "I", 6: "b", 8: "h", 9: "i", 16: "Q"}
+_TIFF_SAMPLE_FORMAT = {1: "uint", 2: "int", 3: "float"}
+
+
+def _tiff_header(fh, size: int) -> ImageHeader:
+    """The first IFD, then the extents of its strips or tiles against the file size."""
+    head = fh.read(8)
+    if len(head) < 8:
+        raise _Unusable("truncated", f"truncated TIFF ({size} bytes, header incomplete)")
+    bo = "<" if head[:2] == b"II" else ">"
+    magic = struct.unpack(bo + "H", head[2:4])[0]
+    if magic != 42:
+        raise _Unusable("unsupported", "BigTIFF or unknown TIFF variant")  # decoded fully instead
+    ifd = struct.unpack(bo + "I", head[4:8])[0]
+    if ifd + 2 > size:
+        raise _Unusable("truncated", f"truncated TIFF (directory at byte {ifd}, file has {size})")
+    fh.seek(ifd)
+    (n,) = struct.unpack(bo + "H", fh.read(2))
+    raw = fh.read(12 * n)
+    if len(raw) < 12 * n:
+        raise _Unusable("truncated", f"truncated TIFF (directory cut at byte {size})")
+    tags: dict[int, list[int]] = {}
+    for i in range(n):
+        tag, typ, count, value = struct.unpack(bo + "HHI4s", raw[12 * i:12 * i + 12])
+        if typ not in _TIFF_TYPE_CODE or count == 0:
+            continue  # rationals, ASCII, ...: nothing we need
+        nbytes = _TIFF_TYPE_SIZE[typ] * count
+        if nbytes <= 4:
+            data = value[:nbytes]
+        else:
+            (off,) = struct.unpack(bo + "I", value)
+            if off + nbytes > size:
+                raise _Unusable("truncated", f"truncated TIFF (tag {tag} data beyond byte {size})")
+            if count > 1_000_000:
+                raise _Unusable("unreadable", f"corrupt TIFF (tag {tag} has {count} values)")
+            fh.seek(off)
+            data = fh.read(nbytes)
+        tags[tag] = list(struct.unpack(f"{bo}{count}{_TIFF_TYPE_CODE[typ]}", data))
+    try:
+        w, h = tags[256][0], tags[257][0]
+    except KeyError:
+        raise _Unusable("unreadable", "corrupt TIFF (no image size)") from None
+    channels = tags.get(277, [1])[0]
+    bits_list = tags.get(258, [1])
+    sample_format = _TIFF_SAMPLE_FORMAT.get(tags.get(339, [1])[0], "unknown")
+    if 273 in tags and 279 in tags:
+        offsets, counts = tags[273], tags[279]
+    elif 324 in tags and 325 in tags:
+        offsets, counts = tags[324], tags[325]
+    else:
+        raise _Unusable("unsupported", "TIFF without strip or tile byte counts")
+    if len(offsets) != len(counts):
+        raise _Unusable("unreadable", "corrupt TIFF (strip offsets and byte counts differ in number)")
+    end = max(o + c for o, c in zip(offsets, counts))
+    if end > size:
+        raise _Unusable("truncated", f"truncated TIFF (image data needs {end} bytes, file has {size})")
+    return ImageHeader("tiff", w, h, bits_list[0], channels, sample_format)
+
+
+def read_header(path: Path) -> ImageHeader:
+    """Read a PNG or TIFF header and check the file is complete (not truncated).
+
+    Reads a few bytes per PNG chunk or TIFF directory entry, never the pixels.
+
+    Raises
+    ------
+    DatasetError
+        Missing, empty, unreadable, truncated or not PNG/TIFF, naming the file.
+    """
+    try:
+        return _header(Path(path))
+    except _Unusable as exc:
+        raise DatasetError(f"{path}: {exc.detail}") from None
+
+
+@contextlib.contextmanager
+def _file_errors():
+    """Map the OS's errors on opening or reading an image to :class:`_Unusable` reasons."""
+    try:
+        yield
+    except FileNotFoundError:
+        raise _Unusable("missing", "image missing") from None
+    except IsADirectoryError:
+        raise _Unusable("unreadable", "is a folder, not an image") from None
+    except OSError as exc:
+        raise _Unusable("unreadable", f"cannot read ({exc.strerror or exc})") from None
+
+
+def _header(path: Path) -> ImageHeader:
+    try:
+        with _file_errors(), open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size == 0:
+                raise _Unusable("empty", "image file is empty (0 bytes)")
+            sig = fh.read(8)
+            fh.seek(0)
+            if sig == _PNG_SIGNATURE:
+                return _png_header(fh, size)
+            if sig[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+                return _tiff_header(fh, size)
+            raise _Unusable("unsupported", "not a PNG or TIFF file")
+    except struct.error:
+        raise _Unusable("truncated", "truncated image (header cut short)") from None
+
+
+def _expected_bits(rig: Rig) -> int:
+    return 8 if rig.camera.bit_depth == 8 else 16
+
+
+def _check_header(hdr: ImageHeader, rig: Rig) -> None:
+    """Size and bit depth against ``rig.toml``; raises :class:`_Unusable`."""
+    h, w = rig.camera.shape
+    if (hdr.height, hdr.width) != (h, w):
+        raise _Unusable("wrong size", f"image is {hdr.width}x{hdr.height} px, rig.toml says camera {w}x{h}")
+    _check_depth(hdr.bits, hdr.sample_format, rig)
+
+
+def _check_depth(bits: int, sample_format: str, rig: Rig) -> None:
+    want = _expected_bits(rig)
+    if sample_format != "uint" or bits != want:
+        kind = "unsigned" if sample_format == "uint" else sample_format
+        raise _Unusable("wrong bit depth",
+                        f"{bits}-bit {kind} image, but rig.toml says camera.bit_depth ="
+                        f" {rig.camera.bit_depth} (expected {want}-bit unsigned)")
+
+
+# --------------------------------------------------------------------------- full reads
+
+def _decode(path: Path, rig: Rig) -> tuple[np.ndarray, bool]:
+    """Read, decode and check one image; returns ``(grey image (H, W), was_colour)``."""
+    with _file_errors():
+        data = np.fromfile(path, dtype=np.uint8)
+    if data.size == 0:
+        raise _Unusable("empty", "image file is empty (0 bytes)")
+    if data[:8].tobytes() == _PNG_SIGNATURE:
+        _png_check_bytes(memoryview(data))  # before libpng, which would print its own complaint
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    if img is None:
+        raise _Unusable("unreadable", "not a readable PNG or TIFF image (truncated or corrupt?)")
+    colour = img.ndim == 3 and img.shape[2] > 1
+    if img.ndim == 3:
+        c = img.shape[2]
+        if c <= 2:  # grey (+ alpha)
+            img = np.ascontiguousarray(img[:, :, 0])
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if c == 4 else cv2.COLOR_BGR2GRAY)
+    expected = rig.camera.shape
+    if img.shape != expected:
+        raise _Unusable("wrong size", f"image is {img.shape[1]}x{img.shape[0]} px, rig.toml says camera"
+                                      f" {expected[1]}x{expected[0]}")
+    if img.dtype not in (np.uint8, np.uint16):
+        kind = "float" if img.dtype.kind == "f" else ("int" if img.dtype.kind == "i" else "uint")
+        _check_depth(8 * img.dtype.itemsize, kind, rig)
+    _check_depth(8 * img.dtype.itemsize, "uint", rig)
+    return img, colour
+
+
+def read_image(path: Path, rig: Rig) -> np.ndarray:
+    """Read one single-channel image and check it against the rig.
+
+    Colour images are converted to grey with a warning.
+
+    Returns
+    -------
+    (H, W) uint8 or uint16
+        Grey levels, not scaled.
+
+    Raises
+    ------
+    DatasetError
+        Missing, unreadable, wrongly sized or wrong bit depth, naming the file.
+    """
+    try:
+        img, colour = _decode(Path(path), rig)
+    except _Unusable as exc:
+        raise DatasetError(f"{path}: {exc.detail}") from None
+    if colour:
+        _warn_colour(f"{path}: colour image converted to grey (and any others of this dataset)", rig)
+    return img
+
+
+# Rigs whose colour images were already reported: one warning per dataset, not one per file.
+_colour_warned: "weakref.WeakSet[Rig]" = weakref.WeakSet()
+_colour_lock = threading.Lock()
+
+
+def _warn_colour(message: str | None, rig: Rig) -> None:
+    with _colour_lock:
+        if rig in _colour_warned:
+            return
+        _colour_warned.add(rig)
+    if message:
+        warnings.warn(message, stacklevel=3)
+
+
+# --------------------------------------------------------------------------- validation
+
+@dataclass
+class DatasetReport:
+    """Result of :func:`validate_dataset` on a usable dataset.
+
+    Attributes
+    ----------
+    folder : Path
+    rig : Rig
+    n_images : int
+        Images the rig names (all present and usable).
+    formats : dict of str -> int
+        Count per file format (``"png"``, ``"tiff"``).
+    colour : list of str
+        Relative names of colour images (converted to grey when read).
+    decoded : bool
+        Whether every image was fully decoded (``full=True``) or only its header
+        and structure were checked.
+    """
+
+    folder: Path
+    rig: Rig
+    n_images: int
+    formats: dict = field(default_factory=dict)
+    colour: list = field(default_factory=list)
+    decoded: bool = False
+
+
+def check_calibration_design(rig: Rig, source: str = "rig.toml") -> None:
+    """Refuse a fringe design that cannot be calibrated, before any decoding.
+
+    Both directions must be shown, and the coarsest period must cover the LCD
+    plus the carrier span (:func:`ptpcore.patterns.design_check`'s
+    "unambiguous range" verdict): otherwise the absolute phase is ambiguous
+    and every sample would be wrong by whole periods.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``rig.toml`` and the key.
+    """
+    from ptpcore.decode.patterns import design_check
+
+    if set(rig.fringes.directions) != {"x", "y"}:
+        raise ConfigError(f"{source}: key 'fringes.directions' must be [\"x\", \"y\"] to calibrate,"
+                          f" got {list(rig.fringes.directions)}")
+    for item in design_check(rig).items:
+        if item.name.startswith("unambiguous range") and not item.ok:
+            key = "fringes.periods_px" if "does not cover" in item.message else "fringes.carrier_px_per_mm"
+            raise ConfigError(f"{source}: key '{key}' gives an ambiguous period list"
+                              f" (direction {item.name[-1]}): {item.message}")
+
+
+def validate_dataset(folder, rig: Rig | None = None, *, full: bool = False, workers: int | None = None,
+                     max_listed: int = MAX_LISTED, check_design: bool = True) -> DatasetReport:
+    """Check a whole dataset folder in one pass, before a long run.
+
+    Every image the rig names is checked (in parallel): present, not empty,
+    PNG or TIFF, complete (a truncated file is found from its structure: PNG
+    chunk lengths up to IEND, TIFF strip/tile extents), the camera's size and
+    the bit depth ``rig.toml`` implies (8-bit files for ``bit_depth = 8``,
+    16-bit files above). Colour images pass with one warning. Files the rig
+    does not name are ignored.
+
+    Parameters
+    ----------
+    folder : path
+        The dataset folder (holding ``rig.toml``).
+    rig : Rig, optional
+        Default: loaded (and validated) from ``folder/rig.toml``.
+    full : bool
+        Also decode every image's pixels (slower; finds corrupt compressed data
+        that leaves the file structure intact).
+    workers : int, optional
+        Reader threads.
+    max_listed : int
+        Name at most this many unusable images in the error; the rest are counted.
+    check_design : bool
+        Also refuse a design that cannot be calibrated
+        (:func:`check_calibration_design`).
+
+    Returns
+    -------
+    DatasetReport
+
+    Raises
+    ------
+    ConfigError
+        ``rig.toml`` is invalid, or its design cannot be calibrated.
+    DatasetError
+        One error listing every unusable image (names, grouped counts).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: dataset folder not found")
+    toml_path = folder / "rig.toml"
+    if rig is None:
+        rig = load_rig(toml_path)
+    if check_design:
+        check_calibration_design(rig, str(toml_path))
+    names = [rig.image_name(k, d, t, n, big_n)
+             for k in range(rig.stage.n_positions)
+             for d, _j, t, n, big_n in rig.fringes.frames()]
+    dupes = [n for n, c in Counter(names).items() if c > 1]
+    if dupes:
+        raise ConfigError(f"{toml_path}: key 'images.template' gives several images the same name"
+                          f" ({dupes[0]!r}); use {{pos}}, {{dir}}, {{period}} and {{step}}")
+
+    def check(name: str):
+        path = folder / name
+        try:
+            unparsed = None
+            try:
+                hdr = _header(path)
+                _check_header(hdr, rig)
+                fmt, colour = hdr.fmt, hdr.channels > 1
+            except _Unusable as exc:
+                if exc.kind != "unsupported":
+                    raise
+                # Not a variant the header reader parses (BigTIFF, another format): decode it.
+                unparsed, fmt = exc, {"tif": "tiff"}.get(path.suffix.lower()[1:], path.suffix.lower()[1:])
+            if full or unparsed is not None:
+                try:
+                    _img, colour = _decode(path, rig)
+                except _Unusable as exc:
+                    if unparsed is not None and exc.kind == "unreadable":
+                        raise _Unusable("unreadable", unparsed.detail) from None
+                    raise
+            return name, fmt, colour, None
+        except _Unusable as exc:
+            return name, None, False, exc
+
+    with ThreadPoolExecutor(workers or min(32, 4 * (os.cpu_count() or 1))) as pool:
+        results = list(pool.map(check, names))
+    problems = [(name, exc) for name, _f, _c, exc in results if exc is not None]
+    if problems:
+        raise DatasetError(_problem_message(folder, problems, len(names), max_listed))
+    colour = [name for name, _f, c, _e in results if c]
+    if colour:
+        warnings.warn(f"{folder}: {len(colour)} colour image{'s' if len(colour) > 1 else ''} will be"
+                      f" converted to grey (e.g. {colour[0]})", stacklevel=2)
+        _warn_colour(None, rig)  # said once here; reading them later stays quiet
+    formats = dict(Counter(f for _n, f, _c, _e in results))
+    return DatasetReport(folder, rig, len(names), formats, colour, full)
+
+
+def _problem_message(folder: Path, problems, total: int, max_listed: int) -> str:
+    """One line: counts per kind, then the first ``max_listed`` files and their problems."""
+    kinds = Counter(exc.kind for _n, exc in problems)
+    summary = ", ".join(f"{c} {k}" for k, c in kinds.most_common())
+    listed = "; ".join(f"{name}: {exc.detail}" for name, exc in problems[:max(max_listed, 1)])
+    more = len(problems) - max(max_listed, 1)
+    tail = f"; ... and {more} more" if more > 0 else ""
+    n = len(problems)
+    return (f"{folder}: {n} of {total} image{'s' if total > 1 else ''} unusable ({summary}):"
+            f" {listed}{tail}")
+
+
+# --------------------------------------------------------------------------- sources
+
+class DatasetSource:
+    """Frames read from a ``ptp-dataset/1`` folder, several files in parallel.
+
+    Parameters
+    ----------
+    folder : path
+        The dataset folder (holding ``rig.toml``).
+    workers : int, optional
+        Reader threads (OpenCV decoding releases the GIL).
+    """
+
+    def __init__(self, folder, workers: int | None = None):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise DatasetError(f"{self.folder}: dataset folder not found")
+        self.rig = load_rig(self.folder / "rig.toml")
+        self.workers = workers
+
+    def path(self, k: int, direction: str, period: int, step: int, n_steps: int) -> Path:
+        return self.folder / self.rig.image_name(k, direction, period, step, n_steps)
+
+    def validate(self, **kwargs) -> DatasetReport:
+        """:func:`validate_dataset` of this folder with this source's rig."""
+        return validate_dataset(self.folder, self.rig, **kwargs)
+
+    def frames(self, k: int):
+        specs = list(self.rig.fringes.frames())
+        paths = [self.path(k, d, t, n, big_n) for d, _j, t, n, big_n in specs]
+        with ThreadPoolExecutor(self.workers) as pool:
+            for spec, img in zip(specs, pool.map(lambda p: read_image(p, self.rig), paths)):
+                yield spec, img
+
+
+class SimulatedSource:
+    """Frames rendered on demand by a :class:`ptpcore.simulate.VirtualRig`."""
+
+    def __init__(self, virtual_rig):
+        self.virtual_rig = virtual_rig
+        self.rig = virtual_rig.rig
+
+    def frames(self, k: int):
+        return self.virtual_rig.frames(k)
+
+
+def open_source(folder) -> DatasetSource:
+    """Open a dataset folder as a frame source."""
+    return DatasetSource(folder)

@@ -1,0 +1,508 @@
+"""The per-pixel LUT Z -> (X, Y) in memory (:class:`Lut`), its evaluation, and ``ptp-lut/1`` files.
+
+Models (METHOD.md section 5)
+---------------------------
+``poly``
+    Polynomial of degree D in ``t = (z - z_center)/z_scale``.
+``linear`` / ``pchip``
+    Interpolation of the table of samples between calibrated heights.
+
+Fitting lives in :mod:`ptpcore.fit`; this module only holds, evaluates, writes
+and reads a LUT, so scanners and tools can use it without the fitting code.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from ptpcore import __version__
+from ptpcore.atomic import atomic_path
+from ptpcore.errors import FileFormatError
+
+__all__ = [
+    "LUT_FORMAT",
+    "Lut",
+    "LutEvaluation",
+    "save_lut",
+    "load_lut",
+    "MODELS",
+]
+
+LUT_FORMAT = "ptp-lut/1"
+MODELS = ("poly", "pchip", "linear")
+
+
+@dataclass
+class LutEvaluation:
+    """X, Y of every pixel at the requested z.
+
+    Attributes
+    ----------
+    x, y : (H, W) float64, mm
+        NaN where the pixel is invalid, or outside its calibrated range
+        unless extrapolation was requested.
+    in_range : (H, W) bool
+        Valid pixel and z within ``[z_min, z_max]`` of that pixel.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    in_range: np.ndarray
+
+
+@dataclass
+class Lut:
+    """A per-pixel LUT, in memory exactly what ``ptp-lut/1`` stores.
+
+    Attributes
+    ----------
+    kind : {"poly", "pchip", "linear"}
+    degree : int or None
+    z_center, z_scale : float
+        Normalisation of z for ``poly``: ``t = (z - z_center)/z_scale``.
+    z_min, z_max : float
+        The calibrated range over all pixels (mm).
+    x, y : (D+1, H, W) or (K, H, W) float64
+        Coefficients (lowest power first) or table values at ``z_nodes``.
+    z_nodes : (K,) float64 or None
+        Ascending calibrated heights (tables only).
+    valid : (H, W) bool
+    n_positions : (H, W) uint16
+    pixel_z_min, pixel_z_max : (H, W) float32
+    rms_x, rms_y, loo_x, loo_y : (H, W) float32, mm
+    sigma_x, sigma_y : (H, W) float32 or None
+        Predicted 1-sigma uncertainty (optional).
+    rig_toml : str
+    """
+
+    kind: str
+    degree: int | None
+    z_center: float
+    z_scale: float
+    z_min: float
+    z_max: float
+    x: np.ndarray
+    y: np.ndarray
+    z_nodes: np.ndarray | None
+    valid: np.ndarray
+    n_positions: np.ndarray
+    pixel_z_min: np.ndarray
+    pixel_z_max: np.ndarray
+    rms_x: np.ndarray
+    rms_y: np.ndarray
+    loo_x: np.ndarray
+    loo_y: np.ndarray
+    sigma_x: np.ndarray | None = None
+    sigma_y: np.ndarray | None = None
+    rig_toml: str = ""
+    extra_attrs: dict = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape
+
+    def evaluate(self, z, *, extrapolate: bool = False) -> LutEvaluation:
+        """X, Y at height ``z``.
+
+        Parameters
+        ----------
+        z : float or (H, W) array_like, mm
+        extrapolate : bool
+            If False (default) pixels whose own calibrated range does not
+            contain ``z`` return NaN; ``in_range`` tells them apart either way.
+        """
+        z = np.asarray(z, dtype=float)
+        if z.ndim not in (0, 2) or (z.ndim == 2 and z.shape != self.shape):
+            raise ValueError(f"z must be a scalar or a {self.shape} map, got shape {z.shape}")
+        eps = 1e-9
+        if self.kind == "poly":
+            # Row tiles on every core: each tile's Horner steps stay in cache, so
+            # the coefficients are read once (the cost floor) instead of once per step.
+            from ptpcore.parallel import run_tiles
+
+            h, w = self.shape
+            x = np.empty((h, w))
+            y = np.empty((h, w))
+            in_range = np.empty((h, w), bool)
+
+            def rows(r0: int, r1: int) -> None:
+                zr = z if z.ndim == 0 else z[r0:r1]
+                ok = self.valid[r0:r1] & (zr >= self.pixel_z_min[r0:r1] - eps) & (zr <= self.pixel_z_max[r0:r1] + eps)
+                in_range[r0:r1] = ok
+                keep = ok if not extrapolate else self.valid[r0:r1]
+                t = (zr - self.z_center) / self.z_scale
+                for coeffs, out in ((self.x, x), (self.y, y)):
+                    o = out[r0:r1]
+                    _horner(coeffs[:, r0:r1], t, o)
+                    o[~keep] = np.nan
+
+            run_tiles(rows, h, w)
+            return LutEvaluation(x, y, in_range)
+        in_range = self.valid & (z >= self.pixel_z_min - eps) & (z <= self.pixel_z_max + eps)
+        x = _interp_table(self.z_nodes, self.x, z, self.kind)
+        y = _interp_table(self.z_nodes, self.y, z, self.kind)
+        keep = in_range if not extrapolate else self.valid
+        return LutEvaluation(np.where(keep, x, np.nan), np.where(keep, y, np.nan), in_range)
+
+
+def _horner(coeffs: np.ndarray, t, out: np.ndarray | None = None) -> np.ndarray:
+    """``sum_i coeffs[i] * t**i`` by Horner's rule (coefficients lowest power first), float64."""
+    if out is None:
+        out = np.array(coeffs[-1], dtype=np.float64, copy=True)
+        rest = coeffs[-2::-1]
+    elif len(coeffs) > 1:
+        np.multiply(coeffs[-1], t, out=out)  # the first step without a copy: same numbers
+        out += coeffs[-2]
+        rest = coeffs[-3::-1]
+    else:
+        out[...] = coeffs[-1]
+        rest = ()
+    for c in rest:
+        out *= t
+        out += c
+    return out
+
+
+def _runs(mask_1d: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs [start, stop) of True in a 1-D bool array."""
+    runs, start = [], None
+    for i, m in enumerate(mask_1d):
+        if m and start is None:
+            start = i
+        elif not m and start is not None:
+            runs.append((start, i))
+            start = None
+    if start is not None:
+        runs.append((start, len(mask_1d)))
+    return runs
+
+
+def _group_by_pattern(mask: np.ndarray):
+    """Group columns of a (K, P) bool mask by identical pattern.
+
+    Yields ``(pattern (K,) bool, column indices)``.
+    """
+    packed = np.ascontiguousarray(np.packbits(mask, axis=0).T)
+    keys = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(first) + 1))
+    for g, f in enumerate(first):
+        yield mask[:, f], order[bounds[g]:bounds[g + 1]]
+
+
+def _interp_table(z_nodes: np.ndarray, table: np.ndarray, z, kind: str) -> np.ndarray:
+    """Per-pixel interpolation of a (K, H, W) table with NaN nodes.
+
+    Each pixel is interpolated over the maximal run of consecutive valid nodes
+    that contains ``z``; between a NaN node and its neighbours it is NaN.
+    """
+    k, h, w = table.shape
+    vals = table.reshape(k, -1)
+    zq = np.broadcast_to(np.asarray(z, dtype=float), (h, w)).reshape(-1)
+    out = np.full(h * w, np.nan)
+    for pattern, cols in _group_by_pattern(np.isfinite(vals)):
+        for a, b in _runs(pattern):
+            if b - a < 2:
+                continue
+            zn = z_nodes[a:b]
+            zc = zq[cols]
+            sel = (zc >= zn[0] - 1e-9) & (zc <= zn[-1] + 1e-9)
+            if not sel.any():
+                continue
+            c = cols[sel]
+            zc = np.clip(zc[sel], zn[0], zn[-1])
+            if kind == "linear" or b - a == 2:
+                i = np.clip(np.searchsorted(zn, zc, side="right") - 1, 0, b - a - 2)
+                wgt = (zc - zn[i]) / (zn[i + 1] - zn[i])
+                v = vals[a:b]
+                out[c] = (1 - wgt) * v[i, c] + wgt * v[i + 1, c]
+            else:
+                if np.ptp(zc) == 0:
+                    interp = PchipInterpolator(zn, vals[a:b][:, c], axis=0)
+                    out[c] = interp(zc[0])
+                else:
+                    # Per-pixel z: evaluate each pixel's own curve.
+                    interp = PchipInterpolator(zn, vals[a:b][:, c], axis=0)
+                    i = np.clip(np.searchsorted(zn, zc, side="right") - 1, 0, b - a - 2)
+                    out[c] = _pchip_eval_each(interp, zc, i)
+    return out.reshape(h, w)
+
+
+def _pchip_eval_each(interp: PchipInterpolator, zc: np.ndarray, interval: np.ndarray) -> np.ndarray:
+    """Evaluate a vector-valued piecewise polynomial, column j at zc[j]."""
+    c = interp.c  # (4, n_intervals, P) local power basis, highest power first
+    x0 = interp.x[interval]
+    dz = zc - x0
+    cols = np.arange(zc.size)
+    out = np.zeros(zc.size)
+    for p in range(c.shape[0]):
+        out = out * dz + c[p, interval, cols]
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Files
+
+_QUALITY = ("n_positions", "z_min", "z_max", "rms_x", "rms_y", "loo_x", "loo_y")
+_MAX_DEGREE = 5
+
+
+def _lut_root_attrs(obj) -> None:
+    """The ``/`` attributes of ``ptp-lut/1`` (also put on a session's ``/lut`` group)."""
+    obj.attrs["format"] = LUT_FORMAT
+    obj.attrs["software"] = f"ptpcore {__version__}"
+    obj.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    obj.attrs["units"] = "mm"
+
+
+def _write_lut_group(group, lut: Lut) -> None:
+    """Write every ``ptp-lut/1`` dataset and group of ``lut`` into an open HDF5 group.
+
+    ``save_lut`` writes into the file's root group; a session file into ``/lut``.
+    The format attributes are not written here (see :func:`_lut_root_attrs`).
+    """
+    h, w = lut.shape
+    group.create_group("camera").attrs.update({"width": w, "height": h})
+    m = group.create_group("model")
+    m.attrs.update({"kind": lut.kind, "z_center": lut.z_center, "z_scale": lut.z_scale,
+                    "z_min": lut.z_min, "z_max": lut.z_max})
+    if lut.kind == "poly":
+        m.attrs["degree"] = lut.degree
+    for key, val in lut.extra_attrs.items():
+        m.attrs[key] = val
+    opts = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
+    group.create_dataset("x", data=lut.x.astype(np.float64), **opts)
+    group.create_dataset("y", data=lut.y.astype(np.float64), **opts)
+    if lut.z_nodes is not None:
+        group["z_nodes"] = np.asarray(lut.z_nodes, dtype=np.float64)
+    group.create_dataset("valid", data=lut.valid.astype(np.uint8), **opts)
+    q = group.create_group("quality")
+    q.create_dataset("n_positions", data=lut.n_positions.astype(np.uint16), **opts)
+    q.create_dataset("z_min", data=lut.pixel_z_min.astype(np.float32), **opts)
+    q.create_dataset("z_max", data=lut.pixel_z_max.astype(np.float32), **opts)
+    for name in ("rms_x", "rms_y", "loo_x", "loo_y", "sigma_x", "sigma_y"):
+        val = getattr(lut, name)
+        if val is not None:
+            q.create_dataset(name, data=val.astype(np.float32), **opts)
+    group.create_group("rig").attrs["toml"] = lut.rig_toml
+
+
+def save_lut(lut: Lut, path) -> None:
+    """Write ``ptp-lut/1`` (FORMATS.md) atomically.
+
+    A process killed during the write leaves the previous file (if any) intact.
+    """
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            _lut_root_attrs(f)
+            _write_lut_group(f, lut)
+
+
+def _str_attr(value) -> str | None:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "SUO":
+        value = value[()]
+        return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+    return value if isinstance(value, str) else None
+
+
+def open_hdf5(path) -> tuple[h5py.File, str]:
+    """Open an HDF5 file for reading; any failure is a :class:`FileFormatError` naming it.
+
+    Returns the open file and its name for messages.
+    """
+    where = str(path)
+    try:
+        return h5py.File(Path(path), "r"), where
+    except FileNotFoundError:
+        raise FileFormatError(f"{where}: file not found") from None
+    except OSError as exc:
+        raise FileFormatError(f"{where}: not a readable HDF5 file (truncated or damaged?): {exc}") from None
+
+
+def check_format(obj, where: str, expected: str) -> None:
+    """Check a ``format`` attribute ``"name/N"`` against ``expected``.
+
+    Raises
+    ------
+    FileFormatError
+        Missing or other format; a version newer than this software reads is
+        called "too new".
+    """
+    fmt = _str_attr(obj.attrs.get("format"))
+    if fmt == expected:
+        return
+    family, _, version = expected.rpartition("/")
+    if isinstance(fmt, str) and fmt.startswith(family + "/"):
+        tail = fmt[len(family) + 1:]
+        if tail.isdigit() and int(tail) > int(version):
+            raise FileFormatError(f"{where}: format {fmt!r} is newer than this software reads ({expected});"
+                                  " update PTP Studio")
+        raise FileFormatError(f"{where}: format {fmt!r} is not supported (this software reads {expected})")
+    raise FileFormatError(f"{where}: attribute 'format' is {fmt!r}, expected {expected!r}")
+
+
+def _read_lut_group(group, where: str) -> Lut:
+    """Read and check the ``ptp-lut/1`` content of an open HDF5 group.
+
+    Parameters
+    ----------
+    group : h5py.Group
+        The file's root (a ``*.lut.h5``) or a session's ``/lut`` group.
+    where : str
+        The file name, for messages; dataset names are given in full
+        (``/lut/x`` inside a session).
+
+    Raises
+    ------
+    FileFormatError
+        Naming ``where`` and the dataset or attribute that is wrong: missing,
+        wrong shape or type, NaN where a valid pixel needs a number, values out
+        of range.
+    """
+    base = "" if group.name == "/" else group.name
+
+    def name(rel):
+        return f"{base}/{rel}"
+
+    def fail(msg):
+        return FileFormatError(f"{where}: {msg}")
+
+    def array(rel, ndim, kinds="fiub"):
+        try:
+            obj = group[rel]
+        except KeyError:
+            raise fail(f"missing dataset {name(rel)}") from None
+        if not isinstance(obj, h5py.Dataset):
+            raise fail(f"{name(rel)} is not a dataset")
+        if obj.dtype.kind not in kinds:
+            raise fail(f"{name(rel)} has type {obj.dtype}, expected numbers")
+        if obj.ndim != ndim:
+            raise fail(f"{name(rel)} has {obj.ndim} dimensions {obj.shape}, expected {ndim}")
+        return obj[()]
+
+    def attr(obj_rel, key, kind):
+        if obj_rel and obj_rel not in group:
+            raise fail(f"missing group {name(obj_rel)}")
+        try:
+            obj = group[obj_rel] if obj_rel else group
+            val = obj.attrs[key]
+        except KeyError:
+            raise fail(f"missing attribute {key!r} of {name(obj_rel) if obj_rel else base or '/'}") from None
+        label = f"attribute {key!r} of {name(obj_rel)}"
+        if kind is str:
+            s = _str_attr(val)
+            if s is None:
+                raise fail(f"{label} must be text, got {val!r}")
+            return s
+        if isinstance(val, np.ndarray) and val.size == 1:
+            val = val.reshape(())[()]
+        if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, float, np.integer, np.floating)):
+            raise fail(f"{label} must be a number, got {val!r}"[:200])
+        if kind is int:
+            if float(val) != int(val):
+                raise fail(f"{label} must be an integer, got {val!r}")
+            return int(val)
+        val = float(val)
+        if not np.isfinite(val):
+            raise fail(f"{label} must be finite, got {val}")
+        return val
+
+    try:
+        h = attr("camera", "height", int)
+        w = attr("camera", "width", int)
+        if h < 1 or w < 1:
+            raise fail(f"{name('camera')} size {w}x{h} must be positive")
+        kind = attr("model", "kind", str)
+        if kind not in MODELS:
+            raise fail(f"attribute 'kind' of {name('model')} is {kind!r}, not one of {MODELS}")
+        degree = attr("model", "degree", int) if kind == "poly" else None
+        if degree is not None and not 1 <= degree <= _MAX_DEGREE:
+            raise fail(f"attribute 'degree' of {name('model')} must be 1 to {_MAX_DEGREE}, got {degree}")
+        mv = {k: attr("model", k, float) for k in ("z_center", "z_scale", "z_min", "z_max")}
+        known = {"kind", "degree", "z_center", "z_scale", "z_min", "z_max"}
+        extra = {k: v for k, v in group["model"].attrs.items() if k not in known}
+        x = array("x", 3, "f")
+        y = array("y", 3, "f")
+        z_nodes = array("z_nodes", 1, "f") if "z_nodes" in group else None
+        valid_raw = array("valid", 2, "uib")
+        q = {n: array(f"quality/{n}", 2) for n in _QUALITY}
+        sig = {n: (array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
+               for n in ("sigma_x", "sigma_y")}
+        rig_toml = ""
+        if "rig" in group:
+            rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
+    except OSError as exc:
+        raise fail(f"truncated or damaged ({exc})") from None
+    if mv["z_scale"] <= 0:
+        raise fail(f"attribute 'z_scale' of {name('model')} must be positive, got {mv['z_scale']}")
+    if mv["z_min"] > mv["z_max"]:
+        raise fail(f"attributes 'z_min' > 'z_max' of {name('model')} ({mv['z_min']} > {mv['z_max']})")
+    if kind != "poly":
+        if z_nodes is None:
+            raise fail(f"missing dataset {name('z_nodes')} (required for kind {kind!r})")
+        if z_nodes.size < 2 or not np.all(np.isfinite(z_nodes)) or np.any(np.diff(z_nodes) <= 0):
+            raise fail(f"{name('z_nodes')} must hold at least 2 finite, strictly ascending heights")
+    n_lead = degree + 1 if kind == "poly" else len(z_nodes)
+    for rel, arr, want in (("x", x, (n_lead, h, w)), ("y", y, (n_lead, h, w)), ("valid", valid_raw, (h, w))):
+        if arr.shape != want:
+            raise fail(f"{name(rel)} has shape {arr.shape}, expected {want}")
+    for rel, arr in [*((f"quality/{n}", a) for n, a in q.items()),
+                     *((f"quality/{n}", a) for n, a in sig.items() if a is not None)]:
+        if arr.shape != (h, w):
+            raise fail(f"{name(rel)} has shape {arr.shape}, expected {(h, w)}")
+    if np.any((valid_raw != 0) & (valid_raw != 1)):
+        raise fail(f"{name('valid')} must hold only 0 and 1")
+    valid = valid_raw.astype(bool)
+    for rel, arr in (("x", x), ("y", y)):
+        if kind == "poly":
+            if not np.all(np.isfinite(arr[:, valid])):
+                raise fail(f"{name(rel)} holds NaN or infinite coefficients for pixels marked valid")
+        else:
+            fin = np.isfinite(arr)
+            if np.any(np.isinf(arr)):
+                raise fail(f"{name(rel)} holds infinite values")
+            if np.any(fin.sum(axis=0)[valid] < 2):
+                raise fail(f"{name(rel)} has fewer than 2 finite nodes for pixels marked valid")
+    if np.any(q["n_positions"][valid] < 1):
+        raise fail(f"{name('quality/n_positions')} is 0 for pixels marked valid")
+    pz_min, pz_max = q["z_min"], q["z_max"]
+    if not (np.all(np.isfinite(pz_min[valid])) and np.all(np.isfinite(pz_max[valid]))):
+        raise fail(f"{name('quality/z_min')} or {name('quality/z_max')} holds NaN for pixels marked valid")
+    if np.any(pz_min[valid] > pz_max[valid]):
+        raise fail(f"{name('quality/z_min')} exceeds {name('quality/z_max')} for some valid pixels")
+    for n in ("rms_x", "rms_y", "loo_x", "loo_y"):
+        with np.errstate(invalid="ignore"):
+            if np.any(q[n] < 0):
+                raise fail(f"{name('quality/' + n)} holds negative values")
+    return Lut(
+        kind=kind, degree=degree, z_center=mv["z_center"], z_scale=mv["z_scale"],
+        z_min=mv["z_min"], z_max=mv["z_max"], x=x, y=y, z_nodes=z_nodes, valid=valid,
+        n_positions=q["n_positions"], pixel_z_min=pz_min, pixel_z_max=pz_max,
+        rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
+        sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
+    )
+
+
+def load_lut(path) -> Lut:
+    """Read and check a ``ptp-lut/1`` file.
+
+    Raises
+    ------
+    FileFormatError
+        Naming the file and the dataset or attribute that is wrong: not HDF5,
+        truncated, another format or a newer version, missing or wrongly shaped
+        datasets, NaN where a valid pixel needs a number, values out of range.
+    """
+    f, where = open_hdf5(path)
+    with f:
+        check_format(f, where, LUT_FORMAT)
+        return _read_lut_group(f, where)

@@ -1,0 +1,30 @@
+"""Running a calibration: the streaming decode of every position into samples, the fit, and
+session files that save and resume the run stage by stage.
+
+- :mod:`.pipeline` — :func:`collect_samples`, :func:`calibrate`;
+- :mod:`.session` — ``ptp-session/1`` files and :func:`run_session`.
+
+May import :mod:`ptpcore.simulate` and everything below it.
+"""
+
+from .pipeline import decode_position, world_xy, collect_samples, calibrate, SPILL_BYTES
+from .session import (SESSION_FORMAT, SESSION_VERSION, SESSION_SUFFIX, STAGES, Session, next_step,
+    new_session, save_session, load_session, run_session)
+
+__all__ = [
+    "decode_position",
+    "world_xy",
+    "collect_samples",
+    "calibrate",
+    "SPILL_BYTES",
+    "SESSION_FORMAT",
+    "SESSION_VERSION",
+    "SESSION_SUFFIX",
+    "STAGES",
+    "Session",
+    "next_step",
+    "new_session",
+    "save_session",
+    "load_session",
+    "run_session",
+]

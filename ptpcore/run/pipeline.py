@@ -1,0 +1,480 @@
+"""The calibration pipeline: frames -> LCD coordinates -> samples -> LUT.
+
+It streams: one position is decoded at a time from a
+:class:`~ptpcore.dataset.FrameSource`, its world coordinates are stored in a
+:class:`~ptpcore.lut.SampleStack`, and its frames are dropped.
+
+How it is fast on big sensors (``docs/performance.md`` has the numbers):
+
+- The frames of one period and direction (a *set*) are gathered in a
+  preallocated ``(N, H, W)`` buffer and reduced in cache-sized row tiles on
+  every core (:func:`ptpcore.phase.wrapped_phase`); the background and noise
+  residuals are computed only at the finest period, where they are used.
+- From a dataset folder, a reader thread reads the next sets while the
+  current one is decoded: plain TIFFs are mapped (:func:`ptpcore.fastio.map_frame`,
+  with the numba kernels) or read straight into the buffers
+  (:func:`ptpcore.fastio.read_into`).
+- Unwrapping, pixel classification and the world coordinates run over the
+  same row tiles, written straight into the sample stack.
+- Big sample stacks live in a temporary file (:class:`ptpcore.fastio.SpillStore`),
+  so memory stays flat however many positions there are; each row tile writes
+  its rows of the position there as soon as it has stored them.
+"""
+
+from __future__ import annotations
+
+import functools
+import queue
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+
+from ptpcore.io.lutfile import Lut
+from ptpcore.fit.perpixel import fit_lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.decode.noise import NoiseAccumulator
+from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, WrappedPhase, decode_and_finish,
+    decode_direction, finish_position, fused_kernels, wrapped_phase)
+from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, run_tiles, tile_workers
+from ptpcore.rig.rigfile import Rig, rig_to_toml
+
+__all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES"]
+
+Progress = Callable[[float, str], None]
+
+SPILL_BYTES = 256 << 20
+"""``collect_samples(spill=None)`` moves the sample stack to a temporary file above this size."""
+
+NOISE_PIXELS = 1 << 18
+"""At most about this many pixels per position and direction feed the noise model
+(a regular sub-grid: every pixel up to 0.26 MP, every 4th row and column at 5 MP)."""
+
+
+def _set_order(rig: Rig) -> list[tuple[str, int, int, int]]:
+    """``(direction, level, period, N)`` of every set, in capture order."""
+    f = rig.fringes
+    return [(d, j, t, n) for d in f.directions for j, (t, n) in enumerate(zip(f.periods_px, f.steps))]
+
+
+def _frame_dtype(rig: Rig):
+    return np.uint8 if rig.camera.bit_depth <= 8 else np.uint16
+
+
+def _source_sets(source, k: int):
+    """Yield ``((d, j), stack (N, H, W))`` for every set of position ``k`` of any source.
+
+    Frames are copied into reusable buffers as they arrive (in any order); a
+    set is yielded as soon as its N frames are in. A yielded buffer is reused
+    once the caller asks for the next set.
+    """
+    rig: Rig = source.rig
+    shape = rig.camera.shape
+    free: dict = {}
+    pending: dict = {}
+    count: dict = {}
+    for (d, j, _t, n, big_n), img in source.frames(k):
+        img = np.asarray(img)
+        key = (d, j)
+        buf = pending.get(key)
+        if buf is None:
+            if img.shape != shape:
+                raise ValueError(f"frame ({d}, period level {j}, step {n}) of position {k} has shape"
+                                 f" {img.shape}, expected {shape}")
+            spare = free.get((big_n, img.dtype))
+            buf = spare.pop() if spare else np.empty((big_n, *shape), img.dtype)
+            pending[key] = buf
+            count[key] = set()
+        if n in count[key] or not 0 <= n < big_n:
+            raise ValueError(f"step {n} repeated or outside 0..{big_n - 1}")
+        buf[n] = img
+        count[key].add(n)
+        if len(count[key]) == big_n:
+            del pending[key]
+            yield key, buf
+            free.setdefault((big_n, buf.dtype), []).append(buf)
+    if pending:
+        (d, j), buf = next(iter(pending.items()))
+        raise ValueError(f"only {len(count[(d, j)])} of {len(buf)} steps were added")
+
+
+class _DatasetReader:
+    """Reads the sets of some positions of a dataset folder ahead, on its own threads.
+
+    Each set's N files are read in parallel: with the numba kernels, plain
+    TIFFs are mapped (:func:`ptpcore.fastio.map_frame`: no copy, the kernels
+    read the page cache); otherwise, or for a file that cannot be mapped, they
+    are read into a preallocated buffer (plain TIFFs with
+    :func:`ptpcore.fastio.read_into`, anything else with
+    :func:`ptpcore.dataset.read_image`, which also names a bad file). At most
+    ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much.
+    """
+
+    def __init__(self, source, positions, depth: int = 3, map_files: bool | None = None):
+        from ptpcore.io.dataset import read_image
+        from ptpcore.io.fastio import map_frame, read_into
+
+        self._read_image, self._read_into, self._map_frame = read_image, read_into, map_frame
+        self.map_files = fused_kernels() is not None if map_files is None else bool(map_files)
+        self.source = source
+        self.rig: Rig = source.rig
+        self.positions = list(positions)
+        self.sets = _set_order(self.rig)
+        n_max = max(n for *_, n in self.sets)
+        self.free: queue.Queue = queue.Queue()
+        for _ in range(depth):
+            self.free.put(np.empty((n_max, *self.rig.camera.shape), _frame_dtype(self.rig)))
+        self.out: queue.Queue = queue.Queue()
+        self.stop = threading.Event()
+        self.pool = ThreadPoolExecutor(tile_workers(), thread_name_prefix="ptp-read")
+        self.thread = threading.Thread(target=self._run, name="ptp-reader", daemon=True)
+        self.thread.start()
+
+    def _read_one(self, args) -> np.ndarray:
+        """One frame: mapped from its file, or read into ``out`` (returned)."""
+        path, out = args
+        if self.map_files:
+            mapped = self._map_frame(path, out.shape, out.dtype)
+            if mapped is not None:
+                return mapped
+        if not self._read_into(path, out):
+            out[...] = self._read_image(path, self.rig)
+        return out
+
+    def _run(self) -> None:
+        try:
+            for k in self.positions:
+                for d, j, t, n in self.sets:
+                    buf = None
+                    while buf is None:
+                        if self.stop.is_set():
+                            return
+                        try:
+                            buf = self.free.get(timeout=0.1)
+                        except queue.Empty:
+                            pass
+                    paths = [self.source.path(k, d, t, s, n) for s in range(n)]
+                    frames = list(self.pool.map(self._read_one, zip(paths, buf[:n])))
+                    if all(f.base is buf for f in frames):
+                        frames = buf[:n]  # all read into the buffer: the stack itself
+                    self.out.put((k, (d, j), buf, frames))
+                    del frames
+        except BaseException as exc:  # handed to the consumer, raised there
+            self.out.put(exc)
+
+    def sets_of(self, k: int):
+        """Yield ``((d, j), frames)`` for position ``k`` (the next one in order).
+
+        ``frames``: an (N, H, W) stack, or a list of N (H, W) frames when some
+        are mapped from their files (valid until the next set is asked for).
+        """
+        for _ in self.sets:
+            item = self.out.get()
+            if isinstance(item, BaseException):
+                raise item
+            kk, key, buf, frames = item
+            del item
+            assert kk == k, (kk, k)
+            try:
+                yield key, frames
+            finally:
+                del frames  # unmaps the mapped files (with the caller's last reference)
+                self.free.put(buf)
+
+    def close(self) -> None:
+        self.stop.set()
+        while self.thread.is_alive():
+            try:  # unblock a reader waiting for a buffer
+                item = self.out.get(timeout=0.05)
+                if not isinstance(item, BaseException):
+                    self.free.put(item[2])
+            except queue.Empty:
+                pass
+        self.pool.shutdown(wait=True)
+
+
+def _is_dataset(source) -> bool:
+    from ptpcore.io.dataset import DatasetSource
+
+    return type(source) is DatasetSource
+
+
+def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: bool,
+                 buffers: dict | None = None) -> DecodedPosition:
+    """Wrapped phases of every set, then unwrapping and classification.
+
+    ``buffers``: a dict kept by a streaming caller; the position's maps are
+    written into arrays it holds (allocated on first use), so the next
+    position overwrites them.
+    """
+    f = rig.fringes
+    last = len(f.periods_px) - 1
+    h, w = rig.camera.shape
+    wrapped: dict = {}
+    for (d, j), stack in sets:
+        photometry = all_photometry or j == last
+        out = None
+        if buffers is not None:
+            out = buffers.get((d, j))
+            if out is None:
+                out = buffers[(d, j)] = WrappedPhase(
+                    np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+                    np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
+                    np.empty((h, w), np.float32) if photometry and len(stack) > 3 else None)
+        wrapped[(d, j)] = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+    stack = None  # a set mapped from its files is unmapped once its phases are out
+    levels = {d: [wrapped[(d, j)] for j in range(len(f.periods_px))] for d in f.directions}
+    if fused_kernels() is not None:
+        outs = None
+        if buffers is not None:
+            outs = {}
+            for d in f.directions:
+                outs[d] = buffers.get(d)
+                if outs[d] is None:
+                    outs[d] = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
+            outs["reasons"] = buffers.get("reasons")
+            if outs["reasons"] is None:
+                outs["reasons"] = buffers["reasons"] = np.empty((h, w), np.uint8)
+        pos = decode_and_finish(rig, k, levels, options, outs=outs)
+        if pos is not None:
+            return pos
+    z = rig.stage.z_mm[k]
+    decoded = {}
+    for d in f.directions:
+        levels = [wrapped[(d, j)] for j in range(len(f.periods_px))]
+        out = None
+        if buffers is not None:
+            out = buffers.get(d)
+            if out is None:
+                out = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
+        decoded[d] = decode_direction(levels, f.periods_px, f.carrier(d) * z, out=out)
+    out = None
+    if buffers is not None:
+        out = buffers.get("reasons")
+        if out is None:
+            out = buffers["reasons"] = np.empty((h, w), np.uint8)
+    return finish_position(rig, k, decoded, options, out=out)
+
+
+def decode_position(source, k: int, options: DecodeOptions = DecodeOptions()) -> DecodedPosition:
+    """Decode every direction and period of position ``k``.
+
+    Parameters
+    ----------
+    source : FrameSource
+    k : int
+    options : DecodeOptions
+
+    Returns
+    -------
+    DecodedPosition
+        With the wrapped phase, modulation and background of every level.
+    """
+    rig: Rig = source.rig
+    if _is_dataset(source):
+        reader = _DatasetReader(source, [k])
+        try:
+            return _decode_sets(rig, k, reader.sets_of(k), options, True)
+        finally:
+            reader.close()
+    return _decode_sets(rig, k, _source_sets(source, k), options, True)
+
+
+def world_xy(rig: Rig, pos: DecodedPosition) -> tuple[np.ndarray, np.ndarray]:
+    """World X, Y (mm) of a decoded position: ``X = u*pitch_x + a*z`` (METHOD.md section 2)."""
+    a, b, _ = rig.stage.direction
+    px, py = rig.lcd.pitch_mm
+    x = pos.u * px + a * pos.z_mm if pos.u is not None else None
+    y = pos.v * py + b * pos.z_mm if pos.v is not None else None
+    return x, y
+
+
+def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positions=None,
+                    progress: Progress | None = None, on_position=None, spill: bool | None = None,
+                    spill_dir=None) -> SampleStack:
+    """Decode every position and gather each pixel's samples.
+
+    Parameters
+    ----------
+    source : FrameSource
+        Must show both directions.
+    options : DecodeOptions
+    positions : sequence of int, optional
+        Decode only these positions (others stay invalid).
+    progress : callable, optional
+        ``progress(fraction, message)``; may raise to cancel.
+    on_position : callable, optional
+        ``on_position(decoded)`` after each position (e.g. a GUI preview); the
+        decoded position then carries background and noise maps of every
+        level (otherwise only of the finest, which is all the samples need).
+    spill : bool, optional
+        Keep the ``(K, H, W)`` arrays in a temporary file (``numpy.memmap``)
+        instead of memory. Default: when they would exceed :data:`SPILL_BYTES`.
+    spill_dir : path, optional
+        Folder of that file (default: the system's temporary folder).
+
+    Returns
+    -------
+    SampleStack
+    """
+    rig: Rig = source.rig
+    if set(rig.fringes.directions) != {"x", "y"}:
+        raise ValueError("calibration needs fringes in both directions x and y")
+    k_total = rig.stage.n_positions
+    todo = list(range(k_total)) if positions is None else list(positions)
+    shape = rig.camera.shape
+    z_all = np.asarray(rig.stage.z_mm, dtype=float)
+    if spill is None:
+        spill = k_total * shape[0] * shape[1] * 17 > SPILL_BYTES
+    store = None
+    if spill:
+        from ptpcore.io.fastio import SpillStore
+
+        store = SpillStore(k_total, shape, {"x": np.float32, "y": np.float32, "reasons": np.uint8,
+                                            "modulation": np.float32, "background": np.float32},
+                           {"x": np.nan, "y": np.nan, "reasons": 0xFF, "modulation": 0, "background": 0},
+                           spill_dir)
+        samples = SampleStack(z_all, np.empty((0, *shape), np.float32), np.empty((0, *shape), np.float32),
+                              np.full(shape, np.nan), np.full(shape, np.nan), np.empty((0, *shape), np.uint8))
+        # One set of position maps: each row tile writes its rows of them to the file
+        # as soon as it has stored them (while they are in the cache; positional
+        # writes from the tile pool). The noise model's binning gets a thread of its own.
+        spill_maps = {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
+        writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-noise")
+    else:
+        samples = SampleStack.empty(rig.stage.z_mm, shape)
+    noise = NoiseAccumulator(rig.camera.max_level)
+    stride = max(1, int(np.sqrt(shape[0] * shape[1] / NOISE_PIXELS)))
+    reader = _DatasetReader(source, todo) if _is_dataset(source) else None
+    buffers: dict = {}
+    noise_jobs: list = []
+    try:
+        for i, k in enumerate(todo):
+            if progress:
+                progress(i / len(todo), f"decoding position {k + 1}/{k_total} (z = {rig.stage.z_mm[k]:g} mm)")
+            sets = reader.sets_of(k) if reader else _source_sets(source, k)
+            # Without a listener the position's maps are scratch: reuse them.
+            pos = _decode_sets(rig, k, sets, options, on_position is not None,
+                               None if on_position else buffers)
+            fine_x = pos.directions["x"].wrapped[-1]
+            fine_y = pos.directions["y"].wrapped[-1]
+            if store is None:
+                dest = {"x": samples.x[k], "y": samples.y[k], "reasons": samples.reasons[k],
+                        "modulation": samples.modulation[k], "background": samples.background[k]}
+            else:
+                dest = spill_maps
+            kern = fused_kernels()
+            put = _store_rows if kern is None else functools.partial(_store_rows_fused, kern)
+
+            def rows(r0: int, r1: int, kk=k, pos=pos, fx=fine_x, fy=fine_y, dest=dest) -> None:
+                put(rig, pos, fx, fy, samples, dest, r0, r1)
+                if store is not None:
+                    for name, a in dest.items():
+                        store.write_rows(name, kk, r0, a[r0:r1])
+
+            run_tiles(rows, *shape, TILE_PIXELS if kern is None else KERNEL_TILE_PIXELS)
+            if store is not None:
+                for name in dest:
+                    store.mark_written(name, k)
+            valid = pos.reasons[::stride, ::stride] == 0
+            for fine in (fine_x, fine_y):
+                if fine.residual_var is not None:
+                    args = (fine.background[::stride, ::stride], fine.residual_var[::stride, ::stride],
+                            valid, rig.fringes.steps[-1] - 3)
+                    if store is None:
+                        noise.add(*args)
+                    else:  # on its own thread (in order), off the decoding's path
+                        noise_jobs.append(writer.submit(noise.add, *(np.array(a) for a in args[:3]), args[3]))
+            if on_position:
+                on_position(pos)
+    finally:
+        if reader:
+            reader.close()
+        if store is not None:
+            writer.shutdown(wait=True)
+    if store is not None:
+        for w in noise_jobs:
+            w.result()  # raise a failure here
+        store.finish()
+        arrays = store.arrays()
+        samples = SampleStack(z_all, arrays["x"], arrays["y"], samples.x_ref, samples.y_ref,
+                              arrays["reasons"], arrays["modulation"], arrays["background"])
+    samples.noise = noise.model()
+    if progress:
+        progress(1.0, "decoding done")
+    return samples
+
+
+def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
+                samples: SampleStack, dest: dict, r0: int, r1: int) -> None:
+    """:func:`world_xy` and :meth:`SampleStack.set_position` of rows ``[r0, r1)``, into ``dest``.
+
+    Same arithmetic as those two, tile by tile (``dest`` holds the ``(H, W)``
+    maps of position ``pos.index``: x, y, reasons, modulation, background).
+    """
+    a, b, _ = rig.stage.direction
+    px, py = rig.lcd.pitch_mm
+    z = pos.z_mm
+    rs = pos.reasons[r0:r1]
+    valid = rs == 0
+    invalid = ~valid
+    for name, coord, pitch, slope, ref in (("x", pos.u, px, a, samples.x_ref), ("y", pos.v, py, b, samples.y_ref)):
+        w = coord[r0:r1] * pitch
+        w += slope * z
+        rf = ref[r0:r1]
+        new_ref = valid & np.isnan(rf)
+        np.copyto(rf, w, where=new_ref)
+        w -= rf
+        w[invalid] = np.nan
+        dest[name][r0:r1] = w
+    dest["reasons"][r0:r1] = rs
+    np.minimum(fine_x.modulation[r0:r1], fine_y.modulation[r0:r1], out=dest["modulation"][r0:r1])
+    bg = dest["background"][r0:r1]
+    np.add(fine_x.background[r0:r1], fine_y.background[r0:r1], out=bg)
+    bg *= 0.5
+
+
+def _store_rows_fused(kern, rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
+                      samples: SampleStack, dest: dict, r0: int, r1: int) -> None:
+    """:func:`_store_rows` with the numba kernel :func:`ptpcore._fused.store_rows` (bit-equal)."""
+    a, b, _ = rig.stage.direction
+    px, py = rig.lcd.pitch_mm
+    z = pos.z_mm
+    with_bg = fine_x.background is not None and fine_y.background is not None
+    bgx = fine_x.background if with_bg else fine_x.modulation
+    bgy = fine_y.background if with_bg else fine_y.modulation
+    kern.store_rows(r0, r1, pos.reasons, pos.u, pos.v, float(px), float(py), float(a * z), float(b * z),
+                    samples.x_ref, samples.y_ref, fine_x.modulation, fine_y.modulation, bgx, bgy, with_bg,
+                    dest["x"], dest["y"], dest["reasons"], dest["modulation"], dest["background"])
+
+
+def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOptions = DecodeOptions(),
+              positions=None, progress: Progress | None = None, spill: bool | None = None) -> tuple[Lut, SampleStack]:
+    """Images to LUT in one call.
+
+    Parameters
+    ----------
+    source : FrameSource
+    model, degree : see :func:`ptpcore.lut.fit_lut`
+    options : DecodeOptions
+    positions : sequence of int, optional
+        Positions to calibrate on (default all).
+    progress : callable, optional
+    spill : bool, optional
+        See :func:`collect_samples` (default: a temporary file for big stacks).
+
+    Returns
+    -------
+    lut : Lut
+    samples : SampleStack
+    """
+    def sub(lo, hi):
+        if progress is None:
+            return None
+        return lambda f, msg: progress(lo + (hi - lo) * f, msg)
+
+    samples = collect_samples(source, options=options, positions=positions, progress=sub(0.0, 0.9), spill=spill)
+    lut = fit_lut(samples, model, degree, positions=positions, rig_toml=rig_to_toml(source.rig),
+                  progress=sub(0.9, 1.0))
+    return lut, samples
