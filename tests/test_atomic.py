@@ -30,7 +30,7 @@ pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SI
 _COMMON = """
 import sys
 import numpy as np
-from ptpcore.io.lutfile import Lut, SampleStack, save_lut
+from ptpcore.io import Lut, SampleStack, save_lut
 from ptpcore.rig import Camera
 from ptpcore.run.session import Session, save_session
 from ptpcore.simulate.virtual_rig import preset

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import ptpcore.io.lutfile as lut_mod
+import ptpcore.fit.perpixel as lut_mod
 from ptpcore.fit import fit_lut
 from ptpcore.io import SampleStack
 

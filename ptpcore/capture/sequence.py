@@ -1,8 +1,8 @@
 """Live capture: every fringe pattern on the LCD, at every stage position, photographed.
 
-:func:`capture` drives a :class:`~ptpcore.devices.display.Display`, a
-:class:`~ptpcore.devices.camera.Camera` and a
-:class:`~ptpcore.devices.stage.Stage` through the rig's plan and writes a
+:func:`capture` drives a :class:`~ptpcore.capture.devices.display.Display`, a
+:class:`~ptpcore.capture.devices.camera.Camera` and a
+:class:`~ptpcore.capture.devices.stage.Stage` through the rig's plan and writes a
 ``ptp-dataset/1`` folder as it goes:
 
 1. the folder gets ``capture-state.json`` first (the plan: the rig as
@@ -399,7 +399,7 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     rig : Rig
         The plan: camera, LCD, fringes, and the stage heights ``z_mm`` to visit.
     camera, stage, display
-        Unopened devices (:mod:`ptpcore.devices`); opened here and closed at the end.
+        Unopened devices (:mod:`ptpcore.capture.devices`); opened here and closed at the end.
     resume : bool
         Continue the partial capture in ``out_dir``.
     exposure_us : float, optional
@@ -477,101 +477,12 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
 
         return CaptureResult(out, load_rig(out), [], list(range(n_pos)), None)
 
-    # Resume: keep the positions whose readings are recorded and whose images all read back.
-    kept = []
-    if resume:
-        for stale in out.rglob(".*.part"):
-            with contextlib.suppress(OSError):
-                stale.unlink()
-        for k, pos in enumerate(state["positions"]):
-            report(0.0, f"verifying position {k + 1}/{n_pos}")
-            if pos.get("state") == "done" and _position_complete(out, rig, k):
-                kept.append(k)
-                if on_position:
-                    on_position(k, "kept")
-            else:
-                pos.update(state="pending")
-        _write_state(out, state)
+    kept = _verify_kept_positions(out, rig, state, report, on_position) if resume else []
+    run = _CaptureRun(out, rig, camera, stage, display, state, image_ext, retries, report, on_frame, on_position)
     todo = [k for k in range(n_pos) if k not in kept]
-    frames_per_pos = rig.fringes.frames_per_position
-    total = max(1, len(todo) * frames_per_pos)
     state["devices"] = {"camera": describe(camera), "stage": describe(stage), "display": describe(display)}
-
-    def saved_note() -> str:
-        done = [k for k, p in enumerate(state["positions"]) if p.get("state") == "done"]
-        if not done:
-            return f"nothing is captured yet in {out}; resume the capture once fixed"
-        return (f"{len(done)} of {n_pos} positions are saved in {out}; fix the cause and resume the"
-                " capture to get the rest")
-
-    exposure = None
-    captured = []
-    opened = []
-    try:
-        for dev in (display, camera, stage):
-            _call(dev, "open")
-            opened.append(dev)
-        if exposure_us is not None:
-            _call(camera, "set_exposure", float(exposure_us))
-        if home and todo:
-            report(0.0, "homing the stage")
-            _call(stage, "home")
-        done_frames = 0
-        for i, k in enumerate(todo):
-            report(done_frames / total, f"position {k + 1}/{n_pos}: moving the stage to z = {z_plan[k]:g} mm")
-            _call(stage, "move_to", z_plan[k])
-            z = float(_call(stage, "position"))
-            if not math.isfinite(z) or abs(z - z_plan[k]) > position_tolerance_mm:
-                raise DeviceError(f"{describe(stage)}: reads z = {z:g} mm after the move to {z_plan[k]:g} mm"
-                                  f" (more than {position_tolerance_mm:g} mm away)")
-            if i == 0 and check:
-                report(done_frames / total, "checking the exposure")
-                exposure = check_exposure(rig, camera, display, limits=limits, exposure_us=exposure_us,
-                                          retries=retries)
-                state["exposure"] = exposure.summary()
-                _write_state(out, state)
-                if on_exposure:
-                    on_exposure(exposure)
-                if not exposure.ok and not accept_exposure:
-                    raise ExposureError(f"exposure check at z = {z:g} mm: {exposure.message}")
-            state["positions"][k] = {"state": "capturing", "z_mm": z}
-            _write_state(out, state)
-            if on_position:
-                on_position(k, "capturing")
-            for spec in rig.fringes.frames():
-                d, _j, t, s, big_n = spec
-                report(done_frames / total, f"position {k + 1}/{n_pos} (z = {z:g} mm): {d} period {t} px,"
-                                            f" step {s + 1}/{big_n}")
-                _call(display, "show", pattern_image(rig, d, t, s, big_n, z))
-                _call(display, "settle")
-                frame = _check_frame(_grab(camera, f"position {k + 1}, {d} period {t} step {s + 1}", retries),
-                                     rig, camera)
-                ok, buf = cv2.imencode(image_ext, frame)
-                if not ok:
-                    raise OSError(f"could not encode the frame of position {k + 1} as {image_ext}")
-                path = out / rig.image_name(k, d, t, s, big_n)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_bytes_atomic(path, buf.tobytes())
-                done_frames += 1
-                if on_frame:
-                    on_frame(k, spec, frame)
-            state["positions"][k] = {"state": "done", "z_mm": z}
-            _write_state(out, state)
-            captured.append(k)
-            if on_position:
-                on_position(k, "done")
-    except DeviceError as exc:
-        raise type(exc)(f"{exc} — {saved_note()}") from exc
-    except ExposureError as exc:
-        raise ExposureError(f"{exc} — {saved_note()}") from None
-    except OSError as exc:  # the folder: disk full, permissions, a vanished drive
-        raise CaptureError(f"{exc} — {saved_note()}") from exc
-    finally:
-        for dev in reversed(opened):
-            try:
-                _call(dev, "close")
-            except PtpError as exc:
-                warnings.warn(str(exc), stacklevel=2)
+    exposure = run.run(todo, z_plan, position_tolerance_mm, home, exposure_us,
+                       (limits, accept_exposure, on_exposure) if check else None)
 
     readings = [p["z_mm"] for p in state["positions"]]
     final = rig.with_z(readings)
@@ -579,7 +490,154 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     state["complete"] = True
     _write_state(out, state)
     report(1.0, "capture complete")
-    return CaptureResult(out, final, captured, kept, exposure)
+    return CaptureResult(out, final, run.captured, kept, exposure)
+
+
+def _verify_kept_positions(out: Path, rig: Rig, state: dict, report, on_position) -> list[int]:
+    """Resume: keep the positions whose readings are recorded and whose images all read back.
+
+    Stale temporary files are removed; every other position is marked pending again.
+    """
+    for stale in out.rglob(".*.part"):
+        with contextlib.suppress(OSError):
+            stale.unlink()
+    kept = []
+    n_pos = len(state["positions"])
+    for k, pos in enumerate(state["positions"]):
+        report(0.0, f"verifying position {k + 1}/{n_pos}")
+        if pos.get("state") == "done" and _position_complete(out, rig, k):
+            kept.append(k)
+            if on_position:
+                on_position(k, "kept")
+        else:
+            pos.update(state="pending")
+    _write_state(out, state)
+    return kept
+
+
+class _CaptureRun:
+    """The devices' part of one capture: open them, visit the positions, write every frame, close them.
+
+    ``state`` (the capture-state document) is updated and written after every
+    change, so that a crash loses at most the position being captured.
+    """
+
+    def __init__(self, out: Path, rig: Rig, camera, stage, display, state: dict, image_ext: str, retries: int,
+                 report, on_frame, on_position):
+        self.out, self.rig, self.state = out, rig, state
+        self.camera, self.stage, self.display = camera, stage, display
+        self.image_ext, self.retries, self.report = image_ext, retries, report
+        self.on_frame, self.on_position = on_frame, on_position
+        self.n_pos = len(state["positions"])
+        self.captured: list[int] = []
+        self.done_frames = 0
+        self.total = 1
+
+    def saved_note(self) -> str:
+        """What is saved so far, for every error message."""
+        done = [k for k, p in enumerate(self.state["positions"]) if p.get("state") == "done"]
+        if not done:
+            return f"nothing is captured yet in {self.out}; resume the capture once fixed"
+        return (f"{len(done)} of {self.n_pos} positions are saved in {self.out}; fix the cause and resume the"
+                " capture to get the rest")
+
+    def run(self, todo: list[int], z_plan: list[float], tolerance_mm: float, home: bool, exposure_us,
+            exposure_check) -> ExposureReport | None:
+        """Capture positions ``todo``; ``exposure_check`` = (limits, accept, on_exposure) or None to skip it.
+
+        Returns the exposure check's report (None when not run). Device, exposure and
+        folder errors are re-raised with :meth:`saved_note` appended.
+        """
+        self.total = max(1, len(todo) * self.rig.fringes.frames_per_position)
+        exposure = None
+        opened = []
+        try:
+            for dev in (self.display, self.camera, self.stage):
+                _call(dev, "open")
+                opened.append(dev)
+            if exposure_us is not None:
+                _call(self.camera, "set_exposure", float(exposure_us))
+            if home and todo:
+                self.report(0.0, "homing the stage")
+                _call(self.stage, "home")
+            for i, k in enumerate(todo):
+                z = self.move_to(k, z_plan[k], tolerance_mm)
+                if i == 0 and exposure_check is not None:
+                    exposure = self.check_exposure_at(z, exposure_us, *exposure_check)
+                self.capture_position(k, z)
+        except DeviceError as exc:
+            raise type(exc)(f"{exc} — {self.saved_note()}") from exc
+        except ExposureError as exc:
+            raise ExposureError(f"{exc} — {self.saved_note()}") from None
+        except OSError as exc:  # the folder: disk full, permissions, a vanished drive
+            raise CaptureError(f"{exc} — {self.saved_note()}") from exc
+        finally:
+            for dev in reversed(opened):
+                try:
+                    _call(dev, "close")
+                except PtpError as exc:
+                    warnings.warn(str(exc), stacklevel=2)
+        return exposure
+
+    def move_to(self, k: int, z_planned: float, tolerance_mm: float) -> float:
+        """Move the stage to position ``k``; its reading (mm), checked against the plan."""
+        self.report(self.done_frames / self.total,
+                    f"position {k + 1}/{self.n_pos}: moving the stage to z = {z_planned:g} mm")
+        _call(self.stage, "move_to", z_planned)
+        z = float(_call(self.stage, "position"))
+        if not math.isfinite(z) or abs(z - z_planned) > tolerance_mm:
+            raise DeviceError(f"{describe(self.stage)}: reads z = {z:g} mm after the move to {z_planned:g} mm"
+                              f" (more than {tolerance_mm:g} mm away)")
+        return z
+
+    def check_exposure_at(self, z: float, exposure_us, limits: ExposureLimits, accept: bool,
+                          on_exposure) -> ExposureReport:
+        """The exposure check at the first position captured (recorded in the state)."""
+        self.report(self.done_frames / self.total, "checking the exposure")
+        exposure = check_exposure(self.rig, self.camera, self.display, limits=limits, exposure_us=exposure_us,
+                                  retries=self.retries)
+        self.state["exposure"] = exposure.summary()
+        _write_state(self.out, self.state)
+        if on_exposure:
+            on_exposure(exposure)
+        if not exposure.ok and not accept:
+            raise ExposureError(f"exposure check at z = {z:g} mm: {exposure.message}")
+        return exposure
+
+    def capture_position(self, k: int, z: float) -> None:
+        """Show every pattern at position ``k`` (stage reading ``z``), grab and write each frame."""
+        state, out = self.state, self.out
+        state["positions"][k] = {"state": "capturing", "z_mm": z}
+        _write_state(out, state)
+        if self.on_position:
+            self.on_position(k, "capturing")
+        for spec in self.rig.fringes.frames():
+            self.capture_frame(k, z, spec)
+        state["positions"][k] = {"state": "done", "z_mm": z}
+        _write_state(out, state)
+        self.captured.append(k)
+        if self.on_position:
+            self.on_position(k, "done")
+
+    def capture_frame(self, k: int, z: float, spec) -> None:
+        """One pattern ``spec = (dir, level, period, step, N)``: show, settle, grab, check, write atomically."""
+        rig = self.rig
+        d, _j, t, s, big_n = spec
+        self.report(self.done_frames / self.total, f"position {k + 1}/{self.n_pos} (z = {z:g} mm): {d} period"
+                                                   f" {t} px, step {s + 1}/{big_n}")
+        _call(self.display, "show", pattern_image(rig, d, t, s, big_n, z))
+        _call(self.display, "settle")
+        frame = _check_frame(_grab(self.camera, f"position {k + 1}, {d} period {t} step {s + 1}", self.retries),
+                             rig, self.camera)
+        ok, buf = cv2.imencode(self.image_ext, frame)
+        if not ok:
+            raise OSError(f"could not encode the frame of position {k + 1} as {self.image_ext}")
+        path = self.out / rig.image_name(k, d, t, s, big_n)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, buf.tobytes())
+        self.done_frames += 1
+        if self.on_frame:
+            self.on_frame(k, spec, frame)
 
 
 def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict, n_pos: int) -> dict | None:

@@ -177,7 +177,7 @@ def cmd_demo(args) -> int:
 
 
 def _demo_compare(args, workdir, samples, rig, truth) -> None:
-    from ptpcore.evaluate.protocol import compare, format_summary
+    from ptpcore.evaluate import compare, format_summary
 
     print()
     result = compare(samples, rig, truth=truth, seed=args.seed, degree=args.degree)
@@ -188,7 +188,7 @@ def cmd_compare(args) -> int:
     import json
 
     from ptpcore.atomic import write_text_atomic
-    from ptpcore.evaluate.protocol import compare, format_summary
+    from ptpcore.evaluate import compare, format_summary
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.errors import DatasetError
     from ptpcore.run.pipeline import collect_samples
@@ -306,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from ptpcore.cli.capture import add_parser as add_capture_parser
 
-    add_capture_parser(sub)  # ptp capture (ptpcore/capture_cli.py)
+    add_capture_parser(sub)  # ptp capture (ptpcore/cli/capture.py)
     return p
 
 

@@ -1,6 +1,6 @@
 """Fused per-tile kernels compiled with numba (optional: ``pip install "ptp-studio[fast]"``).
 
-Imported only through :func:`ptpcore.phase.fused_kernels`, which returns None
+Imported only through :func:`ptpcore.decode.phase.fused_kernels`, which returns None
 when numba is missing or ``PTP_NO_NUMBA=1``; the numpy/OpenCV path then runs
 unchanged. Each kernel does one row tile in one pass over its pixels, with the
 arithmetic of the numpy path operation for operation (``fastmath=False``), so:
@@ -11,23 +11,23 @@ arithmetic of the numpy path operation for operation (``fastmath=False``), so:
   ``sum I^2``, the maximum for saturation) in float32 (``sum I^2`` in float64
   where float32 is not exact), then modulation, background and the noise
   residual. ``atan2`` stays with numpy
-  (:func:`ptpcore.phase._nstep_rows_fused` calls it on the tile right after):
+  (:func:`ptpcore.decode.phase._nstep_rows_fused` calls it on the tile right after):
   numpy's float32 ``arctan2`` is SIMD, about 25 times cheaper than the scalar
   libm call numba would make.
 - :func:`unwrap_classify_rows`: hierarchical unwrapping of one direction
-  (bit-equal to :func:`ptpcore.phase._unwrap_rows`) and the per-pixel reasons
+  (bit-equal to :func:`ptpcore.decode.phase._unwrap_rows`) and the per-pixel reasons
   that need no neighbours (low modulation, saturation, disagreement, outside).
 - :func:`near_edge_rows`: the border test by LCD-edge distance (bit-equal to
-  :func:`ptpcore.phase._near_edge`: the gradient and ``hypot`` only where a
+  :func:`ptpcore.decode.phase._near_edge`: the gradient and ``hypot`` only where a
   per-pixel bound leaves the result in doubt).
 - :func:`store_rows`: world coordinates and the sample maps of one position
-  (bit-equal to :func:`ptpcore.pipeline._store_rows`).
+  (bit-equal to :func:`ptpcore.run.pipeline._store_rows`).
 - :func:`poly_fit_full`, :func:`valid_span`: the LUT fit of the pixels valid at
   every position, and each pixel's count and first/last valid position
-  (equal to :func:`ptpcore.lut.fit_lut`'s numpy path).
+  (equal to :func:`ptpcore.fit.fit_lut`'s numpy path).
 
 The kernels release the GIL (``nogil=True``) and run on the engine's tile pool
-(:func:`ptpcore.phase.run_tiles`, ``PTP_THREADS``), not on numba's own
+(:func:`ptpcore.parallel.run_tiles`, ``PTP_THREADS``), not on numba's own
 threads: a tile's kernel and numpy's ``arctan2`` then share the cache, and
 nothing depends on numba's threading layer (which cannot be entered from
 several Python threads at once, as the dataset reader and the GUI do).
@@ -42,7 +42,7 @@ from numba import njit
 
 _OPTS = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
-LOW_MODULATION, SATURATED, UNWRAP, OUTSIDE_LCD, BORDER = 1, 2, 4, 8, 16  # ptpcore.phase.Reason
+LOW_MODULATION, SATURATED, UNWRAP, OUTSIDE_LCD, BORDER = 1, 2, 4, 8, 16  # ptpcore.decode.phase.Reason
 
 
 # Two row kernels on purpose: the coarse periods need only S, C, modulation and saturation, and
@@ -330,7 +330,7 @@ def poly_fit_full(pinv, v, loo_scale, with_loo, y, coef, rms, loo):
 
     ``coef = pinv @ y``, ``resid = y - v @ coef``, ``rms = sqrt(sum resid^2 / K)``,
     ``loo = sqrt(sum (resid * loo_scale)^2 / K)`` (if ``with_loo``), as
-    :func:`ptpcore.lut._fit_poly_tile_xy` does with ``einsum``, in one pass over
+    :func:`ptpcore.io.lutfile._fit_poly_tile_xy` does with ``einsum``, in one pass over
     ``y`` (float32 or float64, each sample taken as float64) in blocks of
     pixels that stay in L1/L2. Each step is a small loop over the block's
     pixels (an ``axpy``), which LLVM vectorises; every sum runs over the

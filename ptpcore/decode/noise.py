@@ -2,7 +2,7 @@
 
 Every N-step fit with N > 3 leaves N - 3 degrees of freedom: the scatter of
 the samples about the fitted sinusoid is an unbiased estimate of the noise
-variance at that pixel (:attr:`ptpcore.phase.WrappedPhase.residual_var`).
+variance at that pixel (:attr:`ptpcore.decode.phase.WrappedPhase.residual_var`).
 Pooled over millions of pixels and binned by grey level it gives the sensor's
 photon-transfer curve ``var = read_var + gain * level`` without any dark or
 flat frames. The phase noise of every sample then follows from METHOD.md

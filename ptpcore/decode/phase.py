@@ -194,7 +194,7 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
 
 
 # ---------------------------------------------------------------------------
-# Optional numba kernels (ptpcore._fused)
+# Optional numba kernels (ptpcore.decode._fused)
 
 _fused_mod = None
 _fused_tried = False
@@ -202,7 +202,7 @@ _fused_lock = threading.Lock()
 
 
 def fused_kernels():
-    """The numba kernels module :mod:`ptpcore._fused`, or None.
+    """The numba kernels module :mod:`ptpcore.decode._fused`, or None.
 
     None when numba is not installed (``pip install "ptp-studio[fast]"``) or the
     environment sets ``PTP_NO_NUMBA=1``: the numpy/OpenCV path then runs. numba
@@ -289,7 +289,7 @@ def _int_threshold(level) -> int:
 
 
 def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
-    """:func:`_nstep_rows` with the numba kernel (:func:`ptpcore._fused.nstep_rows`): one pass over
+    """:func:`_nstep_rows` with the numba kernel (:func:`ptpcore.decode._fused.nstep_rows`): one pass over
     the tile's frames for all sums, then numpy's (SIMD) ``arctan2`` on the tile.
 
     ``frames``: the (N, H, W) stack or a sequence of N (H, W) frames (e.g. mapped files).

@@ -11,54 +11,21 @@ May import :mod:`ptpcore.simulate` and everything below it; never :mod:`ptpcore.
 :mod:`ptpcore.capture` or :mod:`ptpcore.cli`.
 """
 
-from .protocol import (COMPARE_FORMAT, SPLITS, METHODS, METHOD_LABELS, REFERENCES, PAIR_KINDS,
-    ErrorStats, CoordinateStats, DistanceCurve, PairSet, DistanceErrors, MethodReport, Verdict,
-    ReferenceReport, FeaturePoints, Fold, Coverage, CompareResult, split_positions, draw_features,
-    coordinate_stats, error_stats, compare, smooth_degree_for, format_summary)
+from .statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS, PAIR_KINDS, REFERENCES, SPLITS, CoordinateStats,
+    DistanceCurve, DistanceErrors, ErrorStats, PairSet, Verdict, coordinate_stats, error_stats)
+from .report import CompareResult, Coverage, FeaturePoints, Fold, MethodReport, ReferenceReport, format_summary
+from .protocol import compare, draw_features, smooth_degree_for, split_positions
 from .accuracy import HeldOutAccuracy, held_out_accuracy
-from .views import (REASON_ORDER, REASON_COLOURS, VALID_COLOUR, reason_rgba, reason_counts,
-    reason_text, mask_rgba, subsample, robust_levels, histogram, PixelSeries, pixel_series,
-    predicted_signal)
+from .views import (REASON_ORDER, REASON_COLOURS, VALID_COLOUR, reason_rgba, reason_counts, reason_text, mask_rgba,
+    subsample, robust_levels, histogram, PixelSeries, pixel_series, predicted_signal)
 
 __all__ = [
-    "COMPARE_FORMAT",
-    "SPLITS",
-    "METHODS",
-    "METHOD_LABELS",
-    "REFERENCES",
-    "PAIR_KINDS",
-    "ErrorStats",
-    "CoordinateStats",
-    "DistanceCurve",
-    "PairSet",
-    "DistanceErrors",
-    "MethodReport",
-    "Verdict",
-    "ReferenceReport",
-    "FeaturePoints",
-    "Fold",
-    "Coverage",
-    "CompareResult",
-    "split_positions",
-    "draw_features",
-    "coordinate_stats",
-    "error_stats",
-    "compare",
-    "smooth_degree_for",
-    "format_summary",
-    "HeldOutAccuracy",
-    "held_out_accuracy",
-    "REASON_ORDER",
-    "REASON_COLOURS",
-    "VALID_COLOUR",
-    "reason_rgba",
-    "reason_counts",
-    "reason_text",
-    "mask_rgba",
-    "subsample",
-    "robust_levels",
-    "histogram",
-    "PixelSeries",
-    "pixel_series",
-    "predicted_signal",
+    "COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS",
+    "ErrorStats", "CoordinateStats", "DistanceCurve", "PairSet", "DistanceErrors", "Verdict",
+    "coordinate_stats", "error_stats",
+    "CompareResult", "Coverage", "FeaturePoints", "Fold", "MethodReport", "ReferenceReport", "format_summary",
+    "compare", "draw_features", "smooth_degree_for", "split_positions",
+    "HeldOutAccuracy", "held_out_accuracy",
+    "REASON_ORDER", "REASON_COLOURS", "VALID_COLOUR", "reason_rgba", "reason_counts", "reason_text", "mask_rgba",
+    "subsample", "robust_levels", "histogram", "PixelSeries", "pixel_series", "predicted_signal",
 ]

@@ -78,7 +78,7 @@ def reason_rgba(reasons: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     reasons : (H, W) uint8
-        :class:`ptpcore.phase.Reason` bit flags; 0 where valid.
+        :class:`ptpcore.decode.phase.Reason` bit flags; 0 where valid.
 
     Returns
     -------
@@ -256,8 +256,8 @@ def pixel_series(lut, samples, row: int, col: int, positions=None, n_curve: int 
 
     Parameters
     ----------
-    lut : ptpcore.lut.Lut
-    samples : ptpcore.lut.SampleStack
+    lut : ptpcore.io.lutfile.Lut
+    samples : ptpcore.io.SampleStack
         The samples the LUT was fitted on (same camera shape).
     row, col : int
         Camera pixel.
@@ -302,7 +302,7 @@ def pixel_series(lut, samples, row: int, col: int, positions=None, n_curve: int 
 def predicted_signal(rig, settings) -> tuple[np.ndarray, float]:
     """Expected fringe modulation per position and sample noise of a simulated rig.
 
-    A first-order prediction for :func:`ptpcore.patterns.design_check`: the
+    A first-order prediction for :func:`ptpcore.decode.patterns.design_check`: the
     LCD's luminance swing through its gamma, the exposure, vignetting at the
     image corner and defocus ignored.
 

@@ -1,8 +1,8 @@
 """One entry point for every LUT kind the product offers.
 
 ``poly``, ``pchip`` and ``linear`` are the paper's per-pixel models
-(:mod:`ptpcore.lut`); ``smooth`` is the regularised per-pixel model
-(:mod:`ptpcore.smooth`), written as ``poly`` coefficients. Plain ``poly`` LUTs
+(:mod:`ptpcore.io.lutfile`); ``smooth`` is the regularised per-pixel model
+(:mod:`ptpcore.fit.smooth`), written as ``poly`` coefficients. Plain ``poly`` LUTs
 also get their predicted sigma maps when the samples carry a noise model.
 """
 
@@ -40,10 +40,10 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         1-sigma error of the stage readings (mm, the stage's specification):
         part of the predicted sigma maps (``poly`` and ``smooth``).
     level_bias : bool
-        ``smooth``: remove the display's level bias first (:mod:`ptpcore.display`).
+        ``smooth``: remove the display's level bias first (:mod:`ptpcore.decode.display`).
     footprint : bool
         ``smooth``: move samples from the footprint centroid to the centre ray
-        (:func:`ptpcore.smooth.footprint_bias`).
+        (:func:`ptpcore.fit.smooth.footprint_bias`).
 
     Returns
     -------

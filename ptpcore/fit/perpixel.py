@@ -9,6 +9,7 @@ Rows are fitted in tiles on the shared pool (:mod:`ptpcore.parallel`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -58,125 +59,182 @@ def fit_lut(samples: SampleStack, model: str = "poly", degree: int = 3,
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if model == "poly" and not 1 <= int(degree) <= 5:
         raise ValueError(f"poly degree must be 1 to 5, got {degree}")
-    from ptpcore.io.fastio import read_block
+    from ptpcore.decode.phase import fused_kernels
+    from ptpcore.parallel import tile_workers, worker_pool
 
     k_all = samples.x.shape[0]
     idx = np.arange(k_all) if positions is None else np.asarray(positions)
     if weights is not None:
         weights = np.asarray(weights)[idx]
     z = np.asarray(samples.z, dtype=float)[idx]
-    order = np.argsort(z)
-    k = len(idx)
     h, w = samples.shape
-    z_center, z_scale = _z_normalisation(z)
     if min_positions is None:
         min_positions = degree + 2 if model == "poly" else 2
-    p_total = h * w
-    # Every tile writes every pixel of its slice (so np.empty: the pages are first
-    # touched by the tiles, on every core, not filled here first), in the dtypes of
-    # the Lut (no whole-image conversions after; float64 z to float32 rounds alike).
-    n_pos = np.empty(p_total, np.uint16)
-    pz_min = np.empty(p_total, np.float32)
-    pz_max = np.empty(p_total, np.float32)
-    valid = np.empty(p_total, bool)
-    n_lead = degree + 1 if model == "poly" else k
-    coef = {a: np.empty((n_lead, p_total)) for a in "xy"}
-    rms = {a: np.empty(p_total, np.float32) for a in "xy"}
-    loo = {a: np.empty(p_total, np.float32) for a in "xy"}
-    t_all = (z - z_center) / z_scale
-    wflat = None if weights is None else np.asarray(weights, dtype=float).reshape(k, -1)
-    sel = None if positions is None else idx
-    z_sorted = z[order]
-    sorted_z = bool(np.all(order == np.arange(k)))
-
-    from ptpcore.decode.phase import fused_kernels
-
-    kern = fused_kernels()
-
-    def tile(start: int) -> None:
-        stop = min(start + _TILE, p_total)
-        reasons_t = read_block(samples.reasons, start, stop, sel)
-        valid_t = reasons_t == 0
-        if kern is not None:  # counts and first/last valid in one pass (argmax on axis 0 is slow)
-            n_t, first, last = (np.empty(stop - start, np.int64) for _ in range(3))
-            kern.valid_span(np.ascontiguousarray(reasons_t), order, n_t, first, last)
-        else:
-            n_t = valid_t.sum(axis=0)
-            first = last = None
-        n_pos[start:stop] = n_t
-        usable_t = n_t >= min_positions
-        if usable_t.any():
-            # The lowest and highest valid z: the first and last valid position in z order
-            # (argmax of a bool stack, no (K, P) float temporaries).
-            if first is None:
-                vs = valid_t if sorted_z else valid_t[order]
-                first = vs.argmax(axis=0)
-                last = len(z) - 1 - vs[::-1].argmax(axis=0)
-            pz_min[start:stop] = np.where(usable_t, z_sorted[first], np.nan)
-            pz_max[start:stop] = np.where(usable_t, z_sorted[last], np.nan)
-        else:
-            pz_min[start:stop] = np.nan
-            pz_max[start:stop] = np.nan
-        mask = valid_t & usable_t[None, :]
-        # Poly fits take the float32 samples as they are (each group converts what it uses,
-        # the fused kernel as it reads); tables want float64.
-        offs = {a: read_block(getattr(samples, a), start, stop, sel) for a in "xy"}
-        if model != "poly":
-            offs = {a: o.astype(np.float64) for a, o in offs.items()}
-        refs = {a: getattr(samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}
-        if model == "poly":
-            fits = _fit_poly_tile_xy(t_all, [offs["x"], offs["y"]], mask, degree,
-                                     None if wflat is None else wflat[:, start:stop],
-                                     np.where(usable_t, n_t, 0))
-            for axis_name, (c, r, l) in zip("xy", fits):
-                c[0] += refs[axis_name]
-                coef[axis_name][:, start:stop] = c
-                rms[axis_name][start:stop] = r
-                loo[axis_name][start:stop] = l
-        else:
-            for axis_name in "xy":
-                o = offs[axis_name]
-                vals = np.where(mask, o + refs[axis_name][None, :], np.nan)
-                coef[axis_name][:, start:stop] = vals[order]
-                rms[axis_name][start:stop] = np.where(mask.any(axis=0), 0.0, np.nan)
-                loo[axis_name][start:stop] = _table_loo(z[order], o[order], mask[order], model)
-        # A usable pixel whose fit failed is invalid; invalid pixels hold NaN everywhere.
-        cx = coef["x"][:, start:stop]
-        ok = usable_t & (np.all(np.isfinite(cx), axis=0) if model == "poly" else np.isfinite(cx).sum(axis=0) >= 2)
-        valid[start:stop] = ok
-        if not ok.all():
-            bad = np.flatnonzero(~ok) + start
-            for a in "xy":
-                coef[a][:, bad] = np.nan
-                rms[a][bad] = np.nan
-                loo[a][bad] = np.nan
-            pz_min[bad] = np.nan
-            pz_max[bad] = np.nan
-            n_pos[bad] = 0
-
+    plan = _FitPlan(samples, model, int(degree), z, None if positions is None else idx, min_positions,
+                    None if weights is None else np.asarray(weights, dtype=float).reshape(len(idx), -1),
+                    fused_kernels())
+    out = _LutArrays.empty(h * w, degree + 1 if model == "poly" else len(idx))
     # Pixel tiles on every core (numpy's loops release the GIL); results land in
     # disjoint slices, so the order of completion does not matter.
-    from ptpcore.parallel import tile_workers, worker_pool
-
-    starts = list(range(0, p_total, _TILE))
+    starts = list(range(0, h * w, _TILE))
+    tile = lambda start: plan.fit_tile(out, start, min(start + _TILE, h * w))  # noqa: E731
     done = map(tile, starts) if tile_workers() == 1 or len(starts) == 1 else worker_pool().map(tile, starts)
     for i, _ in enumerate(done):
         if progress:
             progress(i / len(starts), f"fitting LUT ({model})")
-    shape = (h, w)
     if progress:
         progress(1.0, "LUT fitted")
-    return Lut(
-        kind=model, degree=int(degree) if model == "poly" else None,
-        z_center=z_center, z_scale=z_scale, z_min=float(z.min()), z_max=float(z.max()),
-        x=coef["x"].reshape(-1, h, w), y=coef["y"].reshape(-1, h, w),
-        z_nodes=None if model == "poly" else z[order].astype(float),
-        valid=valid.reshape(shape), n_positions=n_pos.reshape(shape),
-        pixel_z_min=pz_min.reshape(shape), pixel_z_max=pz_max.reshape(shape),
-        rms_x=rms["x"].reshape(shape), rms_y=rms["y"].reshape(shape),
-        loo_x=loo["x"].reshape(shape), loo_y=loo["y"].reshape(shape),
-        rig_toml=rig_toml,
-    )
+    return out.to_lut(plan, (h, w), rig_toml)
+
+
+@dataclass
+class _LutArrays:
+    """The flat (P = H*W pixels) arrays of a LUT being fitted, written tile by tile.
+
+    Every tile writes every pixel of its slice (so ``np.empty``: the pages are first
+    touched by the tiles, on every core, not filled here first), in the dtypes of
+    the Lut (no whole-image conversions after; float64 z to float32 rounds alike).
+    """
+
+    n_pos: np.ndarray    # (P,) uint16
+    pz_min: np.ndarray   # (P,) float32, mm
+    pz_max: np.ndarray   # (P,) float32, mm
+    valid: np.ndarray    # (P,) bool
+    coef: dict           # "x", "y" -> (D+1 or K, P) float64, mm
+    rms: dict            # "x", "y" -> (P,) float32, mm
+    loo: dict            # "x", "y" -> (P,) float32, mm
+
+    @classmethod
+    def empty(cls, p_total: int, n_lead: int) -> "_LutArrays":
+        return cls(np.empty(p_total, np.uint16), np.empty(p_total, np.float32), np.empty(p_total, np.float32),
+                   np.empty(p_total, bool), {a: np.empty((n_lead, p_total)) for a in "xy"},
+                   {a: np.empty(p_total, np.float32) for a in "xy"}, {a: np.empty(p_total, np.float32) for a in "xy"})
+
+    def clear(self, bad: np.ndarray) -> None:
+        """Invalid pixels (flat indices ``bad``) hold NaN everywhere and no positions."""
+        for a in "xy":
+            self.coef[a][:, bad] = np.nan
+            self.rms[a][bad] = np.nan
+            self.loo[a][bad] = np.nan
+        self.pz_min[bad] = np.nan
+        self.pz_max[bad] = np.nan
+        self.n_pos[bad] = 0
+
+    def to_lut(self, plan: "_FitPlan", shape, rig_toml: str) -> Lut:
+        h, w = shape
+        poly = plan.model == "poly"
+        return Lut(
+            kind=plan.model, degree=plan.degree if poly else None,
+            z_center=plan.z_center, z_scale=plan.z_scale, z_min=float(plan.z.min()), z_max=float(plan.z.max()),
+            x=self.coef["x"].reshape(-1, h, w), y=self.coef["y"].reshape(-1, h, w),
+            z_nodes=None if poly else plan.z_sorted.astype(float),
+            valid=self.valid.reshape(shape), n_positions=self.n_pos.reshape(shape),
+            pixel_z_min=self.pz_min.reshape(shape), pixel_z_max=self.pz_max.reshape(shape),
+            rms_x=self.rms["x"].reshape(shape), rms_y=self.rms["y"].reshape(shape),
+            loo_x=self.loo["x"].reshape(shape), loo_y=self.loo["y"].reshape(shape),
+            rig_toml=rig_toml,
+        )
+
+
+class _FitPlan:
+    """What every tile of one :func:`fit_lut` call shares: the samples, the model and the positions used.
+
+    Attributes
+    ----------
+    z : (K,) float64, mm
+        The readings of the positions used, in the order given.
+    order : (K,) int
+        Their ascending order; ``z_sorted = z[order]``.
+    t : (K,) float64
+        ``(z - z_center) / z_scale``.
+    sel : (K,) int or None
+        The positions used (None: all).
+    weights : (K, P) float64 or None
+    """
+
+    def __init__(self, samples: SampleStack, model: str, degree: int, z: np.ndarray, sel, min_positions: int,
+                 weights, kern):
+        self.samples, self.model, self.degree, self.z, self.sel = samples, model, degree, z, sel
+        self.min_positions, self.weights, self.kern = min_positions, weights, kern
+        self.order = np.argsort(z)
+        self.z_sorted = z[self.order]
+        self.sorted_z = bool(np.all(self.order == np.arange(z.size)))
+        self.z_center, self.z_scale = _z_normalisation(z)
+        self.t = (z - self.z_center) / self.z_scale
+
+    def fit_tile(self, out: _LutArrays, start: int, stop: int) -> None:
+        """Fit pixels ``[start, stop)`` (flat indices) into ``out``."""
+        from ptpcore.io.fastio import read_block
+
+        valid_t, n_t, usable_t = self._z_span(out, start, stop, read_block(self.samples.reasons, start, stop, self.sel))
+        mask = valid_t & usable_t[None, :]
+        if self.model == "poly":
+            self._fit_poly(out, start, stop, mask, usable_t, n_t)
+        else:
+            self._fill_table(out, start, stop, mask)
+        # A usable pixel whose fit failed is invalid; invalid pixels hold NaN everywhere.
+        cx = out.coef["x"][:, start:stop]
+        ok = usable_t & (np.all(np.isfinite(cx), axis=0) if self.model == "poly"
+                         else np.isfinite(cx).sum(axis=0) >= 2)
+        out.valid[start:stop] = ok
+        if not ok.all():
+            out.clear(np.flatnonzero(~ok) + start)
+
+    def _z_span(self, out: _LutArrays, start: int, stop: int, reasons_t: np.ndarray):
+        """Valid positions of a tile, their count, and each pixel's lowest and highest valid z (into ``out``)."""
+        valid_t = reasons_t == 0
+        if self.kern is not None:  # counts and first/last valid in one pass (argmax on axis 0 is slow)
+            n_t, first, last = (np.empty(stop - start, np.int64) for _ in range(3))
+            self.kern.valid_span(np.ascontiguousarray(reasons_t), self.order, n_t, first, last)
+        else:
+            n_t = valid_t.sum(axis=0)
+            first = last = None
+        out.n_pos[start:stop] = n_t
+        usable_t = n_t >= self.min_positions
+        if usable_t.any():
+            # The lowest and highest valid z: the first and last valid position in z order
+            # (argmax of a bool stack, no (K, P) float temporaries).
+            if first is None:
+                vs = valid_t if self.sorted_z else valid_t[self.order]
+                first = vs.argmax(axis=0)
+                last = len(self.z) - 1 - vs[::-1].argmax(axis=0)
+            out.pz_min[start:stop] = np.where(usable_t, self.z_sorted[first], np.nan)
+            out.pz_max[start:stop] = np.where(usable_t, self.z_sorted[last], np.nan)
+        else:
+            out.pz_min[start:stop] = np.nan
+            out.pz_max[start:stop] = np.nan
+        return valid_t, n_t, usable_t
+
+    def _offsets(self, start: int, stop: int):
+        from ptpcore.io.fastio import read_block
+
+        offs = {a: read_block(getattr(self.samples, a), start, stop, self.sel) for a in "xy"}
+        refs = {a: getattr(self.samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}
+        return offs, refs
+
+    def _fit_poly(self, out: _LutArrays, start: int, stop: int, mask, usable_t, n_t) -> None:
+        # Poly fits take the float32 samples as they are (each group converts what it uses,
+        # the fused kernel as it reads).
+        offs, refs = self._offsets(start, stop)
+        fits = _fit_poly_tile_xy(self.t, [offs["x"], offs["y"]], mask, self.degree,
+                                 None if self.weights is None else self.weights[:, start:stop],
+                                 np.where(usable_t, n_t, 0))
+        for axis_name, (c, r, l) in zip("xy", fits):
+            c[0] += refs[axis_name]
+            out.coef[axis_name][:, start:stop] = c
+            out.rms[axis_name][start:stop] = r
+            out.loo[axis_name][start:stop] = l
+
+    def _fill_table(self, out: _LutArrays, start: int, stop: int, mask) -> None:
+        # Tables want float64.
+        offs, refs = self._offsets(start, stop)
+        order = self.order
+        for axis_name in "xy":
+            o = offs[axis_name].astype(np.float64)
+            vals = np.where(mask, o + refs[axis_name][None, :], np.nan)
+            out.coef[axis_name][:, start:stop] = vals[order]
+            out.rms[axis_name][start:stop] = np.where(mask.any(axis=0), 0.0, np.nan)
+            out.loo[axis_name][start:stop] = _table_loo(self.z_sorted, o[order], mask[order], self.model)
 
 
 def _fit_poly_tile(t: np.ndarray, values: np.ndarray, mask: np.ndarray, degree: int,

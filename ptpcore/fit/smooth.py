@@ -9,7 +9,7 @@ lens). Here
    geometry with almost no noise;
 2. every pixel fits a polynomial in z to its residuals against that model,
    weighted by each sample's predicted phase noise (from the modulation and
-   the camera noise measured in the data, :mod:`ptpcore.noise`);
+   the camera noise measured in the data, :mod:`ptpcore.decode.noise`);
 3. each coefficient map of that correction is smoothed over the image by a
    locally linear, inverse-variance weighted Gaussian regression (built from
    ``scipy.ndimage.gaussian_filter`` moments), so the correction keeps
@@ -59,7 +59,7 @@ def _nanmean0(a: np.ndarray) -> np.ndarray:
 
 
 def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z) -> np.ndarray:
-    """Absolute world X or Y samples minus the display's level bias (:mod:`ptpcore.display`), in place.
+    """Absolute world X or Y samples minus the display's level bias (:mod:`ptpcore.decode.display`), in place.
 
     Parameters
     ----------
@@ -640,7 +640,7 @@ def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed:
                    rig: Rig | None = None) -> PinholeModel:
     """Fit the pinhole + Brown model to a random subset of valid calibration samples.
 
-    With ``rig``, the samples lose the display's level bias first (:mod:`ptpcore.display`).
+    With ``rig``, the samples lose the display's level bias first (:mod:`ptpcore.decode.display`).
     """
     rng = np.random.default_rng(seed)
     h, w = samples.shape
@@ -754,7 +754,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     Parameters
     ----------
     samples : SampleStack
-        From :func:`ptpcore.pipeline.collect_samples` (needs its noise model).
+        From :func:`ptpcore.run.pipeline.collect_samples` (needs its noise model).
         File-backed (spilled) stacks are read block by block, never whole.
     rig : Rig
     degree : int
@@ -770,7 +770,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         (:func:`stage_leverage`) and slope, and left out of the weights.
     level_bias : bool
         Remove the bias that the LCD's integer levels put into the decoded
-        coordinates (:mod:`ptpcore.display`) before fitting. Off for a display
+        coordinates (:mod:`ptpcore.decode.display`) before fitting. Off for a display
         that dithers.
     footprint : bool
         Move every sample from its pixel's footprint centroid to the pixel's
@@ -807,120 +807,215 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report(0.0, "fitting the global camera model")
     model = global_pinhole(samples, positions, n_points=global_points, seed=seed,
                            rig=rig if level_bias else None)
-    shape = samples.shape
-    h, w = shape
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
     zc, zs = _z_normalisation(z)
-    t = (z - zc) / zs
-    k = z.size
-    d1 = degree + 1
     # The plain degree-2 fit that calibrates the predicted noise (sigma_scale): its residual RMS only.
     report(0.02, "calibrating the noise prediction")
     plain = fit_lut(samples, "poly", 2, positions=positions)
     rms_x = np.where(plain.valid, plain.rms_x, np.float32(np.nan))
     rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
     del plain
-    rays = _global_rays(model, shape)
-    gx0, gy0, gsx, gsy = rays
+    rays = _global_rays(model, samples.shape)
 
-    # Cross-validation over the smoothing scale: two folds of alternate positions
-    # (each fold keeps the z range covered by the other).
-    # Each fold keeps half the positions: with few positions the folds fit a
-    # lower degree in z (the scale that suits the image-wide field barely
-    # depends on it); with fewer than 4 positions no scale can be validated.
-    scales = np.asarray(scales_px, dtype=float)
-    cv_degree = min(degree, k // 2 - 1)
-    folds = [np.arange(k) % 2 == f for f in (0, 1)] if cv_degree >= 1 else []
-    if not folds:
-        warnings.warn(f"smooth LUT: {k} calibration positions are too few to cross-validate the smoothing"
-                      " scale (need 4); the correction is not smoothed", RuntimeWarning, stacklevel=2)
-    b = int(cv_bin) if cv_bin else _bin_factor(shape)
-    hc, wc = -(-h // b), -(-w // b)
-    dc = cv_degree + 1
-    # Scales of fewer than 4 bins are cross-validated per pixel (in strips of rows
-    # with a halo the Gaussian cannot see past), larger ones on the binned grid.
-    fine = np.flatnonzero(scales < 4 * b) if b > 1 else np.arange(scales.size)
-    coarse = np.flatnonzero(scales >= 4 * b) if b > 1 else np.arange(0)
-    halo = 0 if b == 1 else int(np.ceil(3.0 * max(scales[fine].max(initial=0.0), 0.0))) + 1
-    strip = h if b == 1 else max(b, (max(_STRIP_ROWS, 8 * halo) // b) * b)
-    # Sums over test samples, per scale: sum w (v.c - r)^2, samples, sum w.
-    q_sum = np.zeros(scales.size)
-    n_sum = np.zeros(scales.size)
-    w_sum = np.zeros(scales.size)
+    run = _SmoothPass(samples, rig, sel, z, (zc, zs), rays, degree, scales_px, cv_bin, level_bias, footprint)
+    report(0.05, "fitting every pixel and cross-validating")
+    run.fit_and_cross_validate_fine(report)
+    fits = run.fits
+    noise_scale = _sigma_scale_from(rms_x, rms_y, fits.n_pos, fits.mean_var, 2)
+    rms_x = rms_y = fits.mean_var = None
+    run.cross_validate_coarse(report)
+    scale, cv_score, excess_var = run.choose_scale(noise_scale)
 
-    # One pass over the samples, in strips of rows (blocks within them): every
-    # pixel's own weighted fit of its residuals to the global model (all
-    # positions); for each fold the training fit and the test samples'
-    # sufficient statistics, so that the squared error of any prediction c is
-    # c'Mc - 2c'B + R: per pixel over the strip (fine scales), binned (coarse).
-    fit = np.empty((2, d1, h, w))
-    var = np.empty((d1, h, w))
-    n_pos = np.empty((h, w), np.int32)
-    pz_min = np.empty((h, w), np.float32)
-    pz_max = np.empty((h, w), np.float32)
-    mean_var = np.empty((h, w))
-    own_var = np.empty((h, w))   # the pixel's own fit: exact variance over its range
-    own_diag = np.empty((h, w))  # the same with the coefficients taken as uncorrelated
+    report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
+    coef = _smoothed_coefficients(fits, scale, run.b, rays, zc, zs)
+    stage_var = _stage_variance(rays, rig, run.t, degree, stage_sigma_mm)
+    d1 = degree + 1
+    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
+    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
+    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= d1)
+    fits.pz_min[~valid] = np.nan
+    fits.pz_max[~valid] = np.nan
+    q = _residual_maps(samples, rig, sel, z, run.t, coef, rays, level_bias, footprint)
+    run = rays = None
+    sig = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, stage_var)
+    fits.var = fits.own_var = fits.own_diag = None
+    for a in "xy":
+        coef[a][:, ~valid] = np.nan
+        sig[a][~valid] = np.nan
+        q[a][~valid] = np.nan
+    lut = Lut(
+        kind="poly", degree=degree, z_center=zc, z_scale=zs, z_min=float(z.min()), z_max=float(z.max()),
+        x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
+        n_positions=np.where(valid, fits.n_pos, 0).astype(np.uint16),
+        pixel_z_min=fits.pz_min, pixel_z_max=fits.pz_max,
+        rms_x=q["x"], rms_y=q["y"],
+        # The smooth fit barely moves when one position is left out: its
+        # leave-one-out error is its residual against the held-out sample.
+        loo_x=q["x"].copy(), loo_y=q["y"].copy(),
+        sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
+        extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
+    )
+    report(1.0, "smooth LUT fitted")
+    return lut, SmoothInfo(model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
+                           float(np.sqrt(excess_var)))
 
-    def fold_maps(rows):
+
+@dataclass
+class _PixelFits:
+    """Every pixel's own weighted fit of its residuals to the global model (all calibration positions).
+
+    Attributes
+    ----------
+    fit : (2, D+1, H, W) float64, mm
+        X and Y coefficients in ``t`` (lowest power first).
+    var : (D+1, H, W) float64
+        Their variances per unit sample variance (uncorrelated form).
+    n_pos : (H, W) int32
+        Valid calibration positions per pixel.
+    pz_min, pz_max : (H, W) float32, mm
+        The pixel's calibrated range.
+    mean_var : (H, W) float64, mm^2
+        Mean predicted sample variance (for :func:`_sigma_scale_from`).
+    own_var, own_diag : (H, W) float64
+        The fit's variance averaged over the pixel's own range, with the
+        covariances and with the coefficients taken as uncorrelated.
+    """
+
+    fit: np.ndarray
+    var: np.ndarray
+    n_pos: np.ndarray
+    pz_min: np.ndarray
+    pz_max: np.ndarray
+    mean_var: np.ndarray
+    own_var: np.ndarray
+    own_diag: np.ndarray
+
+    @classmethod
+    def empty(cls, shape, d1: int) -> "_PixelFits":
+        h, w = shape
+        return cls(np.empty((2, d1, h, w)), np.empty((d1, h, w)), np.empty((h, w), np.int32),
+                   np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)),
+                   np.empty((h, w)), np.empty((h, w)))
+
+
+class _SmoothPass:
+    """One pass over the samples, in strips of rows, and the smoothing scale's cross-validation.
+
+    Every pixel gets its own weighted fit of its residuals to the global model
+    (:class:`_PixelFits`, all positions); for each of two folds of alternate
+    positions (each keeps the z range covered by the other) the training fit
+    and the test samples' sufficient statistics, so that the squared error of
+    any prediction ``c`` is ``c'Mc - 2c'B + R``: per pixel over the strip for
+    fine scales, on bins for coarse ones. With few positions the folds fit a
+    lower degree in z (the scale that suits the image-wide field barely
+    depends on it); with fewer than 4 positions no scale can be validated.
+    """
+
+    def __init__(self, samples: SampleStack, rig: Rig, sel, z: np.ndarray, z_norm, rays, degree: int,
+                 scales_px, cv_bin, level_bias: bool, footprint: bool):
+        self.samples, self.rig, self.sel, self.z, self.rays = samples, rig, sel, z, rays
+        self.level_bias, self.footprint = level_bias, footprint
+        self.zc, self.zs = z_norm
+        self.t = (z - self.zc) / self.zs
+        self.degree, self.d1 = degree, degree + 1
+        h, w = self.shape = samples.shape
+        k = z.size
+        self.scales = np.asarray(scales_px, dtype=float)
+        self.cv_degree = min(degree, k // 2 - 1)
+        self.dc = self.cv_degree + 1
+        self.folds = [np.arange(k) % 2 == f for f in (0, 1)] if self.cv_degree >= 1 else []
+        if not self.folds:
+            warnings.warn(f"smooth LUT: {k} calibration positions are too few to cross-validate the smoothing"
+                          " scale (need 4); the correction is not smoothed", RuntimeWarning, stacklevel=3)
+        b = self.b = int(cv_bin) if cv_bin else _bin_factor(self.shape)
+        self.hc, self.wc = -(-h // b), -(-w // b)
+        # Scales of fewer than 4 bins are cross-validated per pixel (in strips of rows
+        # with a halo the Gaussian cannot see past), larger ones on the binned grid.
+        scales = self.scales
+        self.fine = np.flatnonzero(scales < 4 * b) if b > 1 else np.arange(scales.size)
+        self.coarse = np.flatnonzero(scales >= 4 * b) if b > 1 else np.arange(0)
+        self.halo = 0 if b == 1 else int(np.ceil(3.0 * max(scales[self.fine].max(initial=0.0), 0.0))) + 1
+        self.strip = h if b == 1 else max(b, (max(_STRIP_ROWS, 8 * self.halo) // b) * b)
+        # Sums over test samples, per scale: sum w (v.c - r)^2, samples, sum w.
+        self.q_sum = np.zeros(scales.size)
+        self.n_sum = np.zeros(scales.size)
+        self.w_sum = np.zeros(scales.size)
+        self.fits = _PixelFits.empty(self.shape, self.d1)
+        dc, hc, wc = self.dc, self.hc, self.wc
+        self.binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)),
+                        "xbar": np.zeros((dc, hc, wc)), "ybar": np.zeros((dc, hc, wc)),
+                        "m": np.zeros((2 * self.cv_degree + 1, hc, wc)), "b": np.zeros((2, dc, hc, wc)),
+                        "r": np.zeros((2, hc, wc)), "n": np.zeros((hc, wc))}
+                       for _ in self.folds] if self.coarse.size else []
+
+    def fold_maps(self, rows: int) -> dict:
+        """A fold's per-pixel training fit and test statistics for ``rows`` rows."""
+        dc, w = self.dc, self.shape[1]
         return {"w": np.zeros((dc, rows, w)), "mean": np.zeros((2, dc, rows, w)),
-                "m": np.zeros((2 * cv_degree + 1, rows, w)), "b": np.zeros((2, dc, rows, w)),
+                "m": np.zeros((2 * self.cv_degree + 1, rows, w)), "b": np.zeros((2, dc, rows, w)),
                 "r": np.zeros((2, rows, w)), "n": np.zeros((rows, w))}
 
-    binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)), "xbar": np.zeros((dc, hc, wc)),
-               "ybar": np.zeros((dc, hc, wc)), "m": np.zeros((2 * cv_degree + 1, hc, wc)),
-               "b": np.zeros((2, dc, hc, wc)), "r": np.zeros((2, hc, wc)), "n": np.zeros((hc, wc))}
-              for _ in folds] if coarse.size else []
-
-    def block(r0, r1, a0, fmaps, final):
-        """Rows [r0, r1): the final fit's maps if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
-        rows = r1 - r0
-        valid, sig, wts, (rx, ry) = _block_samples(samples, rig, sel, z, r0, r1, rays, level_bias, footprint)
+    def block(self, r0: int, r1: int, a0: int, fmaps, final: bool) -> None:
+        """Rows [r0, r1): the pixel fits if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
+        valid, sig, wts, (rx, ry) = _block_samples(self.samples, self.rig, self.sel, self.z, r0, r1, self.rays,
+                                                   self.level_bias, self.footprint)
         if final:
-            n_pos[r0:r1] = valid.sum(axis=0).reshape(rows, w)
-            zk = np.broadcast_to(z[:, None], valid.shape)
-            pz_min[r0:r1] = np.min(np.where(valid, zk, np.inf), axis=0).reshape(rows, w)
-            pz_max[r0:r1] = np.max(np.where(valid, zk, -np.inf), axis=0).reshape(rows, w)
-            with np.errstate(all="ignore"):
-                mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
-            del zk
-            (cx, cy), v, _, cov = _weighted_poly(t, [rx, ry], wts, degree, full=True)
-            fit[0, :, r0:r1] = cx.reshape(d1, rows, w)
-            fit[1, :, r0:r1] = cy.reshape(d1, rows, w)
-            var[:, r0:r1] = v.reshape(d1, rows, w)
-            # The pixel's own fit's variance, averaged over its own calibrated
-            # range, with the covariances (a pixel seen at a few positions at
-            # one end of the range has strongly correlated coefficients).
-            mom = _range_moments(((pz_min[r0:r1] - zc) / zs).ravel().astype(np.float64),
-                                 ((pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
-            idx = np.add.outer(np.arange(d1), np.arange(d1))
-            own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
-            own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
-            del cov, mom
+            self._pixel_fits(r0, r1, valid, sig, wts, rx, ry)
         del sig, valid
-        s0, s1 = r0 - a0, r1 - a0
-        for test, st in zip(folds, fmaps):
-            train = ~test
-            (fx, fy), fv, _ = _weighted_poly(t[train], [rx[train], ry[train]], wts[train], cv_degree)
-            for j in range(dc):
-                both = np.stack([fx[j], fy[j]]).reshape(2, rows, w)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    wj = np.where(np.isfinite(both).all(axis=0) & (fv[j] > 0).reshape(rows, w),
-                                  1.0 / fv[j].reshape(rows, w), 0.0)
-                st["w"][j, s0:s1] = wj
-                st["mean"][:, j, s0:s1] = np.where(wj > 0, both, 0.0)
-            wt = wts[test]
-            tp = t[test][:, None] ** np.arange(2 * cv_degree + 1)
-            st["m"][:, s0:s1] = np.einsum("kp,km->mp", wt, tp).reshape(-1, rows, w)
-            st["n"][s0:s1] = (wt > 0).sum(axis=0).reshape(rows, w)
-            for a, r in enumerate((rx[test], ry[test])):
-                wr = wt * np.where(wt > 0, r, 0.0)
-                st["b"][a, :, s0:s1] = np.einsum("kp,kj->jp", wr, tp[:, :dc]).reshape(dc, rows, w)
-                st["r"][a, s0:s1] = (wr * np.where(wt > 0, r, 0.0)).sum(axis=0).reshape(rows, w)
+        for test, st in zip(self.folds, fmaps):
+            self._fold_statistics(st, test, r0 - a0, r1 - a0, wts, rx, ry)
 
-    def score(st, c, sl, acc_index):
+    def _pixel_fits(self, r0, r1, valid, sig, wts, rx, ry) -> None:
+        f, degree, d1 = self.fits, self.degree, self.d1
+        rows, w = r1 - r0, self.shape[1]
+        z = self.z
+        f.n_pos[r0:r1] = valid.sum(axis=0).reshape(rows, w)
+        zk = np.broadcast_to(z[:, None], valid.shape)
+        f.pz_min[r0:r1] = np.min(np.where(valid, zk, np.inf), axis=0).reshape(rows, w)
+        f.pz_max[r0:r1] = np.max(np.where(valid, zk, -np.inf), axis=0).reshape(rows, w)
+        with np.errstate(all="ignore"):
+            f.mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
+        del zk
+        (cx, cy), v, _, cov = _weighted_poly(self.t, [rx, ry], wts, degree, full=True)
+        f.fit[0, :, r0:r1] = cx.reshape(d1, rows, w)
+        f.fit[1, :, r0:r1] = cy.reshape(d1, rows, w)
+        f.var[:, r0:r1] = v.reshape(d1, rows, w)
+        # The pixel's own fit's variance, averaged over its own calibrated
+        # range, with the covariances (a pixel seen at a few positions at
+        # one end of the range has strongly correlated coefficients).
+        zc, zs = self.zc, self.zs
+        mom = _range_moments(((f.pz_min[r0:r1] - zc) / zs).ravel().astype(np.float64),
+                             ((f.pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
+        idx = np.add.outer(np.arange(d1), np.arange(d1))
+        f.own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
+        f.own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
+
+    def _fold_statistics(self, st: dict, test, s0: int, s1: int, wts, rx, ry) -> None:
+        """One fold's training fit and test statistics at rows ``s0:s1`` of its maps ``st``."""
+        rows, w = s1 - s0, self.shape[1]
+        dc, cv_degree, t = self.dc, self.cv_degree, self.t
+        train = ~test
+        (fx, fy), fv, _ = _weighted_poly(t[train], [rx[train], ry[train]], wts[train], cv_degree)
+        for j in range(dc):
+            both = np.stack([fx[j], fy[j]]).reshape(2, rows, w)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                wj = np.where(np.isfinite(both).all(axis=0) & (fv[j] > 0).reshape(rows, w),
+                              1.0 / fv[j].reshape(rows, w), 0.0)
+            st["w"][j, s0:s1] = wj
+            st["mean"][:, j, s0:s1] = np.where(wj > 0, both, 0.0)
+        wt = wts[test]
+        tp = t[test][:, None] ** np.arange(2 * cv_degree + 1)
+        st["m"][:, s0:s1] = np.einsum("kp,km->mp", wt, tp).reshape(-1, rows, w)
+        st["n"][s0:s1] = (wt > 0).sum(axis=0).reshape(rows, w)
+        for a, r in enumerate((rx[test], ry[test])):
+            wr = wt * np.where(wt > 0, r, 0.0)
+            st["b"][a, :, s0:s1] = np.einsum("kp,kj->jp", wr, tp[:, :dc]).reshape(dc, rows, w)
+            st["r"][a, s0:s1] = (wr * np.where(wt > 0, r, 0.0)).sum(axis=0).reshape(rows, w)
+
+    def score(self, st: dict, c: np.ndarray, sl, acc_index: int) -> None:
         """Add the test error of predictions ``c`` (2, dc, rows, cols) at rows ``sl`` of the stats ``st``."""
+        dc = self.dc
         for a in range(2):
             ca = c[a]
             use = np.isfinite(ca).all(axis=0)
@@ -931,76 +1026,107 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
             for i in range(dc):
                 for j in range(dc):
                     quad += m[i + j] * cu[i] * cu[j]
-            q_sum[acc_index] += np.sum(quad)
-            n_sum[acc_index] += np.sum(st["n"][sl][use])
-            w_sum[acc_index] += np.sum(m[0])
+            self.q_sum[acc_index] += np.sum(quad)
+            self.n_sum[acc_index] += np.sum(st["n"][sl][use])
+            self.w_sum[acc_index] += np.sum(m[0])
 
-    report(0.05, "fitting every pixel and cross-validating")
-    strips = [(r, min(h, r + strip)) for r in range(0, h, strip)]
-    for i_strip, (r0, r1) in enumerate(strips):
-        a0, a1 = max(0, r0 - halo), min(h, r1 + halo)
-        fmaps = [fold_maps(a1 - a0) for _ in folds]
-        # Halo rows (above and below the strip) only feed the folds' smoothing.
-        jobs = [(p0 + g0, p1 + g0, fin) for g0, g1, fin in ((a0, r0, False), (r0, r1, True), (r1, a1, False))
-                if g1 > g0 for p0, p1 in _row_blocks(g1 - g0, w)]
-        _run_blocks(lambda p0, p1, fin: block(p0, p1, a0, fmaps, fin), jobs)
-        inner = slice(r0 - a0, r1 - a0)
+    def fit_and_cross_validate_fine(self, report) -> None:
+        """The pass over the samples, strip by strip: pixel fits, fine scales scored, coarse stats binned."""
+        h, w = self.shape
+        strips = [(r, min(h, r + self.strip)) for r in range(0, h, self.strip)]
+        for i_strip, (r0, r1) in enumerate(strips):
+            a0, a1 = max(0, r0 - self.halo), min(h, r1 + self.halo)
+            fmaps = [self.fold_maps(a1 - a0) for _ in self.folds]
+            # Halo rows (above and below the strip) only feed the folds' smoothing.
+            jobs = [(p0 + g0, p1 + g0, fin) for g0, g1, fin in ((a0, r0, False), (r0, r1, True), (r1, a1, False))
+                    if g1 > g0 for p0, p1 in _row_blocks(g1 - g0, w)]
+            _run_blocks(lambda p0, p1, fin: self.block(p0, p1, a0, fmaps, fin), jobs)
+            inner = slice(r0 - a0, r1 - a0)
+            for fi, st in enumerate(fmaps):
+                self._score_fine(st, inner, a0, a1, r0, r1,
+                                 lambda sc: report(0.05 + 0.7 * i_strip / len(strips),
+                                                   f"cross-validating smoothing scale {sc:g} px"))
+                if self.coarse.size:
+                    self._bin_strip(self.binned[fi], st, inner, r0, r1)
+            fmaps = None
+
+    def _score_fine(self, st: dict, inner: slice, a0: int, a1: int, r0: int, r1: int, announce) -> None:
+        w, dc = self.shape[1], self.dc
         xs = np.arange(w, dtype=float)
         ys = np.arange(a0, a1, dtype=float)
-        for fi, st in enumerate(fmaps):
-            for si in fine:
-                sc = scales[si]
-                report(0.05 + 0.7 * i_strip / len(strips), f"cross-validating smoothing scale {sc:g} px")
-                c = np.empty((2, dc, r1 - r0, w))
-                for j in range(dc):
-                    if sc <= 0:
-                        c[:, j] = np.where(st["w"][j, inner] > 0, st["mean"][:, j, inner], np.nan)
-                    else:
-                        c[:, j] = _ll_grid(st["mean"][:, j], st["w"][j], sc, xs / sc, ys / sc,
-                                           with_variance=False)[0][:, inner]
-                score(st, c, inner, si)
-            if coarse.size:
-                bn = binned[fi]
-                c0, c1 = r0 // b, -(-r1 // b)
-                for j in range(dc):
-                    ws, mean, xb, yb = _binned_points(st["w"][j, inner], st["mean"][:, j, inner], b, r0)
-                    bn["w"][j, c0:c1], bn["mean"][:, j, c0:c1], bn["xbar"][j, c0:c1], bn["ybar"][j, c0:c1] = \
-                        ws, mean, xb, yb
-                for name in ("m", "b", "r", "n"):
-                    bn[name][..., c0:c1, :] = _bin(st[name][..., inner, :], b)
-        fmaps = None
-    noise_scale = _sigma_scale_from(rms_x, rms_y, n_pos, mean_var, 2)
-    rms_x = rms_y = mean_var = None
-
-    xg = np.arange(wc) * b + (b - 1) / 2.0
-    yg = np.arange(hc) * b + (b - 1) / 2.0
-    for fi, bn in enumerate(binned):
-        for ci, si in enumerate(coarse):
-            sc = scales[si]
-            report(0.75 + 0.15 * (fi * coarse.size + ci) / (len(folds) * coarse.size),
-                   f"cross-validating smoothing scale {sc:g} px (on {b} x {b} px bins)")
-            c = np.empty((2, dc, hc, wc))
+        for si in self.fine:
+            sc = self.scales[si]
+            announce(sc)
+            c = np.empty((2, dc, r1 - r0, w))
             for j in range(dc):
-                c[:, j] = _ll_grid(bn["mean"][:, j], bn["w"][j], _binned_sigma(sc, b, False), xg / sc, yg / sc,
-                                   bn["xbar"][j] / sc,
-                                   bn["ybar"][j] / sc, False)[0]
-            score(bn, c, slice(None), si)
-    del binned
-    # Inverse-variance weighted excess of the error over the sample noise: the
-    # fold fit's own noise plus its bias (an upper bound on the final fit's
-    # model error, which uses twice the data).
-    excess = q_sum - noise_scale ** 2 * n_sum
-    if folds:
+                if sc <= 0:
+                    c[:, j] = np.where(st["w"][j, inner] > 0, st["mean"][:, j, inner], np.nan)
+                else:
+                    c[:, j] = _ll_grid(st["mean"][:, j], st["w"][j], sc, xs / sc, ys / sc,
+                                       with_variance=False)[0][:, inner]
+            self.score(st, c, inner, si)
+
+    def _bin_strip(self, bn: dict, st: dict, inner: slice, r0: int, r1: int) -> None:
+        """A strip's fold statistics, added to the fold's binned grid."""
+        b = self.b
+        c0, c1 = r0 // b, -(-r1 // b)
+        for j in range(self.dc):
+            ws, mean, xb, yb = _binned_points(st["w"][j, inner], st["mean"][:, j, inner], b, r0)
+            bn["w"][j, c0:c1], bn["mean"][:, j, c0:c1], bn["xbar"][j, c0:c1], bn["ybar"][j, c0:c1] = \
+                ws, mean, xb, yb
+        for name in ("m", "b", "r", "n"):
+            bn[name][..., c0:c1, :] = _bin(st[name][..., inner, :], b)
+
+    def cross_validate_coarse(self, report) -> None:
+        """Score the coarse scales on the folds' binned grids."""
+        b, dc = self.b, self.dc
+        xg = np.arange(self.wc) * b + (b - 1) / 2.0
+        yg = np.arange(self.hc) * b + (b - 1) / 2.0
+        coarse = self.coarse
+        for fi, bn in enumerate(self.binned):
+            for ci, si in enumerate(coarse):
+                sc = self.scales[si]
+                report(0.75 + 0.15 * (fi * coarse.size + ci) / (len(self.folds) * coarse.size),
+                       f"cross-validating smoothing scale {sc:g} px (on {b} x {b} px bins)")
+                c = np.empty((2, dc, self.hc, self.wc))
+                for j in range(dc):
+                    c[:, j] = _ll_grid(bn["mean"][:, j], bn["w"][j], _binned_sigma(sc, b, False), xg / sc, yg / sc,
+                                       bn["xbar"][j] / sc,
+                                       bn["ybar"][j] / sc, False)[0]
+                self.score(bn, c, slice(None), si)
+        self.binned = None
+
+    def choose_scale(self, noise_scale: float) -> tuple[float, np.ndarray, float]:
+        """The scale of least test error, its score per scale and the excess variance beyond the noise.
+
+        Returns
+        -------
+        scale : float, px
+        cv_score : (S,) float64
+            Chi-square per test sample (1 = prediction as good as the noise allows); NaN without folds.
+        excess_var : float, mm^2
+            Inverse-variance weighted excess of the error over the sample noise: the
+            fold fit's own noise plus its bias (an upper bound on the final fit's
+            model error, which uses twice the data).
+        """
+        q_sum, n_sum, w_sum = self.q_sum, self.n_sum, self.w_sum
+        excess = q_sum - noise_scale ** 2 * n_sum
+        if not self.folds:
+            return float(self.scales[0]), np.full(self.scales.size, np.nan), 0.0
         score_ = np.where(n_sum > 0, q_sum / np.maximum(n_sum, 1), np.nan)
         best = int(np.nanargmin(score_))
         excess_var = max(excess[best] / w_sum[best], 0.0) if w_sum[best] > 0 else 0.0
-    else:
-        best = 0
-        excess_var = 0.0
-    scale = float(scales[best])
+        return float(self.scales[best]), score_, excess_var
 
-    report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
-    # Bins for the final smoothing: at most the cross-validation's, at most a quarter of the scale.
+
+def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float) -> dict:
+    """The pixel fits smoothed at ``scale`` plus the global ray: ``{"x", "y"}`` (D+1, H, W) coefficients in t.
+
+    Smooths ``fits.fit`` and ``fits.var`` in place (the final smoothing runs on bins of at
+    most the cross-validation's side and at most a quarter of the scale).
+    """
+    fit, var = fits.fit, fits.var
+    d1, h, w = var.shape
     fb = 1
     while fb * 2 <= b and fb * 2 * 4 <= scale:
         fb *= 2
@@ -1011,25 +1137,34 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j]), wj, scale, fb, True)
         del wj
     coef = {"x": fit[0], "y": fit[1]}
+    gx0, gy0, gsx, gsy = rays
     # Global ray as a polynomial in t: X = x0 + sx * (zc + zs t).
     for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
         c = coef[a]
         for r0, r1 in _row_blocks(h, w):
             c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
             c[1, r0:r1] += gs[r0:r1] * zs
-    stage_var = {}
-    if stage_sigma_mm:
-        # Per-position stage errors move all pixels together (see stage_leverage).
-        lev = stage_leverage(t, degree)
-        for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
-            stage_var[a] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
-    gx0 = gy0 = gsx = gsy = None
-    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
-    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
-    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (n_pos >= d1)
-    pz_min[~valid] = np.nan
-    pz_max[~valid] = np.nan
-    # Residuals and leave-one-out-like quality against the pixel's own samples.
+    return coef
+
+
+def _stage_variance(rays, rig: Rig, t: np.ndarray, degree: int, stage_sigma_mm: float) -> dict:
+    """Per-pixel variance (mm^2, float32 (H, W) per axis) from the stage readings' error; empty if none.
+
+    Per-position stage errors move all pixels together (see :func:`stage_leverage`).
+    """
+    if not stage_sigma_mm:
+        return {}
+    _, _, gsx, gsy = rays
+    lev = stage_leverage(t, degree)
+    return {a: (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
+            for a, gs, d in (("x", gsx, 0), ("y", gsy, 1))}
+
+
+def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.ndarray, coef: dict, rays,
+                   level_bias: bool, footprint: bool) -> dict:
+    """RMS residual (mm, float32 (H, W) per axis) of the smooth LUT against each pixel's own corrected samples."""
+    h, w = samples.shape
+    d1 = coef["x"].shape[0]
     vander = np.vander(t, d1, increasing=True)
     q = {a: np.empty((h, w), np.float32) for a in "xy"}
 
@@ -1048,49 +1183,37 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                 q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
 
     _run_blocks(quality, _row_blocks(h, w))
-    rays = None
-    # Predicted sigma: RMS over the calibrated range (uniform in t) of the
-    # smoothed correction's noise propagated from the phase noise. The model
-    # error beyond it (smoothing bias) is estimated by cross-validation and
-    # reported in SmoothInfo.excess_sigma_mm, not folded into the map: the
-    # fold fits use half the positions, so it is an upper bound.
-    # Smoothing averages neighbouring pixels' coefficients, each map on its
-    # own: its variance reduction is measured on the uncorrelated form and
-    # applied to the pixel's own exact variance over its calibrated range.
+    return q
+
+
+def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, noise_scale: float,
+                       stage_var: dict) -> dict:
+    """Predicted 1-sigma maps (mm, float32 (H, W) per axis) of the smooth LUT.
+
+    RMS over the calibrated range (uniform in t) of the smoothed correction's
+    noise propagated from the phase noise. The model error beyond it
+    (smoothing bias) is estimated by cross-validation and reported in
+    SmoothInfo.excess_sigma_mm, not folded into the map: the fold fits use half
+    the positions, so it is an upper bound. Smoothing averages neighbouring
+    pixels' coefficients, each map on its own: its variance reduction is
+    measured on the uncorrelated form and applied to the pixel's own exact
+    variance over its calibrated range.
+    """
+    d1 = degree + 1
     with np.errstate(all="ignore"):
-        mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64),
-                             2 * degree)
-        smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
-        s2 = own_var * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+        mom = _range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
+                             ((fits.pz_max - zc) / zs).astype(np.float64), 2 * degree)
+        smooth_diag = np.einsum("jhw,jhw->hw", fits.var, mom[2 * np.arange(d1)])
+        s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
         # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
         s2 = np.where(np.isfinite(s2), s2, smooth_diag)
-    mom = smooth_diag = own_var = own_diag = None
-    var = None
+    del mom, smooth_diag
     sig1 = (np.sqrt(s2) * noise_scale).astype(np.float32)
     del s2
     sig = {"x": sig1, "y": sig1.copy()}
     for a, sv in stage_var.items():
         sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
-    for a in "xy":
-        coef[a][:, ~valid] = np.nan
-        sig[a][~valid] = np.nan
-        q[a][~valid] = np.nan
-    lut = Lut(
-        kind="poly", degree=degree, z_center=zc, z_scale=zs, z_min=float(z.min()), z_max=float(z.max()),
-        x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
-        n_positions=np.where(valid, n_pos, 0).astype(np.uint16),
-        pixel_z_min=pz_min, pixel_z_max=pz_max,
-        rms_x=q["x"], rms_y=q["y"],
-        # The smooth fit barely moves when one position is left out: its
-        # leave-one-out error is its residual against the held-out sample.
-        loo_x=q["x"].copy(), loo_y=q["y"].copy(),
-        sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
-        extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
-    )
-    report(1.0, "smooth LUT fitted")
-    # Reported as the chi-square per test sample (1 = prediction as good as the noise allows).
-    cv_rms = score_ if folds else np.full(scales.size, np.nan)
-    return lut, SmoothInfo(model, scale, scales, cv_rms, noise_scale, float(np.sqrt(excess_var)))
+    return sig
 
 
 def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,

@@ -394,7 +394,7 @@ def check_calibration_design(rig: Rig, source: str = "rig.toml") -> None:
     """Refuse a fringe design that cannot be calibrated, before any decoding.
 
     Both directions must be shown, and the coarsest period must cover the LCD
-    plus the carrier span (:func:`ptpcore.patterns.design_check`'s
+    plus the carrier span (:func:`ptpcore.decode.patterns.design_check`'s
     "unambiguous range" verdict): otherwise the absolute phase is ambiguous
     and every sample would be wrong by whole periods.
 

@@ -368,128 +368,170 @@ def _read_lut_group(group, where: str) -> Lut:
         wrong shape or type, NaN where a valid pixel needs a number, values out
         of range.
     """
-    base = "" if group.name == "/" else group.name
+    rd = _GroupReader(group, where)
+    try:
+        lut, camera_shape = _read_lut_arrays(rd)
+    except OSError as exc:
+        raise rd.fail(f"truncated or damaged ({exc})") from None
+    _check_lut_model(rd, lut)
+    _check_lut_shapes(rd, lut, camera_shape)
+    _check_lut_values(rd, lut)
+    return lut
 
-    def name(rel):
-        return f"{base}/{rel}"
 
-    def fail(msg):
-        return FileFormatError(f"{where}: {msg}")
+class _GroupReader:
+    """Typed, checked reads of one HDF5 group's datasets and attributes; errors name the file and the path."""
 
-    def array(rel, ndim, kinds="fiub"):
+    def __init__(self, group, where: str):
+        self.group, self.where = group, where
+        self.base = "" if group.name == "/" else group.name
+
+    def name(self, rel: str) -> str:
+        return f"{self.base}/{rel}"
+
+    def fail(self, msg: str) -> FileFormatError:
+        return FileFormatError(f"{self.where}: {msg}")
+
+    def array(self, rel: str, ndim: int, kinds: str = "fiub") -> np.ndarray:
+        """The dataset ``rel`` read whole, checked to hold numbers of ``kinds`` in ``ndim`` dimensions."""
         try:
-            obj = group[rel]
+            obj = self.group[rel]
         except KeyError:
-            raise fail(f"missing dataset {name(rel)}") from None
+            raise self.fail(f"missing dataset {self.name(rel)}") from None
         if not isinstance(obj, h5py.Dataset):
-            raise fail(f"{name(rel)} is not a dataset")
+            raise self.fail(f"{self.name(rel)} is not a dataset")
         if obj.dtype.kind not in kinds:
-            raise fail(f"{name(rel)} has type {obj.dtype}, expected numbers")
+            raise self.fail(f"{self.name(rel)} has type {obj.dtype}, expected numbers")
         if obj.ndim != ndim:
-            raise fail(f"{name(rel)} has {obj.ndim} dimensions {obj.shape}, expected {ndim}")
+            raise self.fail(f"{self.name(rel)} has {obj.ndim} dimensions {obj.shape}, expected {ndim}")
         return obj[()]
 
-    def attr(obj_rel, key, kind):
-        if obj_rel and obj_rel not in group:
-            raise fail(f"missing group {name(obj_rel)}")
+    def attr(self, obj_rel: str, key: str, kind):
+        """Attribute ``key`` of the group ``obj_rel`` ('' = this group) as ``kind`` (str, int or float, finite)."""
+        if obj_rel and obj_rel not in self.group:
+            raise self.fail(f"missing group {self.name(obj_rel)}")
         try:
-            obj = group[obj_rel] if obj_rel else group
+            obj = self.group[obj_rel] if obj_rel else self.group
             val = obj.attrs[key]
         except KeyError:
-            raise fail(f"missing attribute {key!r} of {name(obj_rel) if obj_rel else base or '/'}") from None
-        label = f"attribute {key!r} of {name(obj_rel)}"
+            where = self.name(obj_rel) if obj_rel else self.base or "/"
+            raise self.fail(f"missing attribute {key!r} of {where}") from None
+        label = f"attribute {key!r} of {self.name(obj_rel)}"
         if kind is str:
             s = _str_attr(val)
             if s is None:
-                raise fail(f"{label} must be text, got {val!r}")
+                raise self.fail(f"{label} must be text, got {val!r}")
             return s
         if isinstance(val, np.ndarray) and val.size == 1:
             val = val.reshape(())[()]
         if isinstance(val, (bool, np.bool_)) or not isinstance(val, (int, float, np.integer, np.floating)):
-            raise fail(f"{label} must be a number, got {val!r}"[:200])
+            raise self.fail(f"{label} must be a number, got {val!r}"[:200])
         if kind is int:
             if float(val) != int(val):
-                raise fail(f"{label} must be an integer, got {val!r}")
+                raise self.fail(f"{label} must be an integer, got {val!r}")
             return int(val)
         val = float(val)
         if not np.isfinite(val):
-            raise fail(f"{label} must be finite, got {val}")
+            raise self.fail(f"{label} must be finite, got {val}")
         return val
 
-    try:
-        h = attr("camera", "height", int)
-        w = attr("camera", "width", int)
-        if h < 1 or w < 1:
-            raise fail(f"{name('camera')} size {w}x{h} must be positive")
-        kind = attr("model", "kind", str)
-        if kind not in MODELS:
-            raise fail(f"attribute 'kind' of {name('model')} is {kind!r}, not one of {MODELS}")
-        degree = attr("model", "degree", int) if kind == "poly" else None
-        if degree is not None and not 1 <= degree <= _MAX_DEGREE:
-            raise fail(f"attribute 'degree' of {name('model')} must be 1 to {_MAX_DEGREE}, got {degree}")
-        mv = {k: attr("model", k, float) for k in ("z_center", "z_scale", "z_min", "z_max")}
-        known = {"kind", "degree", "z_center", "z_scale", "z_min", "z_max"}
-        extra = {k: v for k, v in group["model"].attrs.items() if k not in known}
-        x = array("x", 3, "f")
-        y = array("y", 3, "f")
-        z_nodes = array("z_nodes", 1, "f") if "z_nodes" in group else None
-        valid_raw = array("valid", 2, "uib")
-        q = {n: array(f"quality/{n}", 2) for n in _QUALITY}
-        sig = {n: (array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
-               for n in ("sigma_x", "sigma_y")}
-        rig_toml = ""
-        if "rig" in group:
-            rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
-    except OSError as exc:
-        raise fail(f"truncated or damaged ({exc})") from None
-    if mv["z_scale"] <= 0:
-        raise fail(f"attribute 'z_scale' of {name('model')} must be positive, got {mv['z_scale']}")
-    if mv["z_min"] > mv["z_max"]:
-        raise fail(f"attributes 'z_min' > 'z_max' of {name('model')} ({mv['z_min']} > {mv['z_max']})")
-    if kind != "poly":
-        if z_nodes is None:
-            raise fail(f"missing dataset {name('z_nodes')} (required for kind {kind!r})")
-        if z_nodes.size < 2 or not np.all(np.isfinite(z_nodes)) or np.any(np.diff(z_nodes) <= 0):
-            raise fail(f"{name('z_nodes')} must hold at least 2 finite, strictly ascending heights")
-    n_lead = degree + 1 if kind == "poly" else len(z_nodes)
-    for rel, arr, want in (("x", x, (n_lead, h, w)), ("y", y, (n_lead, h, w)), ("valid", valid_raw, (h, w))):
-        if arr.shape != want:
-            raise fail(f"{name(rel)} has shape {arr.shape}, expected {want}")
-    for rel, arr in [*((f"quality/{n}", a) for n, a in q.items()),
-                     *((f"quality/{n}", a) for n, a in sig.items() if a is not None)]:
-        if arr.shape != (h, w):
-            raise fail(f"{name(rel)} has shape {arr.shape}, expected {(h, w)}")
-    if np.any((valid_raw != 0) & (valid_raw != 1)):
-        raise fail(f"{name('valid')} must hold only 0 and 1")
-    valid = valid_raw.astype(bool)
-    for rel, arr in (("x", x), ("y", y)):
-        if kind == "poly":
-            if not np.all(np.isfinite(arr[:, valid])):
-                raise fail(f"{name(rel)} holds NaN or infinite coefficients for pixels marked valid")
-        else:
-            fin = np.isfinite(arr)
-            if np.any(np.isinf(arr)):
-                raise fail(f"{name(rel)} holds infinite values")
-            if np.any(fin.sum(axis=0)[valid] < 2):
-                raise fail(f"{name(rel)} has fewer than 2 finite nodes for pixels marked valid")
-    if np.any(q["n_positions"][valid] < 1):
-        raise fail(f"{name('quality/n_positions')} is 0 for pixels marked valid")
-    pz_min, pz_max = q["z_min"], q["z_max"]
-    if not (np.all(np.isfinite(pz_min[valid])) and np.all(np.isfinite(pz_max[valid]))):
-        raise fail(f"{name('quality/z_min')} or {name('quality/z_max')} holds NaN for pixels marked valid")
-    if np.any(pz_min[valid] > pz_max[valid]):
-        raise fail(f"{name('quality/z_min')} exceeds {name('quality/z_max')} for some valid pixels")
-    for n in ("rms_x", "rms_y", "loo_x", "loo_y"):
-        with np.errstate(invalid="ignore"):
-            if np.any(q[n] < 0):
-                raise fail(f"{name('quality/' + n)} holds negative values")
-    return Lut(
+
+def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
+    """Every attribute and dataset of a LUT group, each checked for its type (not yet for consistency),
+    and the camera's ``(height, width)`` from ``/camera``."""
+    group, name = rd.group, rd.name
+    h = rd.attr("camera", "height", int)
+    w = rd.attr("camera", "width", int)
+    if h < 1 or w < 1:
+        raise rd.fail(f"{name('camera')} size {w}x{h} must be positive")
+    kind = rd.attr("model", "kind", str)
+    if kind not in MODELS:
+        raise rd.fail(f"attribute 'kind' of {name('model')} is {kind!r}, not one of {MODELS}")
+    degree = rd.attr("model", "degree", int) if kind == "poly" else None
+    if degree is not None and not 1 <= degree <= _MAX_DEGREE:
+        raise rd.fail(f"attribute 'degree' of {name('model')} must be 1 to {_MAX_DEGREE}, got {degree}")
+    mv = {k: rd.attr("model", k, float) for k in ("z_center", "z_scale", "z_min", "z_max")}
+    known = {"kind", "degree", "z_center", "z_scale", "z_min", "z_max"}
+    extra = {k: v for k, v in group["model"].attrs.items() if k not in known}
+    x = rd.array("x", 3, "f")
+    y = rd.array("y", 3, "f")
+    z_nodes = rd.array("z_nodes", 1, "f") if "z_nodes" in group else None
+    valid_raw = rd.array("valid", 2, "uib")
+    q = {n: rd.array(f"quality/{n}", 2) for n in _QUALITY}
+    sig = {n: (rd.array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
+           for n in ("sigma_x", "sigma_y")}
+    rig_toml = ""
+    if "rig" in group:
+        rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
+    # valid stays as stored until _check_lut_values has seen it hold only 0 and 1.
+    lut = Lut(
         kind=kind, degree=degree, z_center=mv["z_center"], z_scale=mv["z_scale"],
-        z_min=mv["z_min"], z_max=mv["z_max"], x=x, y=y, z_nodes=z_nodes, valid=valid,
-        n_positions=q["n_positions"], pixel_z_min=pz_min, pixel_z_max=pz_max,
+        z_min=mv["z_min"], z_max=mv["z_max"], x=x, y=y, z_nodes=z_nodes, valid=valid_raw,
+        n_positions=q["n_positions"], pixel_z_min=q["z_min"], pixel_z_max=q["z_max"],
         rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
         sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
     )
+    return lut, (h, w)
+
+
+def _check_lut_model(rd: _GroupReader, lut: Lut) -> None:
+    """The z normalisation, range and (for tables) the nodes."""
+    name = rd.name
+    if lut.z_scale <= 0:
+        raise rd.fail(f"attribute 'z_scale' of {name('model')} must be positive, got {lut.z_scale}")
+    if lut.z_min > lut.z_max:
+        raise rd.fail(f"attributes 'z_min' > 'z_max' of {name('model')} ({lut.z_min} > {lut.z_max})")
+    if lut.kind != "poly":
+        z_nodes = lut.z_nodes
+        if z_nodes is None:
+            raise rd.fail(f"missing dataset {name('z_nodes')} (required for kind {lut.kind!r})")
+        if z_nodes.size < 2 or not np.all(np.isfinite(z_nodes)) or np.any(np.diff(z_nodes) <= 0):
+            raise rd.fail(f"{name('z_nodes')} must hold at least 2 finite, strictly ascending heights")
+
+
+def _check_lut_shapes(rd: _GroupReader, lut: Lut, camera_shape: tuple[int, int]) -> None:
+    """Every array has the camera's shape (and the model's leading size)."""
+    h, w = camera_shape
+    n_lead = lut.degree + 1 if lut.kind == "poly" else len(lut.z_nodes)
+    for rel, arr, want in (("x", lut.x, (n_lead, h, w)), ("y", lut.y, (n_lead, h, w)),
+                           ("valid", lut.valid, (h, w))):
+        if arr.shape != want:
+            raise rd.fail(f"{rd.name(rel)} has shape {arr.shape}, expected {want}")
+    quality = {"n_positions": lut.n_positions, "z_min": lut.pixel_z_min, "z_max": lut.pixel_z_max,
+               "rms_x": lut.rms_x, "rms_y": lut.rms_y, "loo_x": lut.loo_x, "loo_y": lut.loo_y,
+               "sigma_x": lut.sigma_x, "sigma_y": lut.sigma_y}
+    for n, arr in quality.items():
+        if arr is not None and arr.shape != (h, w):
+            raise rd.fail(f"{rd.name('quality/' + n)} has shape {arr.shape}, expected {(h, w)}")
+
+
+def _check_lut_values(rd: _GroupReader, lut: Lut) -> None:
+    """Numbers where a valid pixel needs them, ranges in order, no negative RMS; makes ``valid`` bool."""
+    name = rd.name
+    if np.any((lut.valid != 0) & (lut.valid != 1)):
+        raise rd.fail(f"{name('valid')} must hold only 0 and 1")
+    valid = lut.valid = lut.valid.astype(bool)
+    for rel, arr in (("x", lut.x), ("y", lut.y)):
+        if lut.kind == "poly":
+            if not np.all(np.isfinite(arr[:, valid])):
+                raise rd.fail(f"{name(rel)} holds NaN or infinite coefficients for pixels marked valid")
+        else:
+            fin = np.isfinite(arr)
+            if np.any(np.isinf(arr)):
+                raise rd.fail(f"{name(rel)} holds infinite values")
+            if np.any(fin.sum(axis=0)[valid] < 2):
+                raise rd.fail(f"{name(rel)} has fewer than 2 finite nodes for pixels marked valid")
+    if np.any(lut.n_positions[valid] < 1):
+        raise rd.fail(f"{name('quality/n_positions')} is 0 for pixels marked valid")
+    pz_min, pz_max = lut.pixel_z_min, lut.pixel_z_max
+    if not (np.all(np.isfinite(pz_min[valid])) and np.all(np.isfinite(pz_max[valid]))):
+        raise rd.fail(f"{name('quality/z_min')} or {name('quality/z_max')} holds NaN for pixels marked valid")
+    if np.any(pz_min[valid] > pz_max[valid]):
+        raise rd.fail(f"{name('quality/z_min')} exceeds {name('quality/z_max')} for some valid pixels")
+    for n in ("rms_x", "rms_y", "loo_x", "loo_y"):
+        with np.errstate(invalid="ignore"):
+            if np.any(getattr(lut, n) < 0):
+                raise rd.fail(f"{name('quality/' + n)} holds negative values")
 
 
 def load_lut(path) -> Lut:

@@ -32,12 +32,12 @@ class SampleStack:
     x_ref, y_ref : (H, W) float64, mm
         Per-pixel reference (first valid sample); NaN for never-valid pixels.
     reasons : (K, H, W) uint8
-        :class:`ptpcore.phase.Reason` flags; 0 where valid.
+        :class:`ptpcore.decode.phase.Reason` flags; 0 where valid.
     modulation : (K, H, W) float32 or None
         Finest-period modulation (worse direction), grey levels.
     background : (K, H, W) float32 or None
         Background level A (grey levels).
-    noise : ptpcore.noise.NoiseModel or None
+    noise : ptpcore.decode.noise.NoiseModel or None
         The camera noise measured from the N-step fit residuals.
     """
 
@@ -49,7 +49,7 @@ class SampleStack:
     reasons: np.ndarray
     modulation: np.ndarray | None = None
     background: np.ndarray | None = None
-    noise: NoiseModel | None = None  # measured from the N-step residuals (ptpcore.noise)
+    noise: NoiseModel | None = None  # measured from the N-step residuals (ptpcore.decode.noise)
 
     @classmethod
     def empty(cls, z, shape, with_photometry: bool = True) -> "SampleStack":

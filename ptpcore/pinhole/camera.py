@@ -2,7 +2,7 @@
 
 The model follows OpenCV exactly: world points ``Xw`` (mm) go to the camera frame
 by ``Xc = R(rvec) Xw + tvec``, to normalised coordinates ``(Xc/Zc, Yc/Zc)``, are
-distorted with :mod:`ptpcore.lens` (``k1, k2, p1, p2, k3[, k4, k5, k6]``) and
+distorted with :mod:`ptpcore.pinhole.lens` (``k1, k2, p1, p2, k3[, k4, k5, k6]``) and
 mapped to pixels ``(col, row)`` by ``K`` (``fx, fy, cx, cy``; no skew is fitted).
 
 Calibration from M non-coplanar 3D points with known pixels: normalised DLT for
@@ -132,7 +132,7 @@ class PinholeModel:
     def pixel_to_world_at_z(self, cols, rows, z) -> tuple[np.ndarray, np.ndarray]:
         """Back-project pixels onto the world plane ``Z = z``.
 
-        The pixel is undistorted (Newton, :func:`ptpcore.lens.undistort_normalised`),
+        The pixel is undistorted (Newton, :func:`ptpcore.pinhole.lens.undistort_normalised`),
         the ray from the camera centre is cast and intersected with the plane.
 
         Parameters

@@ -1,22 +1,22 @@
 """The calibration pipeline: frames -> LCD coordinates -> samples -> LUT.
 
 It streams: one position is decoded at a time from a
-:class:`~ptpcore.dataset.FrameSource`, its world coordinates are stored in a
-:class:`~ptpcore.lut.SampleStack`, and its frames are dropped.
+:class:`~ptpcore.io.dataset.FrameSource`, its world coordinates are stored in a
+:class:`~ptpcore.io.SampleStack`, and its frames are dropped.
 
 How it is fast on big sensors (``docs/performance.md`` has the numbers):
 
 - The frames of one period and direction (a *set*) are gathered in a
   preallocated ``(N, H, W)`` buffer and reduced in cache-sized row tiles on
-  every core (:func:`ptpcore.phase.wrapped_phase`); the background and noise
+  every core (:func:`ptpcore.decode.phase.wrapped_phase`); the background and noise
   residuals are computed only at the finest period, where they are used.
 - From a dataset folder, a reader thread reads the next sets while the
-  current one is decoded: plain TIFFs are mapped (:func:`ptpcore.fastio.map_frame`,
+  current one is decoded: plain TIFFs are mapped (:func:`ptpcore.io.fastio.map_frame`,
   with the numba kernels) or read straight into the buffers
-  (:func:`ptpcore.fastio.read_into`).
+  (:func:`ptpcore.io.fastio.read_into`).
 - Unwrapping, pixel classification and the world coordinates run over the
   same row tiles, written straight into the sample stack.
-- Big sample stacks live in a temporary file (:class:`ptpcore.fastio.SpillStore`),
+- Big sample stacks live in a temporary file (:class:`ptpcore.io.fastio.SpillStore`),
   so memory stays flat however many positions there are; each row tile writes
   its rows of the position there as soon as it has stored them.
 """
@@ -103,11 +103,11 @@ class _DatasetReader:
     """Reads the sets of some positions of a dataset folder ahead, on its own threads.
 
     Each set's N files are read in parallel: with the numba kernels, plain
-    TIFFs are mapped (:func:`ptpcore.fastio.map_frame`: no copy, the kernels
+    TIFFs are mapped (:func:`ptpcore.io.fastio.map_frame`: no copy, the kernels
     read the page cache); otherwise, or for a file that cannot be mapped, they
     are read into a preallocated buffer (plain TIFFs with
-    :func:`ptpcore.fastio.read_into`, anything else with
-    :func:`ptpcore.dataset.read_image`, which also names a bad file). At most
+    :func:`ptpcore.io.fastio.read_into`, anything else with
+    :func:`ptpcore.io.dataset.read_image`, which also names a bad file). At most
     ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much.
     """
 
@@ -437,7 +437,7 @@ def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: Wr
 
 def _store_rows_fused(kern, rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
                       samples: SampleStack, dest: dict, r0: int, r1: int) -> None:
-    """:func:`_store_rows` with the numba kernel :func:`ptpcore._fused.store_rows` (bit-equal)."""
+    """:func:`_store_rows` with the numba kernel :func:`ptpcore.decode._fused.store_rows` (bit-equal)."""
     a, b, _ = rig.stage.direction
     px, py = rig.lcd.pitch_mm
     z = pos.z_mm
@@ -456,7 +456,7 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
     Parameters
     ----------
     source : FrameSource
-    model, degree : see :func:`ptpcore.lut.fit_lut`
+    model, degree : see :func:`ptpcore.fit.fit_lut`
     options : DecodeOptions
     positions : sequence of int, optional
         Positions to calibrate on (default all).

@@ -9,7 +9,7 @@ Stages, in order (:attr:`Session.stage`):
     The rig is read and the dataset validated; nothing decoded yet.
 ``"samples"``
     Every position decoded: each pixel's samples, validity reasons,
-    modulation and background (:class:`~ptpcore.lut.SampleStack`).
+    modulation and background (:class:`~ptpcore.io.SampleStack`).
 ``"lut"``
     The per-pixel LUT is fitted.
 
@@ -32,7 +32,7 @@ File layout, ``ptp-session/1`` (``*.ptps.h5``)
     ``z`` float64 ``[K]`` stage readings (mm); ``x``, ``y`` float32
     ``[K, H, W]`` mm relative to ``x_ref``, ``y_ref`` (float64 ``[H, W]``),
     NaN where ``reasons != 0``; ``reasons`` uint8 ``[K, H, W]``
-    (:class:`~ptpcore.phase.Reason` flags, 0 where valid, 255 where the
+    (:class:`~ptpcore.decode.phase.Reason` flags, 0 where valid, 255 where the
     position was not decoded); optional ``modulation``, ``background``
     float32 ``[K, H, W]`` grey levels; optional attrs ``noise_read_var``,
     ``noise_gain`` (the camera noise model measured from the data).
@@ -105,15 +105,15 @@ class Session:
     dataset : str or None
         The dataset folder the images come from (absolute path).
     model : {"poly", "pchip", "linear", "smooth"}
-        One of :data:`ptpcore.models.LUT_MODELS`.
+        One of :data:`ptpcore.fit.models.LUT_MODELS`.
     degree : int
         Polynomial degree (``poly``, ``smooth``).
     stage_sigma_um : float
         1-sigma error of the stage readings (um), for the predicted sigma maps.
     level_bias : bool
-        ``smooth``: remove the display's level bias (:mod:`ptpcore.display`).
+        ``smooth``: remove the display's level bias (:mod:`ptpcore.decode.display`).
     footprint : bool
-        ``smooth``: remove the footprint-centroid bias (:func:`ptpcore.smooth.footprint_bias`).
+        ``smooth``: remove the footprint-centroid bias (:func:`ptpcore.fit.smooth.footprint_bias`).
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -188,14 +188,14 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     ----------
     dataset : path
         A ``ptp-dataset/1`` folder.
-    model, degree : see :func:`ptpcore.models.fit_model`
+    model, degree : see :func:`ptpcore.fit.models.fit_model`
     stage_sigma_um, level_bias, footprint : see :class:`Session`
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
     positions : sequence of int, optional
     validate : bool
-        Run :func:`ptpcore.dataset.validate_dataset` (every image, the design).
+        Run :func:`ptpcore.io.dataset.validate_dataset` (every image, the design).
     full_check : bool
         Decode every image's pixels while validating.
 

@@ -1,10 +1,10 @@
 """Rig hardware behind small interfaces, each with a simulated implementation.
 
-- :mod:`~ptpcore.devices.camera` — :class:`Camera`: simulated, OpenCV, GenICam (harvesters);
-- :mod:`~ptpcore.devices.stage` — :class:`Stage`: simulated, manual, serial (pyserial);
-- :mod:`~ptpcore.devices.display` — :class:`Display`: simulated (the real LCD
+- :mod:`~ptpcore.capture.devices.camera` — :class:`Camera`: simulated, OpenCV, GenICam (harvesters);
+- :mod:`~ptpcore.capture.devices.stage` — :class:`Stage`: simulated, manual, serial (pyserial);
+- :mod:`~ptpcore.capture.devices.display` — :class:`Display`: simulated (the real LCD
   window is Qt and lives in the GUI, ``ptp_studio.lcd_window``);
-- :mod:`~ptpcore.devices.config` — the capture configuration file (``capture.toml``).
+- :mod:`~ptpcore.capture.devices.config` — the capture configuration file (``capture.toml``).
 
 :func:`simulated_devices` builds the three simulated devices for a rig, wired
 together so the camera photographs what the display shows where the stage is.

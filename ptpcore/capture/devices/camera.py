@@ -67,7 +67,7 @@ class SimulatedCamera:
     ----------
     virtual_rig : VirtualRig
     display : object with ``image`` ((lcd.height, lcd.width) uint8 or None)
-        Typically a :class:`~ptpcore.devices.display.SimulatedDisplay`.
+        Typically a :class:`~ptpcore.capture.devices.display.SimulatedDisplay`.
     stage : Stage
         Its ``position()`` says where the LCD is.
     faults : mapping or callable, optional

@@ -21,7 +21,7 @@ schema); how to drive its hardware lives in a separate file, by convention
     [stage]
     kind = "serial"              # sim | manual | serial
 
-    [stage.serial]               # see ptpcore.devices.stage.SerialProtocol
+    [stage.serial]               # see ptpcore.capture.devices.stage.SerialProtocol
     port = "/dev/ttyUSB0"
     baudrate = 115200
     write_ending = "\\r"

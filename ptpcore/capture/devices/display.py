@@ -59,7 +59,7 @@ def check_lcd_image(image, width: int, height: int, who: str = "display") -> np.
 class SimulatedDisplay:
     """A display that only records what it was asked to show.
 
-    The simulated camera (:class:`ptpcore.devices.camera.SimulatedCamera`)
+    The simulated camera (:class:`ptpcore.capture.devices.camera.SimulatedCamera`)
     photographs :attr:`image`, so a capture that grabs before showing the
     right pattern gets the wrong frame, as it would on a real rig.
 

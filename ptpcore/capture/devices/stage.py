@@ -7,7 +7,7 @@
   whose text protocol (command templates, reply patterns, line endings,
   timeouts) comes from a configuration table, :class:`SerialProtocol`
   (``[stage.serial]`` of a capture configuration file,
-  :mod:`ptpcore.devices.config`).
+  :mod:`ptpcore.capture.devices.config`).
 
 ``move_to`` returns once the stage is in position; ``position()`` is the
 reading the capture records in ``rig.toml`` (``stage.z_mm``).
