@@ -1,8 +1,9 @@
 """The rig: camera, LCD, stage, fringe design and image layout.
 
-These dataclasses are the in-memory form of a ``ptp-dataset/1`` ``rig.toml``
-(FORMATS.md). All validation happens here, at load time: once a :class:`Rig`
-exists, the numerics downstream can trust it.
+These dataclasses are the in-memory form of a ``ptp-dataset/1`` or ``/2``
+``rig.toml`` (FORMATS.md). All validation happens here, at load time: once a
+:class:`Rig` exists, the numerics downstream can trust it. A rig that uses no
+``/2`` key is written as ``/1``, so older readers keep reading it.
 """
 
 from __future__ import annotations
@@ -22,11 +23,17 @@ from ptpcore.errors import ConfigError
 
 __all__ = [
     "DATASET_FORMAT",
+    "DATASET_FORMAT_2",
     "Camera",
     "Lcd",
     "Stage",
+    "Display",
+    "DirectionFringes",
     "FringeDesign",
+    "DecodeSettings",
+    "FrameEntry",
     "Rig",
+    "format_period",
     "load_rig",
     "rig_from_toml",
     "rig_to_toml",
@@ -35,7 +42,11 @@ __all__ = [
 ]
 
 DATASET_FORMAT = "ptp-dataset/1"
-TEMPLATE_FIELDS = ("pos", "dir", "period", "step", "steps")
+DATASET_FORMAT_2 = "ptp-dataset/2"
+TEMPLATE_FIELDS = ("pos", "dir", "period", "step", "steps", "period_index")
+GRAY_TEMPLATE_FIELDS = ("pos", "dir", "bit", "inverse")
+REFERENCE_TEMPLATE_FIELDS = ("pos",)
+MAX_GRAY_BITS = 24
 DEFAULT_TEMPLATE = "z{pos:03d}/{dir}_T{period}_n{step:02d}.png"
 MAX_POSITIONS = 10_000
 MAX_PERIOD_PX = 10_000_000
@@ -51,6 +62,7 @@ class Camera:
     width: int = 640
     height: int = 480
     bit_depth: int = 8
+    bit_shift: int = 0  # ptp-dataset/2: samples stored MSB-aligned; value >> bit_shift = counts
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -70,6 +82,14 @@ class Lcd:
     width: int = 3840
     height: int = 2160
     pitch_mm: tuple[float, float] = (0.05, 0.05)
+    # ptp-dataset/2 (kept here for the corrections that use them):
+    cover_glass_mm: float = 0.0
+    cover_glass_index: float = 1.52
+    cover_glass_mm_sigma: float = 0.0
+    cover_glass_index_sigma: float = 0.0
+    flatness_u_px: tuple[float, ...] = ()
+    flatness_v_px: tuple[float, ...] = ()
+    flatness_um: tuple[tuple[float, ...], ...] = ()  # [v][u], um
 
 
 @dataclass(frozen=True)
@@ -78,6 +98,7 @@ class Stage:
 
     z_mm: tuple[float, ...] = tuple(float(4 * k) for k in range(11))
     direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    repeat_z_mm: tuple[float, ...] = ()  # ptp-dataset/2: readings captured again after the sweep
 
     @property
     def n_positions(self) -> int:
@@ -85,34 +106,141 @@ class Stage:
 
 
 @dataclass(frozen=True)
+class Display:
+    """ptp-dataset/2 ``[display]``: measured relative luminance at some levels (monotonic)."""
+
+    levels: tuple[float, ...] = ()
+    luminance: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class DirectionFringes:
+    """ptp-dataset/2 ``[fringes.x]`` / ``[fringes.y]``: what differs for one direction (None: as ``[fringes]``)."""
+
+    periods_px: tuple[float, ...] | None = None
+    steps: tuple[int, ...] | None = None
+    phase_origin_rad: float | None = None
+    shift_sign: int | None = None
+    gray_bits: int | None = None
+
+
+@dataclass(frozen=True)
 class FringeDesign:
     """What the LCD shows at every position (METHOD.md section 3).
 
-    ``periods_px`` run coarse to fine; ``steps[j]`` is N for ``periods_px[j]``.
+    ``periods_px`` run coarse to fine (fractional in ``ptp-dataset/2``);
+    ``steps[j]`` is N for ``periods_px[j]``. ``per_direction`` holds the
+    overrides of ``[fringes.x]``/``[fringes.y]``: use :meth:`periods`,
+    :meth:`steps_of`, :meth:`origin`, :meth:`sign` and :meth:`bits` for the
+    values of one direction.
     """
 
     directions: tuple[str, ...] = ("x", "y")
-    periods_px: tuple[int, ...] = (4096, 512, 64, 16)
+    periods_px: tuple[float, ...] = (4096, 512, 64, 16)
     steps: tuple[int, ...] = (4, 4, 4, 8)
     offset: float = 127.5
     amplitude: float = 100.0
     carrier_px_per_mm: tuple[float, float] = (0.0, 0.0)
     gamma: float = 1.0
+    phase_origin_rad: float = 0.0
+    shift_sign: int = 1
+    unwrap: str = "periods"
+    gray_bits: int = 0
+    gray_inverse: bool = False
+    per_direction: tuple[tuple[str, DirectionFringes], ...] = ()
 
     def carrier(self, direction: str) -> float:
         """Carrier displacement (LCD px per mm of z) for ``direction``."""
         return self.carrier_px_per_mm[0 if direction == "x" else 1]
 
+    def _override(self, direction: str, name: str):
+        for d, o in self.per_direction:
+            if d == direction and getattr(o, name) is not None:
+                return getattr(o, name)
+        return getattr(self, name)
+
+    def periods(self, direction: str) -> tuple[float, ...]:
+        """Periods (LCD px, coarse to fine) of ``direction``."""
+        return self._override(direction, "periods_px")
+
+    def steps_of(self, direction: str) -> tuple[int, ...]:
+        """Steps N of every period of ``direction``."""
+        return self._override(direction, "steps")
+
+    def origin(self, direction: str) -> float:
+        """``phase_origin_rad`` of ``direction``."""
+        return float(self._override(direction, "phase_origin_rad"))
+
+    def sign(self, direction: str) -> int:
+        """``shift_sign`` of ``direction``."""
+        return int(self._override(direction, "shift_sign"))
+
+    def bits(self, direction: str) -> int:
+        """Gray-code bits of ``direction`` (0 unless ``unwrap = "gray"``)."""
+        return int(self._override(direction, "gray_bits")) if self.unwrap == "gray" else 0
+
+    @property
+    def is_plain(self) -> bool:
+        """True for a ``ptp-dataset/1`` design: integer periods and steps shared by both
+        directions, phase origin 0, shift sign +1, unwrapping by periods (the fast paths)."""
+        return (not self.per_direction and self.phase_origin_rad == 0.0 and self.shift_sign == 1
+                and self.unwrap == "periods" and all(float(t).is_integer() for t in self.periods_px))
+
     def frames(self):
-        """Yield ``(direction, level, period, step, n_steps)`` in capture order."""
+        """Yield ``(direction, level, period, step, n_steps)`` of the phase-shifted frames in capture order."""
         for d in self.directions:
-            for j, (t, n) in enumerate(zip(self.periods_px, self.steps)):
+            for j, (t, n) in enumerate(zip(self.periods(d), self.steps_of(d))):
                 for s in range(n):
                     yield d, j, t, s, n
 
+    def gray_frames(self):
+        """Yield ``(direction, bit, inverse)`` of the Gray-code frames (none unless ``unwrap = "gray"``)."""
+        for d in self.directions:
+            for b in range(self.bits(d)):
+                yield d, b, False
+                if self.gray_inverse:
+                    yield d, b, True
+
     @property
     def frames_per_position(self) -> int:
-        return len(self.directions) * sum(self.steps)
+        return sum(sum(self.steps_of(d)) for d in self.directions) + sum(1 for _ in self.gray_frames())
+
+
+@dataclass(frozen=True)
+class DecodeSettings:
+    """ptp-dataset/2 ``[decode]`` thresholds; None: the engine's default."""
+
+    min_modulation: float | None = None
+    border_margin_px: int | None = None
+    unwrap_tolerance: float | None = None
+
+
+@dataclass(frozen=True)
+class FrameEntry:
+    """One ``[[images.frames]]`` entry: a phase step, a Gray-code bit or a reference frame."""
+
+    file: str
+    pos: int = 0
+    dir: str | None = None
+    period_index: int | None = None
+    step: int | None = None
+    gray_bit: int | None = None
+    inverse: bool = False
+    reference: str | None = None
+
+    @property
+    def key(self) -> tuple:
+        if self.reference is not None:
+            return (self.pos, "ref", self.reference)
+        if self.gray_bit is not None:
+            return (self.pos, "gray", self.dir, self.gray_bit, self.inverse)
+        return (self.pos, "phase", self.dir, self.period_index, self.step)
+
+
+def format_period(period) -> int | float:
+    """A period as ``{period}`` shows it: its shortest decimal form (``67.5``; ``120`` for ``120.0``)."""
+    p = float(period)
+    return int(p) if p.is_integer() else p
 
 
 @dataclass(frozen=True)
@@ -124,10 +252,53 @@ class Rig:
     stage: Stage = field(default_factory=Stage)
     fringes: FringeDesign = field(default_factory=FringeDesign)
     template: str = DEFAULT_TEMPLATE
+    display: Display | None = None
+    decode: DecodeSettings = field(default_factory=DecodeSettings)
+    gray_template: str | None = None
+    white_template: str | None = None
+    black_template: str | None = None
+    frame_list: tuple[FrameEntry, ...] = ()
 
-    def image_name(self, pos: int, direction: str, period: int, step: int, steps: int) -> str:
-        """Relative path of one image, from ``template``."""
-        return self.template.format(pos=pos, dir=direction, period=period, step=step, steps=steps)
+    def image_name(self, pos: int, direction: str, period, step: int, steps: int,
+                   period_index: int | None = None) -> str:
+        """Relative path of one phase-shifted image (``[[images.frames]]`` or ``template``)."""
+        if period_index is None:
+            ps = self.fringes.periods(direction)
+            period_index = next((j for j, t in enumerate(ps) if float(t) == float(period)), 0)
+        if self.frame_list:
+            return self._listed((pos, "phase", direction, period_index, step))
+        return self.template.format(pos=pos, dir=direction, period=format_period(period), step=step,
+                                    steps=steps, period_index=period_index)
+
+    def gray_name(self, pos: int, direction: str, bit: int, inverse: bool) -> str:
+        """Relative path of one Gray-code image."""
+        if self.frame_list:
+            return self._listed((pos, "gray", direction, bit, bool(inverse)))
+        return (self.gray_template or "").format(pos=pos, dir=direction, bit=bit, inverse=int(bool(inverse)))
+
+    def reference_name(self, pos: int, which: str) -> str | None:
+        """Relative path of the all-white or all-black frame of ``pos``, or None without one."""
+        if self.frame_list:
+            for e in self.frame_list:
+                if e.key == (pos, "ref", which):
+                    return e.file
+            return None
+        t = self.white_template if which == "white" else self.black_template
+        return None if t is None else t.format(pos=pos)
+
+    @property
+    def has_references(self) -> bool:
+        """Whether the dataset has white and black reference frames."""
+        if self.frame_list:
+            return any(e.reference == "white" for e in self.frame_list) and \
+                any(e.reference == "black" for e in self.frame_list)
+        return self.white_template is not None and self.black_template is not None
+
+    def _listed(self, key: tuple) -> str:
+        for e in self.frame_list:
+            if e.key == key:
+                return e.file
+        raise KeyError(f"no [[images.frames]] entry for {key}")
 
     def with_z(self, z_mm) -> "Rig":
         """A copy with other stage positions."""
@@ -225,14 +396,17 @@ def _convert(value: Any, kind: str, where: str):
     raise AssertionError(kind)
 
 
-def validate_template(template: str, source: str = "rig.toml") -> str:
-    """Check ``images.template``: only documented fields with plain format specs.
+def validate_template(template: str, source: str = "rig.toml", *, key: str = "images.template",
+                      fields: tuple[str, ...] = TEMPLATE_FIELDS,
+                      needed: tuple[str, ...] = ("pos", "dir", "period", "step")) -> str:
+    """Check an image template: only documented fields with plain format specs.
 
     Attribute or index access (``{pos.__class__}``, ``{dir[0]}``), conversions
     (``!r``), nested fields and unknown names are refused: the template is user
-    text and must never reach into Python objects.
+    text and must never reach into Python objects. In ``needed``, ``"period"``
+    is also satisfied by ``{period_index}``.
     """
-    where = f"{source}: key 'images.template'"
+    where = f"{source}: key '{key}'"
     if any(ord(c) < 32 or ord(c) == 127 for c in template):
         raise ConfigError(f"{where} must not contain control characters (got {_short_repr(template)})")
     try:
@@ -243,9 +417,9 @@ def validate_template(template: str, source: str = "rig.toml") -> str:
     for _literal, name, spec, conversion in parsed:
         if name is None:
             continue
-        if name not in TEMPLATE_FIELDS:
+        if name not in fields:
             raise ConfigError(
-                f"{where}: field '{{{name}}}' is not allowed (only {', '.join(TEMPLATE_FIELDS)};"
+                f"{where}: field '{{{name}}}' is not allowed (only {', '.join(fields)};"
                 " no attribute or index access)"
             )
         if conversion:
@@ -253,11 +427,11 @@ def validate_template(template: str, source: str = "rig.toml") -> str:
         if spec and ("{" in spec or not _SPEC.fullmatch(spec)):
             raise ConfigError(f"{where}: format spec '{spec}' of '{{{name}}}' is not a plain format spec")
         seen.add(name)
-    for needed in ("pos", "dir", "period", "step"):
-        if needed not in seen:
-            raise ConfigError(f"{where} must contain '{{{needed}}}' so every image has its own name")
+    for need in needed:
+        if need not in seen and not (need == "period" and "period_index" in seen):
+            raise ConfigError(f"{where} must contain '{{{need}}}' so every image has its own name")
     try:
-        template.format(pos=0, dir="x", period=16, step=0, steps=4)
+        template.format(pos=0, dir="x", period=16, step=0, steps=4, period_index=0, bit=0, inverse=0)
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
     if template.startswith(("/", "\\")) or ".." in Path(template).parts:
@@ -265,28 +439,104 @@ def validate_template(template: str, source: str = "rig.toml") -> str:
     return template
 
 
+def _period_list(raw, where: str, v2: bool) -> tuple:
+    """``periods_px``: integers in /1; numbers in /2 (integral ones kept as int)."""
+    if not v2:
+        return tuple(_convert(raw, "list[int]", where))
+    vals = _convert(raw, "list[float]", where)
+    return tuple(int(v) if float(v).is_integer() and not isinstance(r, float) else float(v)
+                 for v, r in zip(vals, raw))
+
+
+def _check_periods(periods, where: str) -> None:
+    if not periods or any(not 2 <= p <= MAX_PERIOD_PX for p in periods):
+        raise ConfigError(f"{where} must list periods of 2 to {MAX_PERIOD_PX} px, got {_short_repr(list(periods))}")
+    if any(b >= a for a, b in zip(periods, periods[1:])):
+        raise ConfigError(f"{where} must decrease strictly (coarse to fine), got {_short_repr(list(periods))}")
+
+
+def _steps_list(raw, n_periods: int, where: str) -> tuple:
+    if isinstance(raw, list):
+        steps = _convert(raw, "list[int]", where)
+    else:
+        steps = [_convert(raw, "int", where)] * n_periods
+    if len(steps) != n_periods:
+        raise ConfigError(f"{where} has {len(steps)} entries for {n_periods} periods")
+    if any(not 3 <= n <= MAX_STEPS for n in steps):
+        raise ConfigError(f"{where} must be 3 to {MAX_STEPS} per period, got {_short_repr(steps)}")
+    return tuple(steps)
+
+
+def _check_sign(v: int, where: str) -> int:
+    if v not in (1, -1):
+        raise ConfigError(f"{where} must be 1 or -1, got {_short_repr(v)}")
+    return v
+
+
+def _check_bits(v: int, where: str) -> int:
+    if not 0 <= v <= MAX_GRAY_BITS:
+        raise ConfigError(f"{where} must be 0 to {MAX_GRAY_BITS}, got {v}")
+    return v
+
+
+def _nonneg(v: float, where: str) -> float:
+    if v < 0:
+        raise ConfigError(f"{where} must be >= 0, got {v}")
+    return v
+
+
 def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
-    """Parse and validate the text of a ``rig.toml``.
+    """Parse and validate the text of a ``rig.toml`` (``ptp-dataset/1`` or ``/2``).
 
     Raises
     ------
     ConfigError
         Naming the key and what was expected.
     """
-    doc = _toml_document(text, source, DATASET_FORMAT, {"format", "camera", "lcd", "stage", "fringes", "images"})
+    known = {"format", "camera", "lcd", "stage", "fringes", "images"}
+    doc = _toml_document(text, source, (DATASET_FORMAT, DATASET_FORMAT_2), known | {"display", "decode"})
+    v2 = doc["format"] == DATASET_FORMAT_2
+    if not v2:
+        for key in ("display", "decode"):
+            if key in doc:
+                raise ConfigError(f"{source}: unknown key {key!r} in a {DATASET_FORMAT} file"
+                                  f" (it is a {DATASET_FORMAT_2} key; set format = \"{DATASET_FORMAT_2}\")")
 
     s = _Section(doc, "camera", source)
-    camera = Camera(s.get("width", "int"), s.get("height", "int"), s.get("bit_depth", "int", 8))
+    camera = Camera(s.get("width", "int"), s.get("height", "int"), s.get("bit_depth", "int", 8),
+                    s.get("bit_shift", "int", 0) if v2 else 0)
     s.finish()
     for key, v in (("width", camera.width), ("height", camera.height)):
         if not 1 <= v <= 100_000:
             raise ConfigError(f"{source}: key 'camera.{key}' must be between 1 and 100000, got {v}")
     if not 8 <= camera.bit_depth <= 16:
         raise ConfigError(f"{source}: key 'camera.bit_depth' must be 8 to 16, got {camera.bit_depth}")
+    stored_bits = 8 if camera.bit_depth == 8 else 16
+    if not 0 <= camera.bit_shift <= stored_bits - camera.bit_depth:
+        raise ConfigError(f"{source}: key 'camera.bit_shift' must be 0 to {stored_bits - camera.bit_depth}"
+                          f" for a {camera.bit_depth}-bit camera, got {camera.bit_shift}")
 
     s = _Section(doc, "lcd", source)
     lcd_w, lcd_h = s.get("width", "int"), s.get("height", "int")
     pitch = s.get("pitch_mm", "list[float]")
+    extra = {}
+    if v2:
+        extra = dict(
+            cover_glass_mm=_nonneg(s.get("cover_glass_mm", "float", 0.0), f"{source}: key 'lcd.cover_glass_mm'"),
+            cover_glass_index=s.get("cover_glass_index", "float", 1.52),
+            cover_glass_mm_sigma=_nonneg(s.get("cover_glass_mm_sigma", "float", 0.0),
+                                         f"{source}: key 'lcd.cover_glass_mm_sigma'"),
+            cover_glass_index_sigma=_nonneg(s.get("cover_glass_index_sigma", "float", 0.0),
+                                            f"{source}: key 'lcd.cover_glass_index_sigma'"),
+            flatness_u_px=tuple(s.get("flatness_u_px", "list[float]", [])),
+            flatness_v_px=tuple(s.get("flatness_v_px", "list[float]", [])),
+        )
+        rows = s.table.get("flatness_um", [])
+        s.used.add("flatness_um")
+        if not isinstance(rows, list):
+            raise ConfigError(f"{source}: key 'lcd.flatness_um' must be a list of rows, got {_tname(rows)}")
+        extra["flatness_um"] = tuple(tuple(_convert(r, "list[float]", f"{source}: key 'lcd.flatness_um[{i}]'"))
+                                     for i, r in enumerate(rows))
     s.finish()
     if len(pitch) != 2 or min(pitch) <= 0:
         raise ConfigError(f"{source}: key 'lcd.pitch_mm' must be two positive numbers [x, y],"
@@ -294,18 +544,33 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     for key, v in (("width", lcd_w), ("height", lcd_h)):
         if not 1 <= v <= 1_000_000:
             raise ConfigError(f"{source}: key 'lcd.{key}' must be between 1 and 1000000, got {_short_repr(v)}")
-    lcd = Lcd(lcd_w, lcd_h, (pitch[0], pitch[1]))
+    if v2:
+        if not 1.0 <= extra["cover_glass_index"] <= 3.0:
+            raise ConfigError(f"{source}: key 'lcd.cover_glass_index' must be 1 to 3, got {extra['cover_glass_index']}")
+        fu, fv, fz = extra["flatness_u_px"], extra["flatness_v_px"], extra["flatness_um"]
+        if fu or fv or fz:
+            for key, grid in (("flatness_u_px", fu), ("flatness_v_px", fv)):
+                if len(grid) < 2 or any(b <= a for a, b in zip(grid, grid[1:])):
+                    raise ConfigError(f"{source}: key 'lcd.{key}' must list at least 2 increasing LCD coordinates,"
+                                      f" got {_short_repr(list(grid))}")
+            if len(fz) != len(fv) or any(len(r) != len(fu) for r in fz):
+                raise ConfigError(f"{source}: key 'lcd.flatness_um' must have {len(fv)} rows of {len(fu)} values"
+                                  " ([v][u], one per flatness_v_px and flatness_u_px)")
+    lcd = Lcd(lcd_w, lcd_h, (pitch[0], pitch[1]), **extra)
 
     s = _Section(doc, "stage", source)
     z = s.get("z_mm", "list[float]")
     direction = s.get("direction", "list[float]", [0.0, 0.0, 1.0])
+    repeat = s.get("repeat_z_mm", "list[float]", []) if v2 else []
     s.finish()
-    if len(z) < 2:
-        raise ConfigError(f"{source}: key 'stage.z_mm' needs at least 2 positions, got {len(z)}")
-    if len(z) > MAX_POSITIONS:
+    min_positions = 1 if v2 else 2
+    if len(z) < min_positions:
+        raise ConfigError(f"{source}: key 'stage.z_mm' needs at least {min_positions} position"
+                          f"{'s' if min_positions > 1 else ''}, got {len(z)}")
+    if len(z) + len(repeat) > MAX_POSITIONS:
         raise ConfigError(f"{source}: key 'stage.z_mm' lists {len(z)} positions, at most {MAX_POSITIONS}")
     dz = [b - a for a, b in zip(z, z[1:])]
-    if not (all(d > 0 for d in dz) or all(d < 0 for d in dz)):
+    if dz and not (all(d > 0 for d in dz) or all(d < 0 for d in dz)):
         i = next(i for i, d in enumerate(dz) if d == 0 or (d > 0) != (dz[0] > 0))
         what = "a duplicate position" if dz[i] == 0 else "a change of direction"
         raise ConfigError(
@@ -314,38 +579,145 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
         )
     if len(direction) != 3 or direction[2] != 1.0:
         raise ConfigError(f"{source}: key 'stage.direction' must be [a, b, 1.0], got {_short_repr(direction)}")
-    stage = Stage(tuple(z), (direction[0], direction[1], 1.0))
+    stage = Stage(tuple(z), (direction[0], direction[1], 1.0), tuple(repeat))
 
+    fringes = _fringes(doc, source, v2)
+
+    display = None
+    if v2 and "display" in doc:
+        s = _Section(doc, "display", source)
+        levels = s.get("levels", "list[float]")
+        lum = s.get("luminance", "list[float]")
+        s.finish()
+        if len(levels) < 2 or len(levels) != len(lum):
+            raise ConfigError(f"{source}: keys 'display.levels' and 'display.luminance' must have the same"
+                              f" length (at least 2), got {len(levels)} and {len(lum)}")
+        if any(b <= a for a, b in zip(levels, levels[1:])) or not 0 <= levels[0] or levels[-1] > 255:
+            raise ConfigError(f"{source}: key 'display.levels' must increase strictly within 0..255,"
+                              f" got {_short_repr(levels)}")
+        if any(b < a for a, b in zip(lum, lum[1:])) or lum[-1] <= lum[0]:
+            raise ConfigError(f"{source}: key 'display.luminance' must be monotonic (increasing),"
+                              f" got {_short_repr(lum)}")
+        display = Display(tuple(levels), tuple(lum))
+
+    decode = DecodeSettings()
+    if v2 and "decode" in doc:
+        s = _Section(doc, "decode", source)
+        decode = DecodeSettings(s.get("min_modulation", "float", None), s.get("border_margin_px", "int", None),
+                                s.get("unwrap_tolerance", "float", None))
+        s.finish()
+        if decode.min_modulation is not None and not 0 <= decode.min_modulation < 1:
+            raise ConfigError(f"{source}: key 'decode.min_modulation' must be 0 to 1 (a fraction of full scale),"
+                              f" got {decode.min_modulation}")
+        if decode.border_margin_px is not None and not 0 <= decode.border_margin_px <= 1000:
+            raise ConfigError(f"{source}: key 'decode.border_margin_px' must be 0 to 1000, got {decode.border_margin_px}")
+        if decode.unwrap_tolerance is not None and not 0 < decode.unwrap_tolerance <= 0.5:
+            raise ConfigError(f"{source}: key 'decode.unwrap_tolerance' must be above 0 and at most 0.5 (periods),"
+                              f" got {decode.unwrap_tolerance}")
+
+    s = _Section(doc, "images", source, required=False)
+    template = s.get("template", "str", DEFAULT_TEMPLATE)
+    gray_t = white_t = black_t = None
+    frames_raw = []
+    if v2:
+        gray_t = s.get("gray_template", "str", None)
+        white_t = s.get("white_template", "str", None)
+        black_t = s.get("black_template", "str", None)
+        frames_raw = s.table.get("frames", [])
+        s.used.add("frames")
+    s.finish()
+    rig = Rig(camera, lcd, stage, fringes, template, display, decode, gray_t, white_t, black_t)
+    if v2 and frames_raw:
+        return replace(rig, frame_list=_frame_list(frames_raw, rig, source))
+    validate_template(template, source)
+    for d in fringes.directions:
+        for j, t in enumerate(fringes.periods(d)):
+            try:
+                template.format(pos=0, dir=d, period=format_period(t), step=0, steps=3, period_index=j)
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(f"{source}: key 'images.template' cannot name period {format_period(t)} px"
+                                  f" ({exc}); use {{period}} without an integer format spec, or {{period_index}}")\
+                    from None
+    if fringes.unwrap == "gray":
+        if gray_t is None:
+            raise ConfigError(f"{source}: key 'images.gray_template' is needed with fringes.unwrap = \"gray\""
+                              " (or name the frames in [[images.frames]])")
+        needed = ("dir", "bit") + (("inverse",) if fringes.gray_inverse else ())
+        validate_template(gray_t, source, key="images.gray_template", fields=GRAY_TEMPLATE_FIELDS, needed=needed)
+    elif gray_t is not None:
+        raise ConfigError(f"{source}: key 'images.gray_template' is given but fringes.unwrap is not \"gray\"")
+    if (white_t is None) != (black_t is None):
+        raise ConfigError(f"{source}: keys 'images.white_template' and 'images.black_template' go together")
+    for key, t in (("images.white_template", white_t), ("images.black_template", black_t)):
+        if t is not None:
+            validate_template(t, source, key=key, fields=REFERENCE_TEMPLATE_FIELDS, needed=())
+    return rig
+
+
+def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
     s = _Section(doc, "fringes", source)
     directions = s.get("directions", "list[str]", ["x", "y"])
-    periods = s.get("periods_px", "list[int]")
-    steps_raw = s.table.get("steps", 4)
+    s.used.add("periods_px")
+    if "periods_px" not in s.table:
+        raise ConfigError(f"{source}: missing key 'fringes.periods_px' (expected list[{'float' if v2 else 'int'}])")
+    periods = _period_list(s.table["periods_px"], f"{source}: key 'fringes.periods_px'", v2)
     s.used.add("steps")
-    if isinstance(steps_raw, list):
-        steps = _convert(steps_raw, "list[int]", f"{source}: key 'fringes.steps'")
-    else:
-        steps = [_convert(steps_raw, "int", f"{source}: key 'fringes.steps'")] * len(periods)
+    steps = _steps_list(s.table.get("steps", 4), len(periods), f"{source}: key 'fringes.steps'")
     offset = s.get("offset", "float", 127.5)
     amplitude = s.get("amplitude", "float", 100.0)
     carrier = s.get("carrier_px_per_mm", "list[float]", [0.0, 0.0])
     gamma = s.get("gamma", "float", 1.0)
+    extra: dict = {}
+    per_direction = []
+    if v2:
+        extra["phase_origin_rad"] = s.get("phase_origin_rad", "float", 0.0)
+        extra["shift_sign"] = _check_sign(s.get("shift_sign", "int", 1), f"{source}: key 'fringes.shift_sign'")
+        unwrap = s.get("unwrap", "str", "periods")
+        if unwrap not in ("periods", "gray"):
+            raise ConfigError(f"{source}: key 'fringes.unwrap' must be \"periods\" or \"gray\", got {_short_repr(unwrap)}")
+        extra["unwrap"] = unwrap
+        extra["gray_bits"] = _check_bits(s.get("gray_bits", "int", 0), f"{source}: key 'fringes.gray_bits'")
+        inv = s.table.get("gray_inverse", False)
+        s.used.add("gray_inverse")
+        if not isinstance(inv, bool):
+            raise ConfigError(f"{source}: key 'fringes.gray_inverse' must be true or false, got {_short_repr(inv)}")
+        extra["gray_inverse"] = inv
+        for d in ("x", "y"):
+            if d not in s.table:
+                continue
+            s.used.add(d)
+            sub = _Section(s.table, d, source)
+            sub.name = f"fringes.{d}"
+            o_periods = None
+            if "periods_px" in sub.table:
+                sub.used.add("periods_px")
+                o_periods = _period_list(sub.table["periods_px"], f"{source}: key 'fringes.{d}.periods_px'", True)
+                _check_periods(o_periods, f"{source}: key 'fringes.{d}.periods_px'")
+            o_steps = None
+            if "steps" in sub.table:
+                sub.used.add("steps")
+                o_steps = _steps_list(sub.table["steps"], len(o_periods or periods), f"{source}: key 'fringes.{d}.steps'")
+            elif o_periods is not None and len(o_periods) != len(steps):
+                if isinstance(s.table.get("steps", 4), list):
+                    raise ConfigError(f"{source}: key 'fringes.{d}.periods_px' lists {len(o_periods)} periods;"
+                                      f" give 'fringes.{d}.steps' too (fringes.steps has {len(steps)})")
+                o_steps = (steps[0],) * len(o_periods)
+            origin = sub.get("phase_origin_rad", "float", None)
+            sign = sub.get("shift_sign", "int", None)
+            if sign is not None:
+                _check_sign(sign, f"{source}: key 'fringes.{d}.shift_sign'")
+            bits = sub.get("gray_bits", "int", None)
+            if bits is not None:
+                _check_bits(bits, f"{source}: key 'fringes.{d}.gray_bits'")
+            sub.finish()
+            o = DirectionFringes(o_periods, o_steps, origin, sign, bits)
+            if o != DirectionFringes():
+                per_direction.append((d, o))
     s.finish()
     if not directions or len(set(directions)) != len(directions) or any(d not in ("x", "y") for d in directions):
         raise ConfigError(f"{source}: key 'fringes.directions' must list 'x' and/or 'y' once each,"
                           f" got {_short_repr(directions)}")
-    if not periods or any(not 2 <= p <= MAX_PERIOD_PX for p in periods):
-        raise ConfigError(f"{source}: key 'fringes.periods_px' must list periods of 2 to {MAX_PERIOD_PX} px,"
-                          f" got {_short_repr(periods)}")
-    if any(b >= a for a, b in zip(periods, periods[1:])):
-        raise ConfigError(f"{source}: key 'fringes.periods_px' must decrease strictly (coarse to fine),"
-                          f" got {_short_repr(periods)}")
-    if len(steps) != len(periods):
-        raise ConfigError(
-            f"{source}: key 'fringes.steps' has {len(steps)} entries for {len(periods)} periods"
-        )
-    if any(not 3 <= n <= MAX_STEPS for n in steps):
-        raise ConfigError(f"{source}: key 'fringes.steps' must be 3 to {MAX_STEPS} per period,"
-                          f" got {_short_repr(steps)}")
+    _check_periods(periods, f"{source}: key 'fringes.periods_px'")
     if len(carrier) != 2:
         raise ConfigError(f"{source}: key 'fringes.carrier_px_per_mm' must be [x, y], got {_short_repr(carrier)}")
     if amplitude <= 0 or offset - amplitude < -0.5 or offset + amplitude > 255.5:
@@ -355,14 +727,109 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
         )
     if gamma <= 0:
         raise ConfigError(f"{source}: key 'fringes.gamma' must be positive, got {gamma}")
-    fringes = FringeDesign(tuple(directions), tuple(periods), tuple(steps), offset, amplitude,
-                           (carrier[0], carrier[1]), gamma)
+    f = FringeDesign(tuple(directions), periods, steps, offset, amplitude, (carrier[0], carrier[1]), gamma,
+                     **extra, per_direction=tuple(per_direction))
+    if f.unwrap == "gray":
+        for d in f.directions:
+            if f.bits(d) < 1:
+                raise ConfigError(f"{source}: key 'fringes.gray_bits' must be at least 1 with unwrap = \"gray\""
+                                  f" (direction {d})")
+    return f
 
-    s = _Section(doc, "images", source, required=False)
-    template = s.get("template", "str", DEFAULT_TEMPLATE)
-    s.finish()
-    validate_template(template, source)
-    return Rig(camera, lcd, stage, fringes, template)
+
+_FRAME_KEYS = {"pos", "dir", "period_index", "step", "gray_bit", "inverse", "reference", "file"}
+
+
+def _frame_list(raw, rig: Rig, source: str) -> tuple[FrameEntry, ...]:
+    """``[[images.frames]]``: every entry valid, every frame the design needs named exactly once."""
+    if not isinstance(raw, list) or not all(isinstance(e, dict) for e in raw):
+        raise ConfigError(f"{source}: key 'images.frames' must be an array of tables [[images.frames]]")
+    f = rig.fringes
+    k_total = rig.stage.n_positions
+    out = []
+    seen: dict = {}
+    for i, e in enumerate(raw):
+        where = f"{source}: [[images.frames]] entry {i + 1}"
+        unknown = sorted(set(e) - _FRAME_KEYS)
+        if unknown:
+            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(_FRAME_KEYS))})")
+
+        def get(key, kind, default=...):
+            if key not in e:
+                if default is ...:
+                    raise ConfigError(f"{where}: missing key {key!r}")
+                return default
+            if kind == "bool":
+                if not isinstance(e[key], bool):
+                    raise ConfigError(f"{where}: key {key!r} must be true or false, got {_short_repr(e[key])}")
+                return e[key]
+            return _convert(e[key], kind, f"{where}: key {key!r}")
+
+        file = get("file", "str")
+        try:
+            validate_template(file, source, key=f"images.frames[{i}].file", fields=(), needed=())
+        except ConfigError as exc:
+            raise ConfigError(str(exc)) from None
+        pos = get("pos", "int", 0)
+        if not 0 <= pos < k_total:
+            raise ConfigError(f"{where}: key 'pos' must be 0 to {k_total - 1}, got {pos}")
+        ref = get("reference", "str", None)
+        if ref is not None:
+            if ref not in ("white", "black"):
+                raise ConfigError(f"{where}: key 'reference' must be \"white\" or \"black\", got {_short_repr(ref)}")
+            extra = sorted(set(e) & {"dir", "period_index", "step", "gray_bit", "inverse"})
+            if extra:
+                raise ConfigError(f"{where}: a reference frame takes no key {extra[0]!r}")
+            entry = FrameEntry(file, pos, reference=ref)
+        else:
+            d = get("dir", "str", None)
+            if d is None and len(f.directions) == 1:
+                d = f.directions[0]
+            if d not in f.directions:
+                raise ConfigError(f"{where}: key 'dir' must be one of {list(f.directions)}, got {_short_repr(d)}")
+            if "gray_bit" in e:
+                if f.unwrap != "gray":
+                    raise ConfigError(f"{where}: a Gray-code frame, but fringes.unwrap is not \"gray\"")
+                bit = get("gray_bit", "int")
+                if not 0 <= bit < f.bits(d):
+                    raise ConfigError(f"{where}: key 'gray_bit' must be 0 to {f.bits(d) - 1}, got {bit}")
+                inv = get("inverse", "bool", False)
+                if inv and not f.gray_inverse:
+                    raise ConfigError(f"{where}: an inverse Gray-code frame, but fringes.gray_inverse is false")
+                if "period_index" in e or "step" in e:
+                    raise ConfigError(f"{where}: a Gray-code frame takes no 'period_index' or 'step'")
+                entry = FrameEntry(file, pos, d, gray_bit=bit, inverse=inv)
+            else:
+                j = get("period_index", "int")
+                n_levels = len(f.periods(d))
+                if not 0 <= j < n_levels:
+                    raise ConfigError(f"{where}: key 'period_index' must be 0 to {n_levels - 1}, got {j}")
+                n = f.steps_of(d)[j]
+                step = get("step", "int")
+                if not 0 <= step < n:
+                    raise ConfigError(f"{where}: key 'step' must be 0 to {n - 1}, got {step}")
+                if "inverse" in e:
+                    raise ConfigError(f"{where}: key 'inverse' belongs to Gray-code frames")
+                entry = FrameEntry(file, pos, d, period_index=j, step=step)
+        if entry.key in seen:
+            raise ConfigError(f"{where}: the same frame as entry {seen[entry.key] + 1}")
+        seen[entry.key] = i
+        out.append(entry)
+    rig = replace(rig, frame_list=tuple(out))
+    for k in range(k_total):
+        for d, j, _t, s_, _n in f.frames():
+            if (k, "phase", d, j, s_) not in seen:
+                raise ConfigError(f"{source}: [[images.frames]] names no frame for pos = {k}, dir = {d!r},"
+                                  f" period_index = {j}, step = {s_}")
+        for d, b, inv in f.gray_frames():
+            if (k, "gray", d, b, inv) not in seen:
+                raise ConfigError(f"{source}: [[images.frames]] names no Gray-code frame for pos = {k},"
+                                  f" dir = {d!r}, gray_bit = {b}" + (", inverse = true" if inv else ""))
+        refs = {r for r in ("white", "black") if (k, "ref", r) in seen}
+        if len(refs) == 1:
+            raise ConfigError(f"{source}: [[images.frames]] has a {next(iter(refs))} reference frame for"
+                              f" pos = {k} but not its {'black' if 'white' in refs else 'white'} one")
+    return tuple(out)
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -383,17 +850,20 @@ def _read_text(path: Path) -> str:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
 
 
-def _toml_document(text: str, source: str, expected_format: str, known: set[str]) -> dict:
-    """Parse a versioned TOML file: valid TOML, ``format = expected_format``, no unknown top-level key."""
+def _toml_document(text: str, source: str, expected_format, known: set[str]) -> dict:
+    """Parse a versioned TOML file: valid TOML, ``format = expected_format`` (or one of a tuple of
+    them), no unknown top-level key."""
     try:
         doc = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, ValueError) as exc:  # ValueError: e.g. an integer too long to read
         raise ConfigError(f"{source}: not valid TOML ({exc})") from None
     fmt = doc.get("format")
-    if fmt != expected_format:
+    allowed = (expected_format,) if isinstance(expected_format, str) else tuple(expected_format)
+    if fmt not in allowed:
+        want = " or ".join(f'"{a}"' for a in allowed)
         if fmt is None:
-            raise ConfigError(f"{source}: missing key 'format' (expected \"{expected_format}\")")
-        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected \"{expected_format}\"")
+            raise ConfigError(f"{source}: missing key 'format' (expected {want})")
+        raise ConfigError(f"{source}: key 'format' is {_short_repr(fmt)}, expected {want}")
     for key in doc:
         if key not in known:
             raise ConfigError(f"{source}: unknown key {_short_repr(key)} (allowed: {', '.join(sorted(known))})")
@@ -401,13 +871,85 @@ def _toml_document(text: str, source: str, expected_format: str, known: set[str]
 
 
 def rig_to_toml(rig: Rig) -> str:
-    """The ``rig.toml`` text of ``rig`` (round-trips through :func:`rig_from_toml`)."""
+    """The ``rig.toml`` text of ``rig`` (round-trips through :func:`rig_from_toml`).
+
+    ``ptp-dataset/1`` unless the rig uses a ``/2`` key (only those that differ
+    from their defaults are written).
+    """
     f = rig.fringes
+    v2: dict = {}  # section -> {key: value} of the /2 keys in use
+
+    def put(section: str, key: str, value) -> None:
+        v2.setdefault(section, {})[key] = value
+
+    c, lcd, st = rig.camera, rig.lcd, rig.stage
+    if c.bit_shift:
+        put("camera", "bit_shift", c.bit_shift)
+    d = Lcd()
+    for key in ("cover_glass_mm", "cover_glass_index", "cover_glass_mm_sigma", "cover_glass_index_sigma"):
+        if getattr(lcd, key) != getattr(d, key):
+            put("lcd", key, float(getattr(lcd, key)))
+    if lcd.flatness_um:
+        put("lcd", "flatness_u_px", [float(x) for x in lcd.flatness_u_px])
+        put("lcd", "flatness_v_px", [float(x) for x in lcd.flatness_v_px])
+        put("lcd", "flatness_um", [[float(x) for x in r] for r in lcd.flatness_um])
+    if st.repeat_z_mm:
+        put("stage", "repeat_z_mm", [float(z) for z in st.repeat_z_mm])
+    if any(isinstance(t, float) for t in f.periods_px):
+        put("fringes", "periods_px", [format_period(t) if isinstance(t, int) else float(t) for t in f.periods_px])
+    if f.phase_origin_rad != 0.0:
+        put("fringes", "phase_origin_rad", float(f.phase_origin_rad))
+    if f.shift_sign != 1:
+        put("fringes", "shift_sign", int(f.shift_sign))
+    if f.unwrap != "periods":
+        put("fringes", "unwrap", f.unwrap)
+    if f.gray_bits:
+        put("fringes", "gray_bits", int(f.gray_bits))
+    if f.gray_inverse:
+        put("fringes", "gray_inverse", True)
+    for dname, o in f.per_direction:
+        sub = {}
+        if o.periods_px is not None:
+            sub["periods_px"] = [t if isinstance(t, int) else float(t) for t in o.periods_px]
+        if o.steps is not None:
+            sub["steps"] = list(o.steps)
+        for key in ("phase_origin_rad", "shift_sign", "gray_bits"):
+            if getattr(o, key) is not None:
+                sub[key] = getattr(o, key)
+        if sub:
+            put("fringes", dname, sub)
+    if rig.display is not None:
+        v2["display"] = {"levels": [float(x) for x in rig.display.levels],
+                         "luminance": [float(x) for x in rig.display.luminance]}
+    dec = {k: v for k, v in (("min_modulation", rig.decode.min_modulation),
+                             ("border_margin_px", rig.decode.border_margin_px),
+                             ("unwrap_tolerance", rig.decode.unwrap_tolerance)) if v is not None}
+    if dec:
+        v2["decode"] = dec
+    for key in ("gray_template", "white_template", "black_template"):
+        if getattr(rig, key) is not None:
+            put("images", key, getattr(rig, key))
+    if rig.frame_list:
+        frames = []
+        for e in rig.frame_list:
+            t = {"pos": e.pos}
+            if e.reference is not None:
+                t["reference"] = e.reference
+            elif e.gray_bit is not None:
+                t.update({"dir": e.dir, "gray_bit": e.gray_bit, "inverse": e.inverse})
+            else:
+                t.update({"dir": e.dir, "period_index": e.period_index, "step": e.step})
+            t["file"] = e.file
+            frames.append(t)
+        put("images", "frames", frames)
+    if st.n_positions < 2:
+        v2.setdefault("stage", {})
+
     doc = {
-        "format": DATASET_FORMAT,
-        "camera": {"width": rig.camera.width, "height": rig.camera.height, "bit_depth": rig.camera.bit_depth},
-        "lcd": {"width": rig.lcd.width, "height": rig.lcd.height, "pitch_mm": list(rig.lcd.pitch_mm)},
-        "stage": {"z_mm": [float(z) for z in rig.stage.z_mm], "direction": list(rig.stage.direction)},
+        "format": DATASET_FORMAT_2 if v2 else DATASET_FORMAT,
+        "camera": {"width": c.width, "height": c.height, "bit_depth": c.bit_depth},
+        "lcd": {"width": lcd.width, "height": lcd.height, "pitch_mm": list(lcd.pitch_mm)},
+        "stage": {"z_mm": [float(z) for z in st.z_mm], "direction": list(st.direction)},
         "fringes": {
             "directions": list(f.directions),
             "periods_px": list(f.periods_px),
@@ -419,6 +961,12 @@ def rig_to_toml(rig: Rig) -> str:
         },
         "images": {"template": rig.template},
     }
+    for section, keys in v2.items():
+        doc.setdefault(section, {}).update(keys)
+    # Sub-tables after plain keys (TOML needs [fringes.y] after the keys of [fringes]).
+    fr = doc["fringes"]
+    doc["fringes"] = {k: v for k, v in fr.items() if not isinstance(v, dict)} | \
+        {k: v for k, v in fr.items() if isinstance(v, dict)}
     return tomli_w.dumps(doc)
 
 

@@ -313,7 +313,8 @@ _OPTS = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
 
 def _fringe_attrs(rig: Rig) -> dict:
     f = rig.fringes
-    return {"directions": list(f.directions), "periods_px": np.asarray(f.periods_px, np.int64),
+    return {"directions": list(f.directions), "periods_px": np.asarray(f.periods_px, np.int64 if all(isinstance(t, int) for t in f.periods_px)
+                                           else np.float64),
             "steps": np.asarray(f.steps, np.int64), "offset": f.offset, "amplitude": f.amplitude,
             "carrier_px_per_mm": np.asarray(f.carrier_px_per_mm, float), "gamma": f.gamma}
 
