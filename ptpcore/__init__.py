@@ -41,6 +41,7 @@ _PUBLIC = {
     "Lut": "ptpcore.io", "LutEvaluation": "ptpcore.io", "load_lut": "ptpcore.io", "save_lut": "ptpcore.io",
     "SampleStack": "ptpcore.io", "DatasetSource": "ptpcore.io", "SimulatedSource": "ptpcore.io",
     "validate_dataset": "ptpcore.io", "read_image": "ptpcore.io",
+    "PointCloud": "ptpcore.io", "read_height_map": "ptpcore.io", "write_point_cloud": "ptpcore.io",
     # pinhole
     "PinholeModel": "ptpcore.pinhole", "fit_pinhole": "ptpcore.pinhole",
     # fit

@@ -121,6 +121,41 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def cmd_apply(args) -> int:
+    from ptpcore.io.lutfile import load_lut
+    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES, write_point_cloud
+
+    out = Path(args.out)
+    if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
+        raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
+    lut = load_lut(args.lut_file)
+    z, z_text = _height_argument(args.z, lut.shape)
+    cloud = lut.points(z, extrapolate=args.extrapolate)
+    if cloud.n_points == 0:
+        raise ValueError(f"{args.lut_file}: no point at {z_text} ({cloud.summary()}); the LUT covers"
+                         f" z {lut.z_min:g} .. {lut.z_max:g} mm" + ("" if args.extrapolate else
+                                                                    " (--extrapolate keeps heights outside it)"))
+    write_point_cloud(cloud, out, comment=f"ptp apply {Path(args.lut_file).name} --z {args.z}"
+                      + (" --extrapolate" if args.extrapolate else ""))
+    print(f"{out}: {cloud.summary()}")
+    return 0
+
+
+def _height_argument(text: str, shape) -> tuple[object, str]:
+    """``--z``: a height map file, or one height (mm) for every pixel."""
+    from ptpcore.io.pointcloud import read_height_map
+
+    if Path(text).is_file():
+        return read_height_map(text, shape), text
+    try:
+        z = float(text)
+    except ValueError:
+        raise ValueError(f"--z {text}: neither a height in mm nor an existing height-map file") from None
+    if not np.isfinite(z):
+        raise ValueError(f"--z {text}: the height must be a finite number of mm")
+    return z, f"z = {z:g} mm"
+
+
 def cmd_demo(args) -> int:
     from ptpcore.evaluate.accuracy import held_out_accuracy
     from ptpcore.fit.sigma import predicted_poly_sigma, sample_sigma
@@ -272,6 +307,19 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
     i.add_argument("lut_file", metavar="FILE.lut.h5")
     i.set_defaults(func=cmd_inspect)
+
+    a = sub.add_parser("apply", help="height map + LUT -> point cloud (PLY, .npy or .h5)",
+                       description="Turn a height for every pixel (one number in mm, or a height map: 32-bit float"
+                                   " TIFF or .npy, (H, W), mm, NaN = no measurement) into a point cloud through a"
+                                   " ptp-lut/1 file. Pixels invalid in the LUT or outside their own calibrated"
+                                   " z range are left out and counted.")
+    a.add_argument("lut_file", metavar="FILE.lut.h5")
+    a.add_argument("--z", required=True, metavar="Z", help="height in mm for every pixel, or a height-map file")
+    a.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
+                   help="binary little-endian PLY, a structured .npy array, or ptp-points/1 HDF5")
+    a.add_argument("--extrapolate", action="store_true",
+                   help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
+    a.set_defaults(func=cmd_apply)
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
                         description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"

@@ -4,7 +4,8 @@ fast readers and spill stores.
 - :mod:`.dataset` — frame sources (dataset folders, the virtual rig) and one-pass validation;
 - :mod:`.fastio` — page-cache mapped frame reads, block reads, the spill store for big sensors;
 - :mod:`.samples` — :class:`SampleStack`, every pixel's samples over all positions;
-- :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files.
+- :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files;
+- :mod:`.pointcloud` — :class:`PointCloud` (what ``Lut.points`` returns), height maps, PLY/.npy/.h5 writers.
 
 May import :mod:`ptpcore.decode`, :mod:`ptpcore.rig` and the base modules.
 """
@@ -14,6 +15,7 @@ from .dataset import (FrameSource, DatasetSource, SimulatedSource, ImageHeader, 
 from .fastio import read_into, map_frame, tiff_layout, SpillStore, read_block
 from .samples import SampleStack
 from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
+from .pointcloud import PointCloud, read_height_map, write_point_cloud
 
 __all__ = [
     "FrameSource",
@@ -38,4 +40,7 @@ __all__ = [
     "save_lut",
     "load_lut",
     "MODELS",
+    "PointCloud",
+    "read_height_map",
+    "write_point_cloud",
 ]

@@ -24,6 +24,7 @@ from scipy.interpolate import PchipInterpolator
 from ptpcore import __version__
 from ptpcore.atomic import atomic_path
 from ptpcore.errors import FileFormatError
+from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
 __all__ = [
     "LUT_FORMAT",
@@ -149,6 +150,63 @@ class Lut:
         y = _interp_table(self.z_nodes, self.y, z, self.kind)
         keep = in_range if not extrapolate else self.valid
         return LutEvaluation(np.where(keep, x, np.nan), np.where(keep, y, np.nan), in_range)
+
+    def points(self, z, *, extrapolate: bool = False) -> PointCloud:
+        """The point cloud of a height map (or one height for every pixel).
+
+        Parameters
+        ----------
+        z : float or (H, W) array_like, mm
+            NaN where there is no measurement.
+        extrapolate : bool
+            Keep valid pixels whose height is outside their own calibrated
+            range (flagged ``extrapolated``); tables never extrapolate.
+
+        Returns
+        -------
+        PointCloud
+            One point per pixel with a height, a valid LUT, an allowed height
+            and a value there; the others are counted by reason.
+
+        Raises
+        ------
+        ValueError
+            ``z`` is neither a scalar nor an ``(H, W)`` map.
+        """
+        zz = np.asarray(z, dtype=float)
+        ev = self.evaluate(zz, extrapolate=extrapolate)
+        return build_point_cloud(ev.x, ev.y, np.broadcast_to(zz, self.shape), self.valid, ev.in_range,
+                                 extrapolate, self.sigma_x, self.sigma_y)
+
+    def ray(self, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+        """A pixel's line in space, for a degree-1 ``poly`` LUT.
+
+        Returns
+        -------
+        point : (3,) float64, mm
+            The pixel's X, Y at ``Z = z_center`` (the middle of the calibrated range).
+        direction : (3,) float64
+            ``(dX/dZ, dY/dZ, 1)``: the point at height Z is
+            ``point + (Z - point[2]) * direction``.
+
+        Raises
+        ------
+        ValueError
+            Another model or degree (their lines are curves: use :meth:`points`),
+            a pixel outside the camera or invalid in the LUT.
+        """
+        if self.kind != "poly" or self.degree != 1:
+            what = f"poly degree {self.degree}" if self.kind == "poly" else self.kind
+            raise ValueError(f"ray() needs a degree-1 poly LUT, this one is {what}: its pixels' lines are"
+                             " not straight; evaluate heights with points() or evaluate()")
+        h, w = self.shape
+        if not (0 <= int(row) < h and 0 <= int(col) < w):
+            raise ValueError(f"pixel (row {row}, col {col}) is outside the {w}x{h} camera")
+        if not self.valid[row, col]:
+            raise ValueError(f"pixel (row {row}, col {col}) has no valid LUT")
+        point = np.array([self.x[0, row, col], self.y[0, row, col], self.z_center])
+        direction = np.array([self.x[1, row, col] / self.z_scale, self.y[1, row, col] / self.z_scale, 1.0])
+        return point, direction
 
 
 def _horner(coeffs: np.ndarray, t, out: np.ndarray | None = None) -> np.ndarray:
