@@ -1,4 +1,5 @@
-"""Page 7, Export: the LUT file, the comparison report (JSON + PNG plots) and the session."""
+"""Page 7, Export: the LUT file, the comparison report (JSON + PNG plots), the session, and the LUT in use
+(a height map through it into a point cloud: :class:`ptp_studio.widgets.pointcloud.PointCloudPanel`)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from ptpcore.rig import rig_to_toml
 from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
+from ..widgets.pointcloud import PointCloudPanel
 from ..worker import Job
 from .base import StudioPage
 
@@ -59,7 +61,8 @@ class ExportPage(StudioPage):
     key = "export"
     heading = "Export"
     subheading = ("Write what this session produced: the LUT a scanner loads (ptp-lut/1), the comparison "
-                  "report (JSON plus PNG plots) and the session itself, to resume later.")
+                  "report (JSON plus PNG plots) and the session itself, to resume later; try the LUT on a "
+                  "height map and save the point cloud.")
 
     sessionWritten = Signal(object)
 
@@ -110,11 +113,16 @@ class ExportPage(StudioPage):
         self.summary = QLabel()
         self.summary.setWordWrap(True)
         grid.addWidget(self.summary, 2, 0, 1, 2)
+        # Using the LUT: a height map (or one height) into a point cloud, shown and saved.
+        self.cloud_panel = PointCloudPanel(lambda: self.model.session.lut,
+                                           lambda: Path(self.folder.text().strip() or "."))
+        grid.addWidget(self.cloud_panel, 3, 0, 1, 2)
         grid.setRowStretch(3, 1)
         self.files: list[Path] = []
         self._outcome = None
         self.export_button.clicked.connect(self.export)
         model.lutChanged.connect(self._reset)
+        model.lutChanged.connect(self.cloud_panel.reset)
         model.compareChanged.connect(self.on_enter)
 
     def _browse(self) -> None:
