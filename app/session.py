@@ -216,6 +216,19 @@ class SessionModel(QObject):
     Signals
     -------
     rigChanged, sourceChanged, samplesChanged, positionsChanged, lutChanged, compareChanged
+    datasetReplaced
+        The images now come from another dataset (a new import, another rig or simulator):
+        what was computed belongs to the previous one (the autosave lets go of its file).
+
+    Attributes
+    ----------
+    version : int
+        Bumped whenever the dataset or its samples change (a new rig, source, import,
+        acquisition or opened session). Pages remember the version they showed and
+        recompute or clear what depends on the dataset when it differs.
+    work, saved_work : int
+        ``work`` counts changes of the results (samples, LUT, comparison); ``saved_work``
+        is its value when they were last written to a session file.
     """
 
     rigChanged = Signal()
@@ -226,6 +239,7 @@ class SessionModel(QObject):
     lutChanged = Signal()
     compareChanged = Signal()
     exportsChanged = Signal()
+    datasetReplaced = Signal()
 
     def __init__(self, session: Session, parent: QObject | None = None):
         super().__init__(parent)
@@ -233,16 +247,47 @@ class SessionModel(QObject):
         # Bumped whenever the samples are dropped: a job that started under an
         # older generation finishes into the void instead of overwriting newer state.
         self.generation = 0
+        self.version = 0
+        self.work = 0
+        self.saved_work = 0
+
+    # ---- what would be lost ------------------------------------------------------
+    @property
+    def has_results(self) -> bool:
+        """Samples, a LUT or a comparison (fresh or opened from a file) exist."""
+        s = self.session
+        return s.samples is not None or s.lut is not None or s.compare is not None or s.saved_comparison is not None
+
+    @property
+    def unsaved_work(self) -> bool:
+        """Results exist that no session file holds in their present state."""
+        return self.has_results and self.work != self.saved_work
+
+    def mark_saved(self, work: int | None = None) -> None:
+        """The results as they were at ``work`` (default: now) are in a session file."""
+        self.saved_work = self.work if work is None else int(work)
+
+    def describe_results(self) -> str:
+        """'the decoded samples, the LUT and the comparison' (what exists), for questions."""
+        s = self.session
+        have = [name for name, v in (("the decoded samples", s.samples), ("the LUT", s.lut),
+                                     ("the comparison", s.compare if s.compare is not None else s.saved_comparison))
+                if v is not None]
+        return " and ".join([", ".join(have[:-1]), have[-1]] if len(have) > 1 else have) or "nothing"
 
     # Upstream changes drop what was computed from them.
     def _drop_samples(self) -> None:
         s = self.session
         self.generation += 1
+        self.version += 1
+        had = s.samples is not None
         s.samples = None
         s.truth = None
         s.decode_options = DecodeOptions()
         s.decoded.clear()
         s.reset_positions()
+        if had:
+            self.work += 1
         self.samplesChanged.emit()
         self.positionsChanged.emit()
         self._drop_lut()
@@ -250,12 +295,14 @@ class SessionModel(QObject):
 
     def _drop_lut(self) -> None:
         if self.session.lut is not None:
+            self.work += 1
             self.session.lut = None
             self.session.lut_positions = None
             self.lutChanged.emit()
 
     def _drop_compare(self) -> None:
         if self.session.compare is not None or self.session.saved_comparison is not None:
+            self.work += 1
             self.session.compare = None
             self.session.saved_comparison = None
             self.compareChanged.emit()
@@ -266,6 +313,7 @@ class SessionModel(QObject):
         self.session.rig = rig
         self.rigChanged.emit()
         self._drop_samples()
+        self.datasetReplaced.emit()
 
     def set_simulator(self, preset_name: str, settings: SimSettings, seed: int) -> None:
         s = self.session
@@ -274,6 +322,7 @@ class SessionModel(QObject):
         s.preset_name, s.sim_settings, s.seed = preset_name, settings, int(seed)
         self.sourceChanged.emit()
         self._drop_samples()
+        self.datasetReplaced.emit()
 
     def set_source(self, kind: str, folder: Path | None = None) -> None:
         if kind not in SOURCE_KINDS:
@@ -285,6 +334,25 @@ class SessionModel(QObject):
         s.source_kind, s.dataset_folder = kind, folder
         self.sourceChanged.emit()
         self._drop_samples()
+        self.datasetReplaced.emit()
+
+    def import_dataset(self, folder: Path, rig: Rig) -> None:
+        """Take the ``ptp-dataset/1`` folder ``folder`` (whose rig.toml says ``rig``) as the source.
+
+        Always a new dataset, even at the same path (its images may have been rewritten):
+        every result is dropped.
+        """
+        s = self.session
+        folder = Path(folder)
+        source_changed = (s.source_kind, s.dataset_folder) != ("folder", folder)
+        rig_changed = rig != s.rig
+        s.source_kind, s.dataset_folder, s.rig = "folder", folder, rig
+        if source_changed:
+            self.sourceChanged.emit()
+        if rig_changed:
+            self.rigChanged.emit()
+        self._drop_samples()
+        self.datasetReplaced.emit()
 
     def start_acquisition(self) -> None:
         self._drop_samples()
@@ -298,6 +366,8 @@ class SessionModel(QObject):
         self.decodedChanged.emit(decoded.index)
 
     def set_samples(self, samples, truth=None) -> None:
+        self.version += 1
+        self.work += 1
         self.session.samples = samples
         self.session.truth = truth
         self._drop_lut()
@@ -307,11 +377,13 @@ class SessionModel(QObject):
     def set_lut(self, lut, positions=None) -> None:
         self.session.lut = lut
         self.session.lut_positions = None if positions is None else list(positions)
+        self.work += 1
         self.lutChanged.emit()
 
     def set_compare(self, result) -> None:
         self.session.compare = result
         self.session.saved_comparison = None
+        self.work += 1
         self.compareChanged.emit()
 
     def restore(self, other: Session) -> None:
@@ -321,6 +393,9 @@ class SessionModel(QObject):
         """
         s = self.session
         self.generation += 1
+        self.version += 1
+        self.work += 1
+        self.saved_work = self.work  # as the file holds it
         for f in fields(Session):
             if f.name != "live":
                 setattr(s, f.name, getattr(other, f.name))

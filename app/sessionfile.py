@@ -166,6 +166,15 @@ class Autosave(QObject):
         model.samplesChanged.connect(lambda: self._completed(model.session.samples))
         model.lutChanged.connect(lambda: self._completed(model.session.lut))
         model.compareChanged.connect(lambda: self._completed(model.session.compare))
+        model.datasetReplaced.connect(self._dataset_replaced)
+
+    def _dataset_replaced(self) -> None:
+        """Another dataset: its results are a new session, never written over the chosen file."""
+        if self.path is not None:
+            name = self.path.name
+            self.path = None
+            self.status.emit(f"session file {name} left as it was: the dataset changed"
+                             " (choose a session file at Export to save this one)")
 
     def set_path(self, path, just_saved: bool = False) -> None:
         """Autosave to ``path`` from now on (None: stop)."""
@@ -189,9 +198,9 @@ class Autosave(QObject):
             self._again = True
             return self.job
         fit = self.fit_choice() if self.fit_choice else {}
-        es, path = to_engine(self.model.session, **fit), self.path
+        es, path, work = to_engine(self.model.session, **fit), self.path, self.model.work
         job = Job(lambda ctx: engine.save_session(es, path), "saving the session", self)
-        job.finished.connect(lambda _r: self._saved(path))
+        job.finished.connect(lambda _r: (self.model.mark_saved(work), self._saved(path)))
         job.errored.connect(lambda msg: self.status.emit(f"session NOT saved: {msg}"))
         job.done.connect(self._done)
         self.job = job

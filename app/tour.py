@@ -61,6 +61,7 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     wiz = StudioWizard(tour_session(width, height, positions))
+    wiz.resize(1366, 768)  # a laptop screen, whatever screen the tour runs on (offscreen: 800x800)
     wiz.show()
     settle(200)
     shots: list[Path] = []
@@ -139,6 +140,7 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     if wiz.next_blocker():
         raise RuntimeError(f"Finish is disabled: {wiz.next_blocker()}")
     log(f"done in {time.monotonic() - t0:.1f} s: {len(shots)} screenshots, exported files in {out / 'export'}")
+    wiz.closing = True  # a scripted walk: nothing to ask before closing
     wiz.close()
     wiz.deleteLater()
     settle(50)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import pyqtgraph as pg
-from PySide6.QtCore import QSize, Qt
+from PySide6.QtCore import QSize, Qt, Signal
 from PySide6.QtGui import QFont, QIcon
-from PySide6.QtWidgets import QApplication, QLabel, QListWidget, QListWidgetItem, QVBoxLayout, QWidget, QWizard
+from PySide6.QtWidgets import (QApplication, QLabel, QListWidget, QListWidgetItem, QSizePolicy, QVBoxLayout,
+                               QWidget, QWizard)
 
 from . import __version__
 from .assets import icon_path, stylesheet
@@ -18,7 +19,8 @@ from .pages.phasemaps import PhaseMapsPage
 from .pages.rig import RigPage
 from .session import Session, SessionModel
 from .sessionfile import Autosave, OpenedSession
-from .worker import wait_for_jobs
+from .widgets.confirm import confirm
+from .worker import _ACTIVE, wait_for_jobs
 
 __all__ = ["StudioWizard", "configure_app", "PAGE_CLASSES"]
 
@@ -36,7 +38,15 @@ def configure_app(app: QApplication) -> None:
 
 
 class StepList(QListWidget):
-    """The steps at the wizard's side; the current one highlighted, later ones greyed."""
+    """The steps at the wizard's side: the current one highlighted, the reachable ones clickable.
+
+    Signals
+    -------
+    stepClicked(int)
+        A reachable step (not the current one) was clicked.
+    """
+
+    stepClicked = Signal(int)
 
     def __init__(self, pages, parent=None):
         super().__init__(parent)
@@ -44,20 +54,39 @@ class StepList(QListWidget):
         self.setIconSize(QSize(22, 22))
         self.setFocusPolicy(Qt.NoFocus)
         self.setSelectionMode(QListWidget.NoSelection)
+        self.setMouseTracking(True)
         for i, page in enumerate(pages):
             item = QListWidgetItem(page.icon, f"{i + 1}  {page.heading}")
-            item.setSizeHint(QSize(170, 38))
+            item.setSizeHint(QSize(150, 36))
             self.addItem(item)
-        self.setFixedWidth(190)
+        self.setFixedWidth(170)
+        self.reachable: set[int] = set()
+        self.itemClicked.connect(self._clicked)
 
-    def set_current(self, index: int) -> None:
+    def set_current(self, index: int, reachable=()) -> None:
+        """Highlight step ``index``; ``reachable``: the other steps a click may go to."""
+        self.reachable = set(reachable) - {index}
         for i in range(self.count()):
             item = self.item(i)
             font = item.font()
             font.setBold(i == index)
             item.setFont(font)
-            item.setForeground(Qt.black if i <= index else Qt.gray)
+            item.setForeground(Qt.black if i == index or i in self.reachable else Qt.gray)
             item.setBackground(Qt.transparent if i != index else pg.mkColor("#dbe8f6"))
+            name = item.text().split(maxsplit=1)[-1]
+            item.setToolTip("" if i == index else f"Go to {name}" if i in self.reachable else
+                            f"{name}: not reached yet (complete the steps before it)")
+
+    def _clicked(self, item: QListWidgetItem) -> None:
+        i = self.row(item)
+        if i in self.reachable:
+            self.stepClicked.emit(i)
+
+    def mouseMoveEvent(self, event) -> None:  # noqa: N802 - Qt API
+        item = self.itemAt(event.position().toPoint())
+        self.viewport().setCursor(Qt.PointingHandCursor if item is not None and self.row(item) in self.reachable
+                                  else Qt.ArrowCursor)
+        super().mouseMoveEvent(event)
 
 
 class StudioWizard(QWizard):
@@ -85,6 +114,7 @@ class StudioWizard(QWizard):
         export = self.page_by_key["export"]
         export.compare_page = self.page_by_key["compare"]
         export.calibrate_page = self.page_by_key["calibrate"]
+        self.page_by_key["compare"].calibrate_page = self.page_by_key["calibrate"]
         self.jumping = False  # go_to() passing pages on its way: their on_enter waits until they are shown
         cal = self.page_by_key["calibrate"]
         self.autosave = Autosave(self.model, cal.fit_settings, self)
@@ -113,9 +143,22 @@ class StudioWizard(QWizard):
         ver.setObjectName("hint")
         sl.addWidget(ver)
         self.setSideWidget(side)
+        self.steps.stepClicked.connect(self.jump_to)
+        self.reached = 0  # the furthest step shown so far
+        self.closing = False
         self.currentIdChanged.connect(self._page_changed)
-        self.resize(1500, 950)
+        self.resize(self.initial_size())
         self._page_changed(self.currentId())
+
+    def initial_size(self) -> QSize:
+        """1500x950, or less on a smaller screen (the window's frame stays on the screen)."""
+        screen = self.screen() or QApplication.primaryScreen()
+        want = QSize(1500, 950)
+        if screen is None:
+            return want
+        avail = screen.availableGeometry().size()
+        # Leave room for the title bar and frame the window manager adds.
+        return QSize(min(want.width(), avail.width() - 16), min(want.height(), avail.height() - 40))
 
     def page_index(self) -> int:
         page = self.currentPage()
@@ -123,12 +166,51 @@ class StudioWizard(QWizard):
 
     def _page_changed(self, _id: int) -> None:
         page = self.currentPage()
-        if not self.jumping and getattr(page, "enter_pending", False):
-            page.enter_pending = False
-            page.on_enter()
+        if not self.jumping and page is not None:
+            if page.enter_pending:
+                page.enter()  # passed by go_to() and shown now: on_enter runs here
+            else:
+                page.refresh()  # e.g. reached with Back after the dataset changed
             page.update_complete()
-        self.steps.set_current(self.page_index())
+        index = self.page_index()
+        self.reached = max(self.reached, index)
+        self.steps.set_current(index, self.reachable_steps())
         self._update_buttons()
+
+    # ---- the step list --------------------------------------------------------------
+    def reachable_steps(self) -> list[int]:
+        """Steps a click in the side list may go to.
+
+        Back to any earlier step; forward only to a step shown before, and only while every
+        page on the way would let Next pass (their results are still there).
+        """
+        here = self.page_index()
+        out = list(range(here + 1))
+        if self.jumping or any(p.jobs is not None and p.jobs.busy for p in self.pages):
+            return [here]  # no jumping while a job runs
+        for i in range(here, self.reached):
+            if not self.pages[i].isComplete():
+                break
+            out.append(i + 1)
+        return out
+
+    def jump_to(self, index: int) -> bool:
+        """Go to step ``index`` (0-based) as Back or Next would; False if it is not reachable."""
+        here = self.page_index()
+        if index == here or index not in self.reachable_steps():
+            return False
+        if index < here:
+            while self.page_index() > index:
+                self.back()
+            return True
+        self.jumping = True  # pages passed on the way run on_enter only if shown
+        try:
+            while self.page_index() < index and self.currentPage().isComplete():
+                self.next()
+        finally:
+            self.jumping = False
+        self._page_changed(self.currentId())
+        return self.page_index() == index
 
     # ---- session files -------------------------------------------------------------
     def open_session(self, path):
@@ -142,7 +224,8 @@ class StudioWizard(QWizard):
         half = list(range(0, s.rig.stage.n_positions, 2))
         self.page_by_key["calibrate"].configure(opened.model, opened.degree,
                                                 "half" if s.lut_positions == half else "all",
-                                                opened.stage_sigma_um, opened.level_bias, opened.footprint)
+                                                opened.stage_sigma_um, opened.level_bias, opened.footprint,
+                                                fitted=True)
         self.autosave.set_path(opened.path)
         self.go_to(opened.page)
 
@@ -173,10 +256,51 @@ class StudioWizard(QWizard):
         page = self.currentPage()
         return page.reason() if page is not None else None
 
+    # ---- leaving ---------------------------------------------------------------------
+    def running_jobs(self) -> list[str]:
+        """Names of the jobs running now (pages' and the autosave's)."""
+        return [j.name for j in list(_ACTIVE) if j.running]
+
+    def confirm_quit(self) -> bool:
+        """Ask before closing when a job runs or results are not saved; True: close."""
+        jobs = self.running_jobs()
+        unsaved = self.model.unsaved_work
+        if not jobs and not unsaved:
+            return True
+        lines = []
+        if jobs:
+            lines.append(f"Running: {', '.join(dict.fromkeys(jobs))}. Quitting cancels it and waits until it has"
+                         " stopped (files are written whole or not at all).")
+        if unsaved:
+            lines.append(f"{self.model.describe_results().capitalize()} of this session are not saved in a"
+                         " session file (Export writes one).")
+        return confirm(self, "Quit PTP Studio?", " ".join(lines), "Quit anyway?")
+
+    def stop_jobs(self) -> bool:
+        """Cancel every running job and wait until they have ended (their handlers ran)."""
+        ok = wait_for_jobs()
+        QApplication.processEvents()  # deliver the jobs' end signals while the pages still exist
+        return ok
+
+    def reject(self) -> None:  # noqa: D401 - Qt API (Cancel, Escape, and the window's close button)
+        if not self.closing and not self.confirm_quit():
+            return
+        self.closing = True
+        self.stop_jobs()
+        super().reject()
+
     def done(self, result: int) -> None:  # noqa: D401 - Qt API
-        wait_for_jobs()
+        self.stop_jobs()
         super().done(result)
 
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt API
-        wait_for_jobs()
+        if self.closing or not self.isVisible():
+            self.stop_jobs()
+            event.accept()
+            return
+        if not self.confirm_quit():
+            event.ignore()
+            return
+        self.closing = True
+        self.stop_jobs()
         super().closeEvent(event)

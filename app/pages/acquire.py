@@ -158,6 +158,15 @@ class AcquirePage(StudioPage):
     def on_enter(self) -> None:
         self._show_source()
 
+    def dataset_changed(self) -> None:
+        if self.model.session.samples is None and not self.jobs.busy:
+            # The last frame and verdict were another dataset's.
+            self._outcome = None
+            self._overlay = None
+            self.frame_view.clear_map()
+            self.frame_label.setText("no frame yet")
+        self._show_positions()
+
     def _show_source(self) -> None:
         s = self.model.session
         self.source_label.setText(f"<b>Source:</b> {s.describe_source()} "

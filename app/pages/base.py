@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QIcon
-from PySide6.QtWidgets import QLabel, QVBoxLayout, QWidget, QWizardPage
+from PySide6.QtWidgets import QFrame, QLabel, QScrollArea, QVBoxLayout, QWidget, QWizardPage
 
 from ..assets import icon_path
 from ..session import SessionModel
@@ -38,8 +38,15 @@ class StudioPage(QWizardPage):
         self.setSubTitle(self.subheading)
         outer = QVBoxLayout(self)
         outer.setContentsMargins(4, 4, 4, 4)
-        self.body = QWidget(self)
-        outer.addWidget(self.body, 1)
+        # The body scrolls when the window is smaller than the page needs (a 1366x768 laptop screen):
+        # the page's minimum size never forces the window past the screen.
+        self.scroll = QScrollArea(self)
+        self.scroll.setObjectName("pageScroll")
+        self.scroll.setFrameShape(QFrame.NoFrame)
+        self.scroll.setWidgetResizable(True)
+        self.body = QWidget()
+        self.scroll.setWidget(self.body)
+        outer.addWidget(self.scroll, 1)
         self.why = QLabel(self)
         self.why.setObjectName("whyBlocked")
         self.why.setWordWrap(True)
@@ -47,6 +54,7 @@ class StudioPage(QWizardPage):
         outer.addWidget(self.why)
         self.jobs: JobPanel | None = None
         self.enter_pending = False  # the wizard passed this page without showing it (StudioWizard.go_to)
+        self.shown_version: int | None = None  # SessionModel.version this page last showed
 
     @property
     def icon(self) -> QIcon:
@@ -82,17 +90,43 @@ class StudioPage(QWizardPage):
             self.why.setText("")
             self.why.hide()
         else:
-            self.why.setText(f"Next is disabled: {r}")
+            button = "Finish" if self._is_last() else "Next"
+            self.why.setText(f"{button} is disabled: {r}")
             self.why.show()
         self.setToolTip(r or "")
         self.completeChanged.emit()
+
+    def _is_last(self) -> bool:
+        """The wizard's last page: its button is Finish, not Next."""
+        wiz = self.wizard()
+        ids = wiz.pageIds() if wiz is not None else []
+        return bool(ids) and wiz.page(ids[-1]) is self
 
     def initializePage(self) -> None:  # noqa: N802 - Qt API
         if getattr(self.wizard(), "jumping", False):
             self.enter_pending = True  # run on_enter (and its jobs) only if the page is shown
         else:
-            self.on_enter()
+            self.enter()
         self.update_complete()
+
+    def enter(self) -> None:
+        """The page is being shown: bring it up to date with the dataset, then :meth:`on_enter`."""
+        self.enter_pending = False
+        self.refresh()
+        self.on_enter()
+
+    def refresh(self) -> None:
+        """Call :meth:`dataset_changed` if the dataset changed since this page last showed it."""
+        if self.shown_version != self.model.version:
+            self.shown_version = self.model.version
+            self.dataset_changed()
+
+    def dataset_changed(self) -> None:
+        """The dataset (rig, source or samples) changed since this page was last shown.
+
+        Recompute or clear everything that depends on it. Called on entering the page
+        (and by pages that are visible while it changes).
+        """
 
     def cleanupPage(self) -> None:  # noqa: N802 - Qt API
         # Going Back keeps what this page holds (QWizard would reset fields).

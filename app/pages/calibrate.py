@@ -10,7 +10,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
 from ptpcore.fit import describe_lut, fit_model
 from ptpcore.evaluate import pixel_series, reason_text
 
-from ..widgets.maps import HeatmapPanel
+from ..widgets.maps import HeatmapPanel, axis_label
 from ..worker import Job
 from .base import StudioPage
 
@@ -51,10 +51,12 @@ class CalibratePage(StudioPage):
         grid.setColumnStretch(1, 2)
 
         ctl = QGroupBox("Model")
-        cl = QHBoxLayout(ctl)
+        cl = QGridLayout(ctl)
         self.model_combo = QComboBox()
         for k, label in MODELS.items():
             self.model_combo.addItem(label, k)
+        self.model_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.model_combo.setMinimumContentsLength(26)
         self.degree = QSpinBox()
         self.degree.setRange(1, 5)
         self.degree.setValue(3)
@@ -62,6 +64,8 @@ class CalibratePage(StudioPage):
         self.positions_combo = QComboBox()
         self.positions_combo.addItem("all positions", "all")
         self.positions_combo.addItem("every second position (hold out the others)", "half")
+        self.positions_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.positions_combo.setMinimumContentsLength(22)
         self.stage_sigma = QDoubleSpinBox()
         self.stage_sigma.setRange(0.0, 100.0)
         self.stage_sigma.setDecimals(2)
@@ -82,14 +86,17 @@ class CalibratePage(StudioPage):
                                   " black level lower the contrast.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")
-        cl.addWidget(self.model_combo)
-        cl.addWidget(self.degree)
-        cl.addWidget(self.positions_combo)
-        cl.addWidget(self.stage_sigma)
-        cl.addWidget(self.level_bias)
-        cl.addWidget(self.footprint)
-        cl.addWidget(self.fit_button)
-        cl.addWidget(self.make_job_panel(), 1)
+        # Two rows: the choices, then the fit and its progress (one row is wider than a laptop screen).
+        row1 = QHBoxLayout()
+        for w in (self.model_combo, self.degree, self.positions_combo, self.stage_sigma, self.level_bias,
+                  self.footprint):
+            row1.addWidget(w)
+        row1.addStretch(1)
+        row2 = QHBoxLayout()
+        row2.addWidget(self.fit_button)
+        row2.addWidget(self.make_job_panel(), 1)
+        cl.addLayout(row1, 0, 0)
+        cl.addLayout(row2, 1, 0)
         grid.addWidget(ctl, 0, 0, 1, 2)
 
         maps_box = QGroupBox("Quality over the sensor")
@@ -128,8 +135,8 @@ class CalibratePage(StudioPage):
         self.plot_y = self._curve_plot("Y", pl)
         self.plot_r = pg.PlotWidget()
         self.plot_r.setTitle("Residual per position (sample − LUT)")
-        self.plot_r.setLabel("left", "residual", units="µm")
-        self.plot_r.setLabel("bottom", "z", units="mm")
+        axis_label(self.plot_r, "left", "residual", "µm")
+        axis_label(self.plot_r, "bottom", "z", "mm")
         self.plot_r.addLegend(offset=(5, 5))
         self.bars_x = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#2b6cb0", name="X")
         self.bars_y = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#e69f00", name="Y")
@@ -140,6 +147,7 @@ class CalibratePage(StudioPage):
         grid.setRowStretch(1, 1)
 
         self.maps: dict = {}
+        self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
         self.series = None
         self.selected: tuple[int, int] | None = None
         self._outcome = None
@@ -160,8 +168,8 @@ class CalibratePage(StudioPage):
     def _curve_plot(self, axis: str, layout) -> pg.PlotWidget:
         p = pg.PlotWidget()
         p.setTitle(f"{axis}(z): samples and fitted LUT")
-        p.setLabel("left", axis, units="mm")
-        p.setLabel("bottom", "z", units="mm")
+        axis_label(p, "left", axis, "mm")
+        axis_label(p, "bottom", "z", "mm")
         p.addLegend(offset=(5, 5))
         p.curve = p.plot(pen=pg.mkPen("#2b6cb0", width=2), name="LUT")
         p.used = p.plot(pen=None, symbol="o", symbolSize=8, symbolBrush="#1b7f4c", symbolPen="#1b7f4c",
@@ -175,16 +183,42 @@ class CalibratePage(StudioPage):
         if self.model.session.lut is None and not self.jobs.busy and self._outcome is None:
             self.heatmap.title.setText("Choose a model and press Fit LUT.")
 
+    def dataset_changed(self) -> None:
+        # A LUT of another dataset's samples is gone (SessionModel drops it); so is what it showed.
+        self._outcome = None
+        if self.model.session.lut is None:
+            self._clear()
+        self.update_complete()
+
+    def _clear(self) -> None:
+        self.maps = {}
+        self.series = None
+        self.selected = None
+        self.heatmap.clear("Choose a model and press Fit LUT.")
+        self.stats.setText("")
+        self.pixel_label.setText("click a pixel in the heatmap")
+        for plot in (self.plot_x, self.plot_y):
+            for item in (plot.curve, plot.used, plot.held):
+                item.setData([], [])
+        for bars in (self.bars_x, self.bars_y):
+            bars.setOpts(x=[], height=[])
+
     # ---- fitting --------------------------------------------------------------------
     def configure(self, model: str = "poly", degree: int = 3, positions: str = "all",
-                  stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True) -> None:
-        """Set the model controls (the tour, an opened session file and tests use it)."""
+                  stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True,
+                  fitted: bool = False) -> None:
+        """Set the model controls (the tour, an opened session file and tests use it).
+
+        ``fitted``: these are the settings the session's LUT was fitted with (an opened file).
+        """
         self.model_combo.setCurrentIndex(self.model_combo.findData(model))
         self.degree.setValue(degree)
         self.stage_sigma.setValue(stage_sigma_um)
         self.level_bias.setChecked(level_bias)
         self.footprint.setChecked(footprint)
         self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
+        if fitted:
+            self.fitted = self.fit_settings() if self.model.session.lut is not None else None
 
     def fit_settings(self) -> dict:
         """The fit's settings as :func:`ptp_studio.sessionfile.to_engine` records them."""
@@ -207,15 +241,28 @@ class CalibratePage(StudioPage):
                                         stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
                                         footprint=fit["footprint"]),
                   f"fitting the {model} LUT")
-        job.finished.connect(lambda lut: gen == self.model.generation and self.model.set_lut(lut, positions))
+        job.finished.connect(lambda lut: gen == self.model.generation and self._fitted(lut, positions, fit))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
+
+    def _fitted(self, lut, positions, fit: dict) -> None:
+        self.fitted = dict(fit)
+        self.model.set_lut(lut, positions)
+
+    def lut_settings(self) -> dict:
+        """The settings of the LUT the session holds (as it was fitted or opened), else the controls'.
+
+        The Compare page fits its LUTs with them, so both pages judge the same model.
+        """
+        if self.model.session.lut is not None and self.fitted is not None:
+            return dict(self.fitted)
+        return self.fit_settings()
 
     def _lut_changed(self) -> None:
         lut = self.model.session.lut
         self.selected = None
         if lut is None:
-            self.maps = {}
+            self._clear()
             self.update_complete()
             return
         self.maps = quality_maps(lut)

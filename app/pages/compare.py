@@ -10,10 +10,10 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
                                QPushButton, QSpinBox, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from ptpcore.evaluate import METHOD_LABELS, METHODS, compare
-from ptpcore.evaluate import histogram, robust_levels
+from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, robust_levels,
+                              smooth_degree_for, split_positions)
 
-from ..widgets.maps import PEN, MapView, colormap
+from ..widgets.maps import PEN, MapView, axis_label, colormap, plain_axes
 from ..worker import Job
 from .base import StudioPage
 
@@ -48,12 +48,14 @@ class ComparePage(StudioPage):
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
+        self.calibrate_page = None  # set by the wizard: the LUT settings to compare with
+        self.settings_note = ""
         grid = QGridLayout(self.body)
         grid.setColumnStretch(0, 3)
         grid.setColumnStretch(1, 7)
 
         ctl = QGroupBox("Run")
-        cl = QHBoxLayout(ctl)
+        cl = QVBoxLayout(ctl)
         self.split = QComboBox()
         self.split.addItem("every second position held out", "alternate")
         self.split.addItem("leave one position out", "loo")
@@ -72,9 +74,15 @@ class ComparePage(StudioPage):
         self.seed.setPrefix("seed ")
         self.run_button = QPushButton("Run comparison")
         self.run_button.setObjectName("primary")
-        for w in (self.split, self.points, self.rational, self.with_smooth, self.seed, self.run_button):
-            cl.addWidget(w)
-        cl.addWidget(self.make_job_panel(), 1)
+        row1 = QHBoxLayout()
+        for w in (self.split, self.points, self.rational, self.with_smooth, self.seed):
+            row1.addWidget(w)
+        row1.addStretch(1)
+        row2 = QHBoxLayout()
+        row2.addWidget(self.run_button)
+        row2.addWidget(self.make_job_panel(), 1)
+        cl.addLayout(row1)
+        cl.addLayout(row2)
         grid.addWidget(ctl, 0, 0, 1, 2)
 
         self.verdict = QLabel()
@@ -129,6 +137,7 @@ class ComparePage(StudioPage):
         self.heat_bar = pg.ColorBarItem(values=(0, 1), colorMap=colormap("inferno"), width=16, pen=PEN,
                                         interactive=True, colorMapMenu=False, label="µm")
         self.heat_bar.setImageItem([self.heat[m].image for m in METHODS], insert_in=self.heat[METHODS[-1]].plot)
+        plain_axes(self.heat_bar)
         for m in METHODS[:-1]:
             self.heat[m].plot.setYLink(self.heat[METHODS[-1]].plot)
             self.heat[m].plot.setXLink(self.heat[METHODS[-1]].plot)
@@ -136,16 +145,17 @@ class ComparePage(StudioPage):
         plots = QHBoxLayout()
         self.vs_dist = pg.PlotWidget(title="Distance error vs distance<br><span style='font-size:8pt'>"
                                            "solid: same height, dashed: across heights</span>")
-        self.vs_dist.setLabel("left", "RMS error", units="µm")
-        self.vs_dist.setLabel("bottom", "distance", units="mm")
+        axis_label(self.vs_dist, "left", "RMS error", "µm")
+        axis_label(self.vs_dist, "bottom", "distance", "mm")
         self.vs_dist.addLegend(offset=(5, 5))
         self.hist = pg.PlotWidget(title="Distance errors (all pairs)")
         self.hist.setLabel("left", "pairs")
-        self.hist.setLabel("bottom", "error", units="µm")
+        plain_axes(self.hist)
+        axis_label(self.hist, "bottom", "error", "µm")
         self.hist.addLegend(offset=(5, 5))
         self.per_pos = pg.PlotWidget(title="Coordinate RMS per held-out z")
-        self.per_pos.setLabel("left", "RMS", units="µm")
-        self.per_pos.setLabel("bottom", "z", units="mm")
+        axis_label(self.per_pos, "left", "RMS", "µm")
+        axis_label(self.per_pos, "bottom", "z", "mm")
         self.per_pos.addLegend(offset=(5, 5))
         for p in (self.vs_dist, self.hist, self.per_pos):
             p.setMinimumHeight(180)
@@ -170,17 +180,33 @@ class ComparePage(StudioPage):
         s = self.model.session
         if self.jobs.busy or s.samples is None:
             return None
-        lut = s.lut
-        model = lut.kind if lut is not None else "poly"
-        degree = (lut.degree or 3) if lut is not None else 3
-        args = dict(truth=s.truth, seed=self.seed.value(), split=self.split.currentData(),
-                    n_points=self.points.value(), rational=self.rational.isChecked(), model=model, degree=degree,
-                    with_smooth=self.with_smooth.isChecked())
+        fit = self.lut_settings()
+        split = self.split.currentData()
+        args = dict(truth=s.truth, seed=self.seed.value(), split=split, n_points=self.points.value(),
+                    rational=self.rational.isChecked(), with_smooth=self.with_smooth.isChecked(), **fit)
+        # The smooth LUT of the comparison has Calibrate's degree, unless a fold has too few calibration
+        # positions to fit it (D + 2): then the largest it can cross-validate, and the page says so.
+        n_cal = min(len(f[0]) for f in split_positions(s.rig.stage.n_positions, split)) \
+            if s.rig.stage.n_positions >= 3 else 0
+        want = args["smooth_degree"]
+        if args["with_smooth"] and n_cal and n_cal < want + 2:
+            args["smooth_degree"] = smooth_degree_for(want, n_cal)
+            self.settings_note = (f" Calibrate's degree {want} needs {want + 2} calibration positions per fold,"
+                                  f" this split has {n_cal}: the smooth LUT here has degree {args['smooth_degree']}.")
+        else:
+            self.settings_note = ""
         samples, rig = s.samples, s.rig
         gen = self.model.generation
         job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
         return self.run_job(job)
+
+    def lut_settings(self) -> dict:
+        """compare()'s model keywords from the Calibrate page's LUT (its model, degree and corrections)."""
+        fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
+        kind, degree = fit.get("model", "poly"), int(fit.get("degree", 3))
+        return {"model": "poly" if kind == "smooth" else kind, "degree": degree, "smooth_degree": degree,
+                "level_bias": bool(fit.get("level_bias", True)), "footprint": bool(fit.get("footprint", True))}
 
     def _result_changed(self) -> None:
         r = self.model.session.compare
@@ -190,18 +216,116 @@ class ComparePage(StudioPage):
             for ref in ("truth", "measured"):
                 if ref in r.references:
                     self.reference.addItem(f"against {REF_LABELS[ref]}", ref)
+        else:
+            saved = self.model.session.saved_comparison
+            refs = saved.get("references") if isinstance(saved, dict) else None
+            for ref in ("truth", "measured"):
+                if isinstance(refs, dict) and ref in refs:
+                    self.reference.addItem(f"against {REF_LABELS[ref]}", ref)
         self.reference.blockSignals(False)
         self._show()
         self.update_complete()
 
+    def dataset_changed(self) -> None:
+        self._result_changed()  # a comparison of another dataset is gone: clear what it drew
+
     # ---- drawing ---------------------------------------------------------------------
-    def _show(self) -> None:
-        r = self.model.session.compare
+    def _clear(self) -> None:
         for p in (self.vs_dist, self.hist, self.per_pos):
             p.clear()
+        for m in METHODS:
+            self.heat[m].clear_map()
+            self.heat[m].plot.setTitle(METHOD_LABELS[m])
+        self.heat_maps = {}
+        self.params.setRowCount(0)
+        self.stats.setRowCount(0)
+        self.reproj.setText("")
+        self.coverage.setText("")
+        self.verdict.setText("")
+
+    def _fill_params(self, names, values, stds) -> None:
+        self.params.setRowCount(len(names))
+        for i, (n, v, sd) in enumerate(zip(names, values, stds)):
+            for c, text in enumerate((n, f"{v:.6g}", _fmt(sd, 2))):
+                item = QTableWidgetItem(text)
+                if c:
+                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                self.params.setItem(i, c, item)
+
+    def _fill_stats(self, rows) -> None:
+        """``rows``: (label, rms, mean, p95, max) in µm."""
+        self.stats.setRowCount(len(rows))
+        for i, (label, *vals) in enumerate(rows):
+            for c, text in enumerate((label, *(_fmt(v) for v in vals))):
+                item = QTableWidgetItem(text)
+                if c:
+                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
+                else:
+                    item.setToolTip(label)  # the first column is narrow
+                self.stats.setItem(i, c, item)
+
+    def _show_saved(self, report: dict) -> None:
+        """A comparison opened from a session file: its verdict, camera and statistics (its JSON report).
+
+        The arrays behind the plots are not stored; the controls take the saved settings, so
+        Run comparison redraws the same comparison.
+        """
+        ref = self.reference.currentData()
+        refs = report.get("references") if isinstance(report, dict) else None
+        rr = refs.get(ref) if isinstance(refs, dict) and ref else None
+        verdict = rr.get("verdict") if isinstance(rr, dict) else None
+        if isinstance(verdict, dict) and isinstance(verdict.get("text"), str):
+            self.verdict.setText(f"<b>Saved comparison (from the session file), against {REF_LABELS[ref]}:</b>"
+                                 f" {verdict['text']}")
+        else:
+            self.verdict.setText(saved_verdict(report))
+        cfg = report.get("config") if isinstance(report, dict) else None
+        if isinstance(cfg, dict):
+            for combo, value in ((self.split, cfg.get("split")),):
+                i = combo.findData(value)
+                if i >= 0:
+                    combo.setCurrentIndex(i)
+            if isinstance(cfg.get("seed"), int):
+                self.seed.setValue(cfg["seed"])
+            if isinstance(cfg.get("n_points"), int):
+                self.points.setValue(cfg["n_points"])
+            self.rational.setChecked(bool(cfg.get("rational")))
+            self.with_smooth.setChecked(cfg.get("smooth") is not None)
+        pin = report.get("pinhole") if isinstance(report, dict) else None
+        if isinstance(pin, dict) and isinstance(pin.get("param_names"), list):
+            self._fill_params(pin["param_names"], pin.get("param_values", []),
+                              [math.nan if v is None else v for v in pin.get("param_std", [])])
+            rms = pin.get("reprojection_rms_px")
+            self.reproj.setText(f"Reprojection RMS <b>{_fmt(rms if rms is not None else math.nan)} px</b> per"
+                                f" coordinate, from {pin.get('n_points', '?')} feature points")
+        rows = []
+        methods = cfg.get("methods", []) if isinstance(cfg, dict) else []
+        for m in methods:
+            mr = rr.get(m) if isinstance(rr, dict) else None
+            if not isinstance(mr, dict) or m not in METHOD_LABELS:
+                continue
+            lab = METHOD_LABELS[m]
+
+            def vals(st):
+                st = st if isinstance(st, dict) else {}
+                return tuple(math.nan if st.get(k) is None else st.get(k) for k in ("rms_um", "mean_um", "p95_um",
+                                                                                      "max_um"))
+            rows.append((f"{lab} coordinate", *vals(mr.get("coordinate"))))
+            dist = mr.get("distance") if isinstance(mr.get("distance"), dict) else {}
+            for kind, text in zip(PAIR_KINDS, ("same z", "across z")):
+                rows.append((f"{lab} distance, {text}", *vals((dist.get(kind) or {}).get("stats"))))
+        self._fill_stats(rows)
+        self.coverage.setText("Restored from the session file, which keeps the comparison's report but not its"
+                              " arrays: press Run comparison to redraw the plots (the controls hold the saved"
+                              " settings).")
+
+    def _show(self) -> None:
+        r = self.model.session.compare
+        self._clear()
         if r is None:
             saved = self.model.session.saved_comparison
-            self.verdict.setText("" if saved is None else saved_verdict(saved))
+            if saved is not None:
+                self._show_saved(saved)
             return
         ref = self.reference.currentData() or "measured"
         rr = r.references[ref]
@@ -210,31 +334,17 @@ class ComparePage(StudioPage):
         self.reproj.setText(f"Reprojection RMS <b>{fit.reprojection_rms_px:.3g} px</b> per coordinate, "
                             f"from {fit.n_points} feature points" +
                             (f" (fold 1 of {len(r.folds)})" if len(r.folds) > 1 else ""))
-        names = [n for n in fit.param_names]
-        self.params.setRowCount(len(names))
-        for i, (n, v, sd) in enumerate(zip(names, fit.param_values, fit.param_std)):
-            for c, text in enumerate((n, f"{v:.6g}", _fmt(sd, 2))):
-                item = QTableWidgetItem(text)
-                if c:
-                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
-                self.params.setItem(i, c, item)
+        self._fill_params(list(fit.param_names), fit.param_values, fit.param_std)
         methods = r.methods
         rows = []
         for m in methods:
             mr = rr.methods[m]
             lab = METHOD_LABELS[m]
-            rows.append((f"{lab} coordinate", mr.coordinate))
-            rows.append((f"{lab} distance, same z", mr.distance["same_height"].stats))
-            rows.append((f"{lab} distance, across z", mr.distance["across_heights"].stats))
-        self.stats.setRowCount(len(rows))
-        for i, (label, s) in enumerate(rows):
-            for c, text in enumerate((label, _fmt(s.rms_um), _fmt(s.mean_um), _fmt(s.p95_um), _fmt(s.max_um))):
-                item = QTableWidgetItem(text)
-                if c:
-                    item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
-                else:
-                    item.setToolTip(label)  # the first column is narrow
-                self.stats.setItem(i, c, item)
+            for label, st in ((f"{lab} coordinate", mr.coordinate),
+                              (f"{lab} distance, same z", mr.distance["same_height"].stats),
+                              (f"{lab} distance, across z", mr.distance["across_heights"].stats)):
+                rows.append((label, st.rms_um, st.mean_um, st.p95_um, st.max_um))
+        self._fill_stats(rows)
         c = r.coverage
         nm = max(int(c.n_measured.sum()), 1)
         noise = ""
@@ -244,7 +354,8 @@ class ComparePage(StudioPage):
         if "smooth" in methods:
             scales = sorted({f.smooth_scale_px for f in r.folds})
             scale = f"{scales[0]:g}" if len(scales) == 1 else f"{scales[0]:g} … {scales[-1]:g}"
-            smooth = f" PTP smooth: poly degree {r.smooth_degree}, smoothing scale {scale} px (cross-validated)."
+            smooth = (f" PTP smooth: poly degree {r.smooth_degree}, smoothing scale {scale} px (cross-validated)."
+                      f"{self.settings_note}")
         notes = "".join(f" {n}." for n in r.notes)
         self.coverage.setText(
             f"Held-out positions {', '.join(str(int(k) + 1) for k in r.held_positions)}; pixels compared"
@@ -302,7 +413,7 @@ class ComparePage(StudioPage):
     def on_enter(self) -> None:
         s = self.model.session
         if s.compare is None and s.saved_comparison is not None:
-            self.verdict.setText(saved_verdict(s.saved_comparison))
+            self._show()
         elif s.compare is None:
             self.verdict.setText("Optional: run the comparison to see how 3DSTC does on the same data and to "
                                  "include it in the report. Next works without it.")

@@ -18,15 +18,21 @@ from ptpcore.rig import rig_to_toml
 from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
+from ..widgets.confirm import confirm
 from ..widgets.pointcloud import PointCloudPanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["ExportPage", "LUT_NAME", "REPORT_NAME", "SESSION_NAME"]
+__all__ = ["ExportPage", "LUT_NAME", "REPORT_NAME", "SESSION_NAME", "quality_png"]
 
 LUT_NAME = "calibration.lut.h5"
 REPORT_NAME = "comparison.json"
 SESSION_NAME = "session.ptps.h5"
+
+
+def quality_png(key: str) -> str:
+    """The file name of one Calibrate map (``rms_x``, ``sigma_y``, …): ``lut_quality_<key>.png``."""
+    return f"lut_quality_{key}.png"
 
 
 def _save_png(image, path: Path) -> None:
@@ -86,9 +92,11 @@ class ExportPage(StudioPage):
         self.do_lut.setChecked(True)
         self.do_lut.setEnabled(False)  # the product of the session: always written
         self.do_report = QCheckBox(f"Comparison report  {REPORT_NAME}  plus PNG plots")
-        self.do_quality = QCheckBox("LUT quality heatmap  lut_quality.png  (and the predicted uncertainty"
-                                    "  lut_sigma_x.png when the LUT has it)")
-        self.do_session = QCheckBox(f"Session  {SESSION_NAME}  (ptp-session/1: rig, samples, LUT, comparison)")
+        self.do_quality = QCheckBox("LUT quality heatmaps  lut_quality_<map>.png  (one per map)")
+        self.do_quality.setToolTip("One PNG per map of the Calibrate page, named after it: lut_quality_rms_x.png,"
+                                   " lut_quality_loo_x.png, … and lut_quality_sigma_x.png when the LUT has"
+                                   " predicted uncertainty maps.")
+        self.do_session = QCheckBox(f"Session  {SESSION_NAME}  (ptp-session/1)")
         self.do_rig = QCheckBox("rig.toml")
         for w in (self.do_report, self.do_quality, self.do_session, self.do_rig):
             w.setChecked(True)
@@ -135,6 +143,12 @@ class ExportPage(StudioPage):
         self.written.setText("nothing yet")
         self.update_complete()
 
+    def dataset_changed(self) -> None:
+        self._outcome = None
+        self.summary.setText("")
+        if self.model.session.lut is None:
+            self._reset()
+
     def on_enter(self) -> None:
         s = self.model.session
         has_cmp = s.compare is not None or s.saved_comparison is not None
@@ -142,7 +156,8 @@ class ExportPage(StudioPage):
         self.do_report.setToolTip("" if has_cmp else "No comparison was run (Compare page).")
         if not has_cmp:
             self.do_report.setChecked(False)
-        self.do_session.setToolTip("Saved again after each completed stage from now on (autosave).")
+        self.do_session.setToolTip("Rig, samples, LUT and comparison; saved again after each completed stage"
+                                   " from now on (autosave).")
         lut = s.lut
         if lut is not None:
             self.summary.setText(f"LUT: {describe_lut(lut)}, {lut.shape[1]}x{lut.shape[0]} px, "
@@ -169,15 +184,19 @@ class ExportPage(StudioPage):
             for stem, widget in self.compare_page.plot_widgets.items():
                 images[out / f"comparison_{stem}.png"] = widget.grab().toImage()
         if self.do_quality.isChecked() and self.calibrate_page is not None and self.calibrate_page.maps:
-            cal = self.calibrate_page
-            images[out / "lut_quality.png"] = _map_image(cal.maps, cal.current_map)
-            if "sigma_x" in cal.maps:
-                images[out / "lut_sigma_x.png"] = _map_image(cal.maps, "sigma_x")
+            for key in self.calibrate_page.maps:  # every tab, each named after its map
+                images[out / quality_png(key)] = _map_image(self.calibrate_page.maps, key)
         report = None
         if self.do_report.isChecked():  # an opened session's comparison: its report, without plots
             report = result.to_json_dict() if result is not None else s.saved_comparison
         session_obj = to_engine(s, out=out / LUT_NAME) if self.do_session.isChecked() else None
         write_rig = self.do_rig.isChecked()
+        targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
+                   *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else [])]
+        existing = [p for p in targets if p.exists()]
+        if existing and not self._confirm_overwrite(out, existing):
+            return None
+        work = self.model.work
 
         def run(ctx):
             written = []
@@ -213,9 +232,23 @@ class ExportPage(StudioPage):
             return written
 
         job = Job(run, "exporting")
+        if session_obj is not None:
+            job.finished.connect(lambda _f: self.model.mark_saved(work))
         job.finished.connect(self._written)
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
+
+    def _confirm_overwrite(self, out: Path, existing: list[Path]) -> bool:
+        """Ask before replacing files already in the output folder (a finished session's above all)."""
+        names = ", ".join(p.name for p in existing[:6]) + (f" and {len(existing) - 6} more" if len(existing) > 6 else "")
+        session = any(p.name == SESSION_NAME for p in existing)
+        ok = confirm(self, "Replace files?",
+                     f"{out} already holds {names}." + (" Its session file is a finished session of its own."
+                                                        if session else ""),
+                     "Replace them with this session's files? (No: choose another folder.)")
+        if not ok:
+            self.jobs.show_error(f"Nothing written: {out} already holds {names}. Choose another folder.")
+        return ok
 
     def _written(self, files) -> None:
         self.files = list(files)

@@ -16,7 +16,7 @@ from ptpcore.decode import design_check, fringe_image, fringe_profile
 from ptpcore.rig import FringeDesign, rig_from_toml, rig_to_toml
 from ptpcore.evaluate import predicted_signal
 
-from ..widgets.maps import MapView
+from ..widgets.maps import MapView, axis_label, plain_axes
 from .base import StudioPage
 from .rig import parse_numbers
 
@@ -109,8 +109,8 @@ class FringesPage(StudioPage):
         cl.addWidget(self.table, 2)
         self.floor_plot = pg.PlotWidget()
         self.floor_plot.setMinimumHeight(120)
-        self.floor_plot.setLabel("left", "noise floor", units="µm")
-        self.floor_plot.setLabel("bottom", "z", units="mm")
+        axis_label(self.floor_plot, "left", "noise floor", "µm")
+        axis_label(self.floor_plot, "bottom", "z", "mm")
         self.floor_plot.setTitle("Predicted 1σ coordinate noise per position")
         self.floor_bars = pg.BarGraphItem(x=[0], height=[0], width=1, brush="#2b6cb0")
         self.floor_plot.addItem(self.floor_bars)
@@ -136,14 +136,16 @@ class FringesPage(StudioPage):
         pl.addLayout(scrub)
         self.preview_label = QLabel()
         self.preview_label.setObjectName("panelTitle")
+        self.preview_label.setWordWrap(True)
         pl.addWidget(self.preview_label)
         self.preview = MapView(colour_bar=True)
-        self.preview.plot.setLabel("bottom", "LCD column u", units="px")
-        self.preview.plot.setLabel("left", "LCD row v", units="px")
+        axis_label(self.preview.plot, "bottom", "LCD column u", "px")
+        axis_label(self.preview.plot, "left", "LCD row v", "px")
         pl.addWidget(self.preview, 3)
         self.profile = pg.PlotWidget()
         self.profile.setMinimumHeight(130)
         self.profile.setLabel("left", "displayed level")
+        plain_axes(self.profile)
         self.profile.setTitle("Displayed levels along the pattern axis (first two coarse... fine periods)")
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#2b6cb0", width=1.5), stepMode=None)
         pl.addWidget(self.profile, 1)
@@ -197,6 +199,9 @@ class FringesPage(StudioPage):
             self._loading = False
         self._error = None
         self._refresh()
+
+    def dataset_changed(self) -> None:
+        self._show_rig()  # the design and its check are the (new) dataset's
 
     def _refresh(self) -> None:
         rig = self.model.session.rig
@@ -266,7 +271,7 @@ class FringesPage(StudioPage):
         prof = fringe_profile(rig.lcd, f, d, period, step, n_steps, z)
         span = min(prof.size, max(2 * period, 256))
         self.profile_curve.setData(np.arange(span), prof[:span].astype(float))
-        self.profile.setLabel("bottom", "LCD column u" if d == "x" else "LCD row v", units="px")
+        axis_label(self.profile, "bottom", "LCD column u" if d == "x" else "LCD row v", "px")
         self.profile.setTitle(f"Displayed levels along {'u' if d == 'x' else 'v'} (first {span} px)")
 
     def scrub(self, direction: str, level: int, step: int, position: int) -> None:

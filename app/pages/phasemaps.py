@@ -11,7 +11,7 @@ from ptpcore.run import decode_position
 from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
     reason_text)
 
-from ..widgets.maps import Legend, MapView, line_profile
+from ..widgets.maps import Legend, MapView, axis_label, line_profile, plain_axes
 from ..worker import Job
 from .base import StudioPage
 
@@ -94,7 +94,8 @@ class PhaseMapsPage(StudioPage):
         right.addWidget(self.readout)
         self.profile = pg.PlotWidget()
         self.profile.setMinimumHeight(140)
-        self.profile.setLabel("bottom", "distance along the line", units="px")
+        axis_label(self.profile, "bottom", "distance along the line", "px")
+        plain_axes(self.profile)
         self.profile.setTitle("Line profile")
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#c0392b", width=1.5))
         right.addWidget(self.profile, 1)
@@ -140,6 +141,17 @@ class PhaseMapsPage(StudioPage):
         for c in (self.pos_combo, self.dir_combo, self.level_combo):
             c.blockSignals(False)
         self.decoded = None
+
+    def dataset_changed(self) -> None:
+        # Maps of another dataset's positions: gone (on_enter decodes the chosen one again).
+        self._fill_choices()
+        self.shown = None
+        self.current = None
+        self.view.clear_map()
+        self.title.setText("")
+        self.readout.setText("move the cursor over the map")
+        self.profile_curve.setData([], [])
+        self._roi_placed_for = None
 
     def on_enter(self) -> None:
         # Start on the most recently decoded position (the acquisition's last).

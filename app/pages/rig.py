@@ -6,7 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import Signal
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QFileDialog, QFormLayout,
                                QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
                                QRadioButton, QSpinBox, QVBoxLayout, QWidget)
@@ -17,6 +17,7 @@ from ptpcore.simulate import PRESETS, preset
 
 from ..assets import default_rigs
 from ..sessionfile import read_session_file
+from ..widgets.confirm import confirm
 from ..worker import Job
 from .base import StudioPage
 
@@ -87,9 +88,10 @@ class RigPage(StudioPage):
         sl = QVBoxLayout(src)
         self.src_sim = QRadioButton("Simulated rig (virtual camera with exact ground truth)")
         self.src_folder = QRadioButton("Import a ptp-dataset/1 folder")
-        self.src_live = QRadioButton("Live capture: LCD, camera and stage (devices chosen on the Acquire page)")
+        self.src_live = QRadioButton("Live capture: LCD, camera and stage")
         self.src_live.setToolTip("Show the patterns on the LCD, move the stage, photograph every pattern and write"
-                                 " a ptp-dataset/1 folder; simulated devices need no hardware.")
+                                 " a ptp-dataset/1 folder; the devices are chosen on the Acquire page, and"
+                                 " simulated devices need no hardware.")
         self.src_group = QButtonGroup(self)
         for i, b in enumerate((self.src_sim, self.src_folder, self.src_live)):
             self.src_group.addButton(b, i)
@@ -107,8 +109,12 @@ class RigPage(StudioPage):
         self.sim_box = QGroupBox("Simulator")
         sf = QFormLayout(self.sim_box)
         self.preset = QComboBox()
-        for name in PRESETS:
+        for i, name in enumerate(PRESETS):
             self.preset.addItem(f"{name} — {PRESET_NOTES.get(name, '')}", name)
+            self.preset.setItemData(i, PRESET_NOTES.get(name, ""), Qt.ToolTipRole)
+        # The long notes show in the open list; the closed box does not widen the page for them.
+        self.preset.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.preset.setMinimumContentsLength(24)
         self.seed = _ispin(0, 2 ** 31 - 1, 0)
         off = QWidget()
         ol = QHBoxLayout(off)
@@ -293,6 +299,27 @@ class RigPage(StudioPage):
         self.stage_summary.setText(f"{len(z)} positions, z = {min(z):g} … {max(z):g} mm")
 
     # ---- widgets -> model ---------------------------------------------------
+    # ---- replacing a session's results -----------------------------------------------
+    def _saved_where(self) -> str:
+        """Where the present results are saved, in words (for the questions)."""
+        autosave = getattr(self.wizard(), "autosave", None)
+        path = getattr(autosave, "path", None)
+        if self.model.unsaved_work:
+            return "They are not saved in a session file."
+        if path is not None:
+            return f"They are saved in {path}, which stays as it is."
+        return "They were opened from a session file, which stays as it is."
+
+    def confirm_replace(self, what: str) -> bool:
+        """Ask before ``what`` replaces the session's results (True: go ahead; True too when there are none)."""
+        if not self.model.has_results:
+            return True
+        s = self.model.session
+        return confirm(self, "Replace this session?",
+                       f"{what} replaces {self.model.describe_results()} of the present session"
+                       f" ({s.describe_source()}). {self._saved_where()}",
+                       "Replace them?")
+
     def _source_toggled(self, idx: int, on: bool) -> None:
         if self._loading or not on:
             return
@@ -301,6 +328,11 @@ class RigPage(StudioPage):
         if kind == "folder" and folder:
             self._import_folder(folder)
         else:
+            if kind != self.model.session.source_kind and not self.confirm_replace(
+                    {"simulated": "The simulated rig", "folder": "Importing a dataset",
+                     "live": "A live capture"}[kind]):
+                self._show_source()  # the choice goes back to what the session is
+                return
             self._error = None
             self.model.set_source(kind, folder if kind == "folder" else None)
             if kind == "simulated":
@@ -316,35 +348,52 @@ class RigPage(StudioPage):
             self._import_folder(folder)
 
     def _folder_edited(self) -> None:
-        if self.src_folder.isChecked():
+        # editingFinished also comes when the field only loses focus: import only what was typed.
+        if self.src_folder.isChecked() and self.folder_edit.isModified():
+            self.folder_edit.setModified(False)
             self._import_folder(self.folder_edit.text().strip())
 
-    def _import_folder(self, folder: str) -> None:
-        """Read the dataset's rig.toml; its rig replaces the form."""
+    def _import_folder(self, folder: str) -> bool:
+        """Read the dataset's rig.toml; its rig replaces the form. False if refused or not imported.
+
+        A session with results asks first (a new import, even of the same folder, replaces them);
+        a folder that cannot be read leaves such a session as it was.
+        """
         if not folder:
             self._error = "Choose the dataset folder to import."
             self.update_complete()
-            return
+            return False
         try:
             if not Path(folder).is_dir():
                 raise PtpError(f"{folder}: folder not found")
             rig = load_rig(folder)
         except PtpError as exc:
+            if self.model.has_results:
+                self.jobs.show_error(f"Cannot import this folder: {exc}")
+                self._show_source()
+                return False
             self.model.set_source("folder", Path(folder))
             self._error = f"Cannot import this folder: {exc}"
             self.update_complete()
-            return
-        self.model.set_source("folder", Path(folder))
-        self.model.set_rig(rig)
+            return False
+        if not self.confirm_replace(f"Importing {folder}"):
+            self._show_source()
+            return False
+        self.model.import_dataset(Path(folder), rig)
         self._error = None
         self._show_rig()
         self._show_source()
+        return True
 
-    def import_folder(self, folder) -> None:
-        """Choose 'Import a folder' with ``folder`` (as the user would)."""
+    def import_folder(self, folder) -> bool:
+        """Choose 'Import a folder' with ``folder`` (as the user would); False if refused or unreadable."""
         self.folder_edit.setText(str(folder))
-        self.src_folder.setChecked(True)
-        self._import_folder(str(folder))
+        self._loading = True  # one import, below (not a second one from the radio button)
+        try:
+            self.src_folder.setChecked(True)
+        finally:
+            self._loading = False
+        return self._import_folder(str(folder))
 
     def _preset_chosen(self, *_):
         if self._loading:
@@ -443,6 +492,11 @@ class RigPage(StudioPage):
         A file that cannot be read leaves everything as it was and shows the reason here.
         """
         if self.jobs.busy:
+            return None
+        if self.model.unsaved_work and not confirm(
+                self, "Open another session?",
+                f"Opening {Path(path).name} replaces {self.model.describe_results()} of the present session,"
+                " which are not saved in a session file.", "Open it anyway?"):
             return None
         wiz = self.wizard()
         busy = [p for p in getattr(wiz, "pages", ()) if p is not self and p.jobs is not None and p.jobs.busy]

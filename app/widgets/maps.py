@@ -21,12 +21,31 @@ from scipy import ndimage
 
 from ptpcore.evaluate import views
 
-__all__ = ["MapView", "HeatmapPanel", "line_profile", "colormap"]
+__all__ = ["MapView", "HeatmapPanel", "axis_label", "colormap", "line_profile", "plain_axes"]
 
 PEN = "#3a3f44"
 
 # Every map in PTP Studio is indexed [row, col] (METHOD.md section 2).
 pg.setConfigOptions(imageAxisOrder="row-major")
+
+
+def plain_axes(item) -> None:
+    """Numbers as they are on every axis of ``item`` (a PlotWidget, PlotItem or ColorBarItem).
+
+    pyqtgraph otherwise rescales the ticks and renames the unit ("um (x0.001)", "kpx").
+    """
+    if isinstance(item, pg.PlotWidget):
+        item = item.getPlotItem()
+    axes = [a["item"] for a in item.axes.values()] if isinstance(item, pg.PlotItem) else [item.axis]
+    for axis in axes:
+        axis.enableAutoSIPrefix(False)
+
+
+def axis_label(plot, side: str, text: str, unit: str = "") -> None:
+    """Label one axis ``text (unit)``, ticks in that unit (no SI prefix scaling)."""
+    item = plot.getPlotItem() if isinstance(plot, pg.PlotWidget) else plot
+    item.setLabel(side, text, units=unit or None)
+    item.getAxis(side).enableAutoSIPrefix(False)
 
 
 def colormap(name: str) -> pg.ColorMap:
@@ -74,12 +93,12 @@ class MapView(pg.GraphicsLayoutWidget):
 
     def __init__(self, parent: QWidget | None = None, colour_bar: bool = True, title: str = ""):
         super().__init__(parent)
-        self.setMinimumSize(260, 200)
+        self.setMinimumSize(200, 160)
         self.plot = self.addPlot(row=0, col=0, title=title or None)
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)
-        self.plot.setLabel("bottom", "column", units="px")
-        self.plot.setLabel("left", "row", units="px")
+        axis_label(self.plot, "bottom", "column", "px")
+        axis_label(self.plot, "left", "row", "px")
         self.plot.showGrid(False, False)
         self.image = pg.ImageItem(autoDownsample=True)
         self.plot.addItem(self.image)
@@ -94,6 +113,7 @@ class MapView(pg.GraphicsLayoutWidget):
             self.bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=colormap("viridis"), width=16,
                                        interactive=True, pen=PEN, colorMapMenu=False)
             self.bar.setImageItem(self.image, insert_in=self.plot)
+            plain_axes(self.bar)
         self.data: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
         self.scene().sigMouseMoved.connect(self._on_moved)
@@ -149,6 +169,13 @@ class MapView(pg.GraphicsLayoutWidget):
         if self._shape != (h, w) or not keep_view:
             self._shape = (h, w)
             self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
+
+    def clear_map(self) -> None:
+        """Show nothing (the data it showed are gone)."""
+        self.data = None
+        self.image.clear()
+        self.overlay.clear()
+        self.marker.setData([], [])
 
     def set_marker(self, row: int | None, col: int | None) -> None:
         if row is None:
@@ -216,6 +243,7 @@ class HeatmapPanel(QWidget):
             self.hist.setMouseEnabled(x=False, y=False)
             self.hist.hideButtons()
             self.hist.setLabel("left", "pixels")
+            plain_axes(self.hist)
             self.hist_curve = pg.PlotDataItem(stepMode="center", fillLevel=0, pen=pg.mkPen("#2b6cb0"),
                                               brush=pg.mkBrush(43, 108, 176, 90))
             self.hist.addItem(self.hist_curve)
@@ -277,6 +305,16 @@ class HeatmapPanel(QWidget):
             self.hist_curve.setData(edges, counts)
             self.hist.setLabel("bottom", unit or "value")
             self._levels_moved()
+
+    def clear(self, title: str = "") -> None:
+        """Empty the heatmap, its histogram and readout; ``title`` says why."""
+        self.title.setText(title)
+        self.value_text = None
+        self.view.clear_map()
+        if self.hist is not None:
+            self.hist_edges, self.hist_counts = np.zeros(0), np.zeros(0)
+            self.hist_curve.clear()
+        self.readout.setText("")
 
     def _levels_moved(self, *_):
         if self.hist is None:

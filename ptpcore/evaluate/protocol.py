@@ -152,8 +152,9 @@ def smooth_degree_for(degree: int, n_calibration: int) -> int:
 
 def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split: str = "alternate",
             n_points: int = 2000, rational: bool = False, model: str = "poly", degree: int = 3,
-            with_smooth: bool = True, smooth_degree: int | None = None,
-            n_pairs: int = 20000, n_bins: int = 20, progress: Progress | None = None) -> CompareResult:
+            with_smooth: bool = True, smooth_degree: int | None = None, level_bias: bool = True,
+            footprint: bool = True, n_pairs: int = 20000, n_bins: int = 20,
+            progress: Progress | None = None) -> CompareResult:
     """Run the evaluation protocol of METHOD.md section 7 for PTP, PTP smooth and 3DSTC.
 
     Parameters
@@ -181,6 +182,9 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
         calibration positions.
     smooth_degree : int, optional
         Degree of the smooth LUT (1 to 5); default :func:`smooth_degree_for`.
+    level_bias, footprint : bool
+        The smooth LUT's corrections (:func:`ptpcore.fit.smooth.fit_smooth_lut`): pass those the
+        calibration used, so the comparison judges the same model.
     n_pairs : int
         Point pairs per kind (at most; fewer when long distances are rare).
     n_bins : int
@@ -216,7 +220,8 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
         base, step = fi / len(folds_idx) * 0.9, 0.9 / len(folds_idx)
         tag = f"(fold {fi + 1}/{len(folds_idx)})"
         fold, lut, smooth = _fit_fold(samples, rig, fi, cal, held, seed, n_points, rational, model, degree,
-                                      s_degree, lambda f, msg: report(base + step * f, f"{msg} {tag}"))
+                                      s_degree, lambda f, msg: report(base + step * f, f"{msg} {tag}"),
+                                      {"level_bias": level_bias, "footprint": footprint})
         folds.append(fold)
         for k in held:
             report(base + 0.8 * step, f"evaluating held-out position {k} (z = {samples.z[k]:g} mm)")
@@ -295,7 +300,7 @@ def _smooth_plan(samples: SampleStack, folds_idx, with_smooth: bool, degree: int
 
 
 def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_points: int, rational: bool,
-              model: str, degree: int, s_degree: int | None, report: Progress):
+              model: str, degree: int, s_degree: int | None, report: Progress, smooth_options: dict | None = None):
     """Calibrate every method on one fold's calibration positions ``cal``.
 
     Returns
@@ -322,6 +327,7 @@ def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_p
     smooth = None
     if s_degree is not None:
         smooth, info = fit_smooth_lut(samples, rig, s_degree, list(map(int, cal)), seed=seed,
+                                      **(smooth_options or {}),
                                       progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
         if not smooth.valid.any():
             raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions"

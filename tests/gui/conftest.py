@@ -63,6 +63,33 @@ def no_leaks(qtbot, qapp):
     assert not leaked, f"leaked top-level widgets: {[type(w).__name__ for w in leaked]}"
 
 
+class Questions:
+    """Stands in for QMessageBox.question: records every question and gives ``answer`` (True: Yes)."""
+
+    def __init__(self):
+        self.asked: list[str] = []
+        self.answer = True
+
+    def __call__(self, parent, title, text, *args, **kwargs):
+        from PySide6.QtWidgets import QMessageBox
+
+        self.asked.append(f"{title}: {text}")
+        return QMessageBox.Yes if self.answer else QMessageBox.No
+
+
+@pytest.fixture(autouse=True)
+def questions(monkeypatch):
+    """No modal question ever blocks a test: answered Yes unless a test sets ``questions.answer``.
+
+    Autouse, so the window closed at the end of a test (by pytest-qt) is answered too.
+    """
+    from PySide6.QtWidgets import QMessageBox
+
+    q = Questions()
+    monkeypatch.setattr(QMessageBox, "question", q)
+    return q
+
+
 @pytest.fixture(scope="session")
 def small_session_args():
     """A 160x120 simulated camera, 9 positions, looking at the LCD's corner."""

@@ -199,7 +199,7 @@ def test_full_walk(wizard, qtbot, tmp_path):
     back_session = load_session(tmp_path / "out" / "session.ptps.h5")
     assert back_session.model == "smooth" and back_session.degree == 1
     pngs = sorted(f.name for f in (tmp_path / "out").glob("*.png"))
-    assert "comparison_compare_heatmaps.png" in pngs and "lut_quality.png" in pngs and "lut_sigma_x.png" in pngs
+    assert "comparison_compare_heatmaps.png" in pngs and "lut_quality_rms_x.png" in pngs and "lut_quality_sigma_x.png" in pngs
     assert not list((tmp_path / "out").glob("*.part"))
 
 
