@@ -5,8 +5,7 @@ from __future__ import annotations
 import pyqtgraph as pg
 from PySide6.QtCore import QSize, Qt, Signal
 from PySide6.QtGui import QFont, QIcon
-from PySide6.QtWidgets import (QApplication, QLabel, QListWidget, QListWidgetItem, QSizePolicy, QVBoxLayout,
-                               QWidget, QWizard)
+from PySide6.QtWidgets import QApplication, QLabel, QListWidget, QListWidgetItem, QVBoxLayout, QWidget, QWizard
 
 from . import __version__
 from .assets import icon_path, stylesheet
@@ -246,6 +245,7 @@ class StudioWizard(QWizard):
         self._page_changed(self.currentId())
 
     def _update_buttons(self) -> None:
+        self.steps.set_current(self.page_index(), self.reachable_steps())  # a page's state changed
         page = self.currentPage()
         reason = page.reason() if page is not None else None
         for which in (QWizard.NextButton, QWizard.FinishButton):

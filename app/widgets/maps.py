@@ -45,7 +45,7 @@ def axis_label(plot, side: str, text: str, unit: str = "") -> None:
     """Label one axis ``text (unit)``, ticks in that unit (no SI prefix scaling)."""
     item = plot.getPlotItem() if isinstance(plot, pg.PlotWidget) else plot
     item.setLabel(side, text, units=unit or None)
-    item.getAxis(side).enableAutoSIPrefix(False)
+    plain_axes(item)
 
 
 def colormap(name: str) -> pg.ColorMap:
