@@ -19,9 +19,9 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QWizard
 
 from ptpcore.errors import Cancelled
-from ptpcore.patterns import design_check
+from ptpcore.decode import design_check
 from ptpcore.rig import Camera
-from ptpcore.session import load_session
+from ptpcore.run import load_session
 from ptpcore.simulate import preset, simulate_dataset
 from ptp_studio.session import tour_session
 from ptp_studio.worker import Job
