@@ -307,13 +307,20 @@ class SessionModel(QObject):
             self.session.saved_comparison = None
             self.compareChanged.emit()
 
+    def _replaced(self) -> None:
+        """The dataset is another one: what this session exported belongs to the previous one."""
+        if self.session.exports:
+            self.session.exports = {}
+            self.exportsChanged.emit()
+        self.datasetReplaced.emit()
+
     def set_rig(self, rig: Rig) -> None:
         if rig == self.session.rig:
             return
         self.session.rig = rig
         self.rigChanged.emit()
         self._drop_samples()
-        self.datasetReplaced.emit()
+        self._replaced()
 
     def set_simulator(self, preset_name: str, settings: SimSettings, seed: int) -> None:
         s = self.session
@@ -322,7 +329,7 @@ class SessionModel(QObject):
         s.preset_name, s.sim_settings, s.seed = preset_name, settings, int(seed)
         self.sourceChanged.emit()
         self._drop_samples()
-        self.datasetReplaced.emit()
+        self._replaced()
 
     def set_source(self, kind: str, folder: Path | None = None) -> None:
         if kind not in SOURCE_KINDS:
@@ -334,7 +341,7 @@ class SessionModel(QObject):
         s.source_kind, s.dataset_folder = kind, folder
         self.sourceChanged.emit()
         self._drop_samples()
-        self.datasetReplaced.emit()
+        self._replaced()
 
     def import_dataset(self, folder: Path, rig: Rig) -> None:
         """Take the ``ptp-dataset/1`` folder ``folder`` (whose rig.toml says ``rig``) as the source.
@@ -352,7 +359,7 @@ class SessionModel(QObject):
         if rig_changed:
             self.rigChanged.emit()
         self._drop_samples()
-        self.datasetReplaced.emit()
+        self._replaced()
 
     def start_acquisition(self) -> None:
         self._drop_samples()

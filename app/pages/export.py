@@ -193,7 +193,13 @@ class ExportPage(StudioPage):
         write_rig = self.do_rig.isChecked()
         targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
                    *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else [])]
-        existing = [p for p in targets if p.exists()]
+        # Files this session wrote itself (an earlier export, its autosaved session file) are replaced
+        # without asking; anything else already there is another session's.
+        own = {Path(p) for p in s.exports.values()}
+        autosave = getattr(self.wizard(), "autosave", None)
+        if getattr(autosave, "path", None) is not None:
+            own.add(Path(autosave.path))
+        existing = [p for p in targets if p.exists() and p not in own]
         if existing and not self._confirm_overwrite(out, existing):
             return None
         work = self.model.work

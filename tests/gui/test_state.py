@@ -229,6 +229,8 @@ def test_a_second_import_over_a_finished_session_asks(wizard, qtbot, tmp_path, q
     ex.set_folder(tmp_path / "out")
     assert run_job(qtbot, ex.export()) == "finished"
     session_file = tmp_path / "out" / "session.ptps.h5"
+    assert run_job(qtbot, ex.export()) == "finished"  # the same session again: its own files, no question
+    assert questions.asked == []
     before = session_file.read_bytes()
     s = wizard.model.session
     samples, lut = s.samples, s.lut
