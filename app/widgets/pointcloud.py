@@ -21,7 +21,7 @@ from ptpcore.io.pointcloud import PointCloud, read_height_map, write_point_cloud
 
 from ..worker import Job
 from .jobpanel import JobPanel
-from .maps import PEN, colormap
+from .maps import PEN, axis_label, colormap, plain_axes
 
 __all__ = ["PointCloudPanel", "top_view"]
 
@@ -127,8 +127,8 @@ class PointCloudPanel(QGroupBox):
         self.plot = pg.PlotWidget(background="w")
         self.plot.setMinimumHeight(220)
         pi = self.plot.getPlotItem()
-        pi.setLabel("bottom", "X", units="mm")
-        pi.setLabel("left", "Y", units="mm")
+        axis_label(pi, "bottom", "X", "mm")
+        axis_label(pi, "left", "Y", "mm")
         pi.setAspectLocked(True)
         for axis in ("bottom", "left"):
             pi.getAxis(axis).setPen(PEN)
@@ -138,6 +138,7 @@ class PointCloudPanel(QGroupBox):
         self.colorbar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=colormap("viridis"), label="Z (mm)",
                                         interactive=False)
         self.colorbar.setImageItem(self.image, insert_in=pi)
+        plain_axes(self.colorbar)
         grid.addWidget(self.plot, 5, 0, 1, 2)
         grid.setRowStretch(5, 1)
 
