@@ -29,6 +29,7 @@ import numpy as np
 from ptpcore.atomic import atomic_path, write_bytes_atomic
 from ptpcore.errors import ConfigError
 from ptpcore.pinhole.lens import undistort_normalised
+from ptpcore.simulate.lcd_physics import LcdPhysics, draw_stage_poses, pose_matrix
 from ptpcore.decode.patterns import fringe_profile, fringe_values
 from ptpcore.rig.rigfile import Camera, FringeDesign, Lcd, Rig, Stage, save_rig
 
@@ -101,6 +102,13 @@ class SimSettings:
     noise: bool = True
     stage_error_um: float = 0.0
     skew: tuple[float, float] = (0.0, 0.0)
+    # A real LCD on a real stage (METHOD.md section 8; ptpcore.simulate.lcd_physics).
+    cover_glass_mm: float = 0.0
+    cover_glass_index: float = 1.52
+    tilt_urad: float = 0.0
+    roll_urad: float = 0.0
+    runout_um: float = 0.0
+    bow_um: float = 0.0
 
     def e_per_dn(self, camera: Camera) -> float:
         """Electrons per grey level."""
@@ -166,7 +174,24 @@ def _presets():
                     vignetting=0.35, exposure=0.97, ambient=0.02, full_well_e=8000.0,
                     read_noise_e=12.0, stage_error_um=0.5, skew=(0.004, 0.003)),
     )
+    # A real LCD on a real stage: the realistic camera, 1.1 mm of cover glass,
+    # a tilting carriage with run-out and 1 um height errors, a 5 um panel bow
+    # and a display response (gamma 1.1) the patterns do not pre-compensate.
+    rig, s = out["realistic"]
+    out["real"] = (
+        replace(rig, lcd=_lcd_with_glass(rig.lcd, 1.1, 1.52), fringes=replace(rig.fringes, gamma=1.0)),
+        replace(s, name="real", display_gamma=1.1, stage_error_um=1.0, cover_glass_mm=1.1,
+                cover_glass_index=1.52, tilt_urad=20.0, runout_um=1.0, bow_um=5.0),
+    )
     return out
+
+
+def _lcd_with_glass(lcd: Lcd, t_mm: float, index: float) -> Lcd:
+    """``lcd`` declaring its cover glass, where the rig file has the keys (ptp-dataset/2)."""
+    fields = getattr(Lcd, "__dataclass_fields__", {})
+    if "cover_glass_mm" in fields:
+        return replace(lcd, cover_glass_mm=t_mm, cover_glass_index=index)
+    return lcd
 
 
 PRESETS = _presets()
@@ -250,6 +275,9 @@ class GroundTruth:
         dX/dZ and dY/dZ of each ray.
     z_true : (K,) float64, mm
         True stage heights (readings plus the simulated stage error).
+    stage_pose : (K, 6) float64 or None
+        True pose error of each position: ``dx, dy, dz`` (um), ``pitch, yaw, roll``
+        (urad, about the LCD centre); ``dz`` is ``z_true`` minus the reading.
     """
 
     x0: np.ndarray
@@ -257,6 +285,7 @@ class GroundTruth:
     sx: np.ndarray
     sy: np.ndarray
     z_true: np.ndarray
+    stage_pose: np.ndarray | None = None
 
     def xy(self, z) -> tuple[np.ndarray, np.ndarray]:
         """True world X, Y (mm) of every pixel at height ``z`` (scalar or (H, W))."""
@@ -305,6 +334,12 @@ class VirtualRig:
         z = np.asarray(rig.stage.z_mm, dtype=float)
         self.z_true = z + rng.normal(0.0, settings.stage_error_um * 1e-3, size=z.size)
         self.skew = np.array([settings.skew[0], settings.skew[1]])
+        # Carriage pose per position (its own stream: older presets render bit for bit as before).
+        self.stage_pose = draw_stage_poses(np.random.default_rng([self.seed, 4]), z.size, settings.runout_um,
+                                           settings.tilt_urad, settings.roll_urad)
+        self.stage_pose[:, 2] = 1e3 * (self.z_true - z)
+        self.physics = LcdPhysics(settings.cover_glass_mm, settings.cover_glass_index, settings.bow_um * 1e-3,
+                                  ((rig.lcd.width - 1) * rig.lcd.pitch_mm[0], (rig.lcd.height - 1) * rig.lcd.pitch_mm[1]))
         self._coords_cache: tuple[int, dict] | None = None
         # Render a margin around the sensor so blur at its edges sees real scene.
         max_sigma = max(self.blur_sigma(k) for k in range(z.size))
@@ -361,15 +396,22 @@ class VirtualRig:
         sx = d[..., 0] / d[..., 2]
         sy = d[..., 1] / d[..., 2]
         return GroundTruth(o[..., 0] - o[..., 2] * sx, o[..., 1] - o[..., 2] * sy, sx, sy,
-                           self.z_true.copy())
+                           self.z_true.copy(), self.stage_pose.copy())
 
     def _lcd_uv(self, k: int, cols: np.ndarray, rows: np.ndarray):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at position k."""
-        return self._lcd_uv_at(self.z_true[k], cols, rows)
+        return self._lcd_uv_at(self.z_true[k], cols, rows, k)
 
-    def _lcd_uv_at(self, z: float, cols: np.ndarray, rows: np.ndarray):
-        """LCD coordinates (u, v), LCD px, where image points see the LCD at true height ``z`` (mm)."""
+    def _lcd_uv_at(self, z: float, cols: np.ndarray, rows: np.ndarray, k: int | None = None):
+        """LCD coordinates (u, v), LCD px, where image points see the LCD at true height ``z`` (mm).
+
+        At a stage position ``k`` the LCD has that position's pose error
+        (run-out, tilt); the cover glass and the bow apply everywhere.
+        """
         o, d = self.rays(cols, rows)
+        pose = self.stage_pose[k] if k is not None else np.zeros(6)
+        if not self.physics.trivial or np.any(pose[[0, 1, 3, 4, 5]] != 0):
+            return self._lcd_uv_real(z, o, d, pose)
         t = (z - o[..., 2]) / d[..., 2]
         xw = o[..., 0] + t * d[..., 0]
         yw = o[..., 1] + t * d[..., 1]
@@ -377,6 +419,16 @@ class VirtualRig:
         u = (xw - self.skew[0] * z) / self.rig.lcd.pitch_mm[0]
         v = (yw - self.skew[1] * z) / self.rig.lcd.pitch_mm[1]
         return u, v
+
+    def _lcd_uv_real(self, z: float, o: np.ndarray, d: np.ndarray, pose: np.ndarray):
+        """:meth:`_lcd_uv_at` through the cover glass onto a posed, bowed LCD (exact; lcd_physics)."""
+        px, py = self.rig.lcd.pitch_mm
+        c = np.array([(self.rig.lcd.width - 1) / 2 * px, (self.rig.lcd.height - 1) / 2 * py, 0.0])
+        shift = np.array([self.skew[0] * z + 1e-3 * pose[0], self.skew[1] * z + 1e-3 * pose[1], z])
+        r = pose_matrix(*pose[3:6])  # LCD -> world about the LCD centre
+        # LCD frame: q = R^T (p - shift - c) + c, in row vectors p @ R.
+        x, y = self.physics.hit((o - shift - c) @ r + c, d @ r)
+        return x / px, y / py
 
     def _geometry(self, k: int) -> dict:
         """Per-position sampling geometry, cached for the frames of one position.
@@ -620,6 +672,7 @@ def save_truth(path, vr: VirtualRig) -> None:
             for name in ("x0", "y0", "sx", "sy"):
                 f.create_dataset(name, data=getattr(truth, name), compression="gzip", compression_opts=1)
             f["z_true"] = truth.z_true
+            f["stage_pose"] = truth.stage_pose
             f["K"] = vr.K
             f["dist"] = vr.dist
             f["R_cam_world"] = vr.R
@@ -632,6 +685,7 @@ def load_truth(path) -> tuple[GroundTruth, SimSettings, int]:
     if path.is_dir():
         path = path / TRUTH_FILE
     with h5py.File(path, "r") as f:
-        truth = GroundTruth(*(f[n][()] for n in ("x0", "y0", "sx", "sy", "z_true")))
+        truth = GroundTruth(*(f[n][()] for n in ("x0", "y0", "sx", "sy", "z_true")),
+                            f["stage_pose"][()] if "stage_pose" in f else None)
         settings, seed = settings_from_json(f.attrs["settings"])
     return truth, settings, seed
