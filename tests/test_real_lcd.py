@@ -88,3 +88,110 @@ def test_real_preset_has_everything_at_realistic_sizes():
     assert not preset("realistic")[1].cover_glass_mm
     if hasattr(rig.lcd, "cover_glass_mm"):
         assert rig.lcd.cover_glass_mm == 1.1
+
+
+# ---------------------------------------------------------------- the cover glass removed
+
+def _glass_rigs(width, seed=7, **kw):
+    """The `real` rig with and without its glass, same seed (everything else identical)."""
+    rig, s = scaled_preset("real", width, **kw)
+    return [(VirtualRig(rig, replace(s, cover_glass_mm=t), seed=seed)) for t in (0.0, 1.1)]
+
+
+def test_glass_correction_is_the_exact_plate_offset_per_pixel():
+    from ptpcore.fit.glass import correct_cover_glass, describe_corrections
+    from ptpcore.fit.perpixel import fit_lut
+    from ptpcore.run.pipeline import collect_samples
+
+    bare, glass = _glass_rigs(64, positions=5)
+    truth = glass.truth()
+    raw = collect_samples(SimulatedSource(glass))
+    fixed, corr = correct_cover_glass(raw, 1.1, 1.52, 0.05, 0.01)
+    assert fixed.x is raw.x and np.all(np.isnan(raw.x_ref) == np.isnan(fixed.x_ref))
+    exact = 1e3 * refraction_offset_mm(np.hypot(truth.sx, truth.sy), 1.1, 1.52)
+    two = raw.valid.sum(axis=0) >= 2
+    assert two.mean() > 0.6
+    # Each pixel's shift is the simulator's exact refraction offset up to its slope's error: a
+    # slope error of 1e-3 moves the offset by about t*(1 - 1/n)*1e-3 = 0.4 um (at 64 px a pixel's
+    # samples are tens of um off its centre ray: footprint, bow, tilts).
+    diff = np.abs(corr.shift_um[two] - exact[two])
+    assert np.median(diff) < 0.3
+    assert np.percentile(diff - 0.01 * exact[two], 99) < 1.0
+    rec = fixed.corrections["cover_glass"]
+    assert abs(rec["median_um"] / np.median(exact[two]) - 1) < 0.01
+    assert abs(rec["max_um"] / np.max(exact[two]) - 1) < 0.01
+    assert "median" in describe_corrections(fixed.corrections)[0]
+    # Tolerances: +-0.05 mm of 1.1 mm is 4.5 % of the shift, the index adds a little.
+    assert np.all(corr.sigma[two] > 0.045 * corr.shift_um[two] * 1e-3)
+    assert np.all(corr.sigma[two] < 0.06 * corr.shift_um[two] * 1e-3)
+    # The corrected LUT sees the air rays as well as the same rig's LUT without glass (at 64 px
+    # both are off by the pixel footprint), where the raw one is off by the offset.
+    lut_raw, lut_fix = fit_lut(raw, "poly", 2), fit_lut(fixed, "poly", 2)
+    lut_bare = fit_lut(collect_samples(SimulatedSource(bare)), "poly", 2)
+    ok = lut_fix.valid & two & lut_bare.valid
+    ex, ey = truth.xy(20.0)
+
+    def err(lut):
+        ev = lut.evaluate(20.0)
+        return np.median(1e3 * np.hypot(ev.x - ex, ev.y - ey)[ok])
+
+    assert err(lut_raw) > 30.0
+    assert err(lut_fix) < 1.1 * err(lut_bare)
+
+
+def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
+    import json
+
+    from ptpcore.cli.main import _lut_summary
+    from ptpcore.io.lutfile import load_lut, save_lut
+    from ptpcore.fit.glass import correct_samples
+    from ptpcore.fit.perpixel import fit_lut
+    from ptpcore.run.pipeline import collect_samples
+
+    _bare, glass = _glass_rigs(48, positions=4)
+    raw = collect_samples(SimulatedSource(glass))
+    rig = glass.rig
+    # A rig that declares no glass: a bare panel is assumed, and said.
+    if hasattr(rig.lcd, "cover_glass_mm"):
+        rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0))
+    same, applied = correct_samples(raw, rig)
+    assert not applied and same.x_ref is raw.x_ref
+    lut = fit_lut(same, "poly", 1)
+    lut.provenance["corrections"] = json.dumps(same.corrections)
+    save_lut(lut, tmp_path / "a.lut.h5")
+    back = load_lut(tmp_path / "a.lut.h5")
+    assert json.loads(back.provenance["corrections"])["cover_glass"]["t_mm"] == 0.0
+    assert "bare panel is assumed" in _lut_summary(back, "a.lut.h5")
+
+
+@pytest.mark.slow
+def test_real_rig_with_glass_declared_is_as_good_as_without_glass():
+    """Issue 14's Must show: the `real` rig with its glass removed against the same rig without glass."""
+    from ptpcore.evaluate import compare
+    from ptpcore.fit.glass import correct_cover_glass
+    from ptpcore.run.pipeline import collect_samples
+
+    bare, glass = _glass_rigs(160)
+    truth = bare.truth()
+    r_bare = compare(collect_samples(SimulatedSource(bare)), bare.rig, truth=truth, seed=7)
+    raw = collect_samples(SimulatedSource(glass))
+    fixed, corr = correct_cover_glass(raw, 1.1, 1.52)
+    r_glass = compare(fixed, glass.rig, truth=truth, seed=7)
+    r_undeclared = compare(raw, glass.rig, truth=truth, seed=7, with_smooth=False)
+    tb, tg = r_bare.references["truth"], r_glass.references["truth"]
+    for m, n in (("ptp", "n_ptp"), ("smooth", "n_smooth")):
+        assert tg.methods[m].coordinate.rms_um < 1.3 * tb.methods[m].coordinate.rms_um
+        assert getattr(r_glass.coverage, n).sum() >= 0.97 * getattr(r_bare.coverage, n).sum()
+    # Undeclared, the LUT is off by the glass: tens of um.
+    assert r_undeclared.references["truth"].methods["ptp"].coordinate.rms_um > 30.0
+    # The report's correction column is the simulator's exact refraction offset.
+    exact = 1e3 * refraction_offset_mm(np.hypot(truth.sx, truth.sy), 1.1, 1.52)
+    two = raw.valid.sum(axis=0) >= 2
+    rec = r_glass.corrections["cover_glass"]
+    assert abs(rec["median_um"] / np.median(exact[two]) - 1) < 0.05
+    assert abs(rec["max_um"] / np.max(exact[two]) - 1) < 0.05
+    # 3DSTC on corrected feature points: the no-glass rig's parameters within 2 of their std.
+    pb, pg = r_bare.pinhole, r_glass.pinhole
+    std = np.hypot(pb.param_std, pg.param_std) / np.sqrt(2)
+    free = std > 0
+    assert np.all(np.abs(np.asarray(pg.param_values) - pb.param_values)[free] < 2 * std[free])

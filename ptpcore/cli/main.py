@@ -85,6 +85,9 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
 
 
 def _lut_summary(lut, path) -> str:
+    import json
+
+    from ptpcore.fit.glass import describe_corrections
     from ptpcore.fit.models import describe_lut
 
     v = lut.valid
@@ -110,6 +113,12 @@ def _lut_summary(lut, path) -> str:
             if arr.size:
                 lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
                              f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm (from the phase noise)")
+    try:
+        corrections = json.loads(lut.provenance.get("corrections", "{}"))
+    except ValueError:
+        corrections = {"corrections": "unreadable /provenance record"}
+    for msg in describe_corrections(corrections if isinstance(corrections, dict) else {}):
+        lines.append(f"  correction          {msg}")
     return "\n".join(lines)
 
 
@@ -176,6 +185,7 @@ def cmd_demo(args) -> int:
         samples = collect_samples(source, progress=bar)
     finally:
         bar.close()
+    samples, _applied = correct_samples(samples, source.rig)  # the cover glass, before any fit
     truth, settings, _ = load_truth(workdir)
     rig = source.rig
     k = rig.stage.n_positions
@@ -226,6 +236,7 @@ def cmd_compare(args) -> int:
     from ptpcore.evaluate import compare, format_summary
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.errors import DatasetError
+    from ptpcore.fit.glass import correct_samples
     from ptpcore.run.pipeline import collect_samples
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
 
@@ -240,6 +251,7 @@ def cmd_compare(args) -> int:
     bar = progress_bar(args)
     try:
         samples = collect_samples(source, progress=bar)
+        samples, _applied = correct_samples(samples, source.rig)  # the cover glass, before any fit
         result = compare(samples, source.rig, truth=truth, seed=args.seed, split=args.split,
                          n_points=args.points, rational=args.rational, model=args.model, degree=args.degree,
                          with_smooth=args.smooth, progress=bar)

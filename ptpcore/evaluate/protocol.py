@@ -104,6 +104,10 @@ def draw_features(samples: SampleStack, positions, n_points: int, rng: np.random
     """Draw 3DSTC feature points at random from the valid samples of ``positions``.
 
     Every valid (position, pixel) sample is equally likely; no sample is drawn twice.
+    The draw runs over the whole grid of (position, pixel) slots, keeping the valid
+    ones in the order drawn: two datasets whose valid pixels differ a little (the
+    same rig with and without cover glass, METHOD.md section 8) get the same feature
+    points wherever both are valid, so their fits differ only by what differs.
 
     Parameters
     ----------
@@ -129,8 +133,14 @@ def draw_features(samples: SampleStack, positions, n_points: int, rng: np.random
     if flat.size < 20:
         raise ValueError(f"3DSTC needs feature points: only {flat.size} valid samples at positions"
                          f" {positions.tolist()}")
-    pick = np.sort(rng.choice(flat.size, size=min(int(n_points), flat.size), replace=False))
-    i, row, col = np.unravel_index(flat[pick], valid.shape)
+    m = min(int(n_points), flat.size)
+    n_draw = min(valid.size, int(np.ceil(1.3 * m * valid.size / flat.size)) + 64)
+    slots = rng.choice(valid.size, size=n_draw, replace=False)
+    slots = slots[valid.ravel()[slots]][:m]
+    if slots.size < m:  # unlucky: top up from the valid slots not drawn yet
+        rest = np.setdiff1d(flat, slots, assume_unique=True)
+        slots = np.concatenate([slots, rng.choice(rest, size=m - slots.size, replace=False)])
+    i, row, col = np.unravel_index(np.sort(slots), valid.shape)
     k = positions[i]
     x = samples.x_ref[row, col] + samples.x[k, row, col].astype(np.float64)
     y = samples.y_ref[row, col] + samples.y[k, row, col].astype(np.float64)
@@ -238,7 +248,7 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
     result = CompareResult(split, seed, int(n_points), bool(rational), model, int(degree) if model == "poly" else None,
                            samples.z.astype(float).copy(), held_positions, z_held, fold_of_held, folds, acc.mask,
                            acc.err, acc.measured_minus_truth, Coverage(**acc.cov), pairs, methods=methods,
-                           smooth_degree=s_degree, notes=notes)
+                           smooth_degree=s_degree, notes=notes, corrections=dict(samples.corrections))
     refs = ["measured"] + (["truth"] if truth is not None else [])
     for ref in refs:
         report(0.95, f"statistics against the {ref} reference")

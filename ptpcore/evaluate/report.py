@@ -16,6 +16,7 @@ import numpy as np
 from ptpcore import __version__
 from ptpcore.evaluate.statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS, PAIR_KINDS, REFERENCES, SPLITS,
     CoordinateStats, Verdict, _block_rms, _jsonable)
+from ptpcore.fit.glass import describe_corrections
 from ptpcore.pinhole import PinholeFit
 
 __all__ = ["COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS", "MethodReport",
@@ -185,6 +186,10 @@ class CompareResult:
     notes : list of str
         What the reader should know about the run (e.g. why the smooth LUT
         was left out, or fitted without smoothing).
+    corrections : dict
+        What was removed from the samples before every method's fit
+        (``SampleStack.corrections``: the cover glass with its median and max
+        per-pixel shift, µm).
     """
 
     split: str
@@ -208,6 +213,7 @@ class CompareResult:
     methods: tuple = METHODS
     smooth_degree: int | None = None
     notes: list = field(default_factory=list)
+    corrections: dict = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -289,6 +295,7 @@ class CompareResult:
             "pairs": {k: {"n": len(p), "edges_mm": _jsonable(p.edges_mm)} for k, p in self.pairs.items()},
             "reference_noise": None if self.reference_noise is None else self.reference_noise.to_json_dict(),
             "notes": list(self.notes),
+            "corrections": self.corrections,
             "references": {},
         }
         for ref, rr in self.references.items():
@@ -360,6 +367,8 @@ def format_summary(result: CompareResult) -> str:
             lines.append(f"  3DSTC warning      {'' if len(result.folds) == 1 else f'(fold {i + 1}) '}{msg}")
     for msg in result.notes:
         lines.append(f"  note                {msg}")
+    for msg in describe_corrections(result.corrections):
+        lines.append(f"  correction          {msg}")
     c = result.coverage
     nm = max(int(c.n_measured.sum()), 1)
     has = {"ptp": c.n_ptp, "smooth": c.n_smooth, "3dstc": c.n_3dstc}

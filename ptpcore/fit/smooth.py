@@ -58,20 +58,28 @@ def _nanmean0(a: np.ndarray) -> np.ndarray:
         return np.where(nan, 0.0, a).sum(axis=0) / cnt
 
 
-def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z) -> np.ndarray:
+def _remove_level_bias(values: np.ndarray, rig: Rig, axis: str, z, shift=0.0) -> np.ndarray:
     """Absolute world X or Y samples minus the display's level bias (:mod:`ptpcore.decode.display`), in place.
 
     Parameters
     ----------
     values : (K, n) float64, mm
         Absolute ``X`` (``axis = "x"``) or ``Y`` of ``n`` pixels at the heights ``z`` (K,).
+    shift : (n,) float64 or float, mm
+        What corrections added to these pixels since decoding (``SampleStack.lcd_shift``).
     """
     d = "xy".index(axis)
     slope, pitch = rig.stage.direction[d], rig.lcd.pitch_mm[d]
     for i, zk in enumerate(np.asarray(z, dtype=float)):
-        coord = (values[i] - slope * zk) / pitch  # the decoded LCD coordinate
+        coord = (values[i] - shift - slope * zk) / pitch  # the decoded LCD coordinate
         values[i] -= level_bias_at(rig.fringes, rig.lcd, axis, zk, coord) * pitch
     return values
+
+
+def _lcd_shift(samples: SampleStack, axis: int, flat):
+    """``samples.lcd_shift[axis]`` at flat pixel indices ``flat`` (0.0 as decoded)."""
+    shift = getattr(samples, "lcd_shift", None)
+    return 0.0 if shift is None else np.asarray(shift[axis]).reshape(-1)[flat]
 
 
 def stage_leverage(t: np.ndarray, degree: int) -> float:
@@ -602,7 +610,7 @@ def _corrected_absolute(samples: SampleStack, rig: Rig, axis: int, s: int, e: in
     values = getattr(samples, f"{name}_ref").reshape(-1)[s:e][None] + read_block(
         getattr(samples, name), s, e, sel).astype(np.float64)
     if level_bias:
-        _remove_level_bias(values, rig, name, z)
+        _remove_level_bias(values, rig, name, z, _lcd_shift(samples, axis, slice(s, e)))
     if footprint is not None:
         values -= footprint[axis]
     return values
@@ -658,8 +666,8 @@ def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed:
         x = samples.x_ref.ravel()[pick] + read_block(samples.x, 0, h * w, [k])[0][pick]
         y = samples.y_ref.ravel()[pick] + read_block(samples.y, 0, h * w, [k])[0][pick]
         if rig is not None:
-            x = _remove_level_bias(x[None], rig, "x", [samples.z[k]])[0]
-            y = _remove_level_bias(y[None], rig, "y", [samples.z[k]])[0]
+            x = _remove_level_bias(x[None], rig, "x", [samples.z[k]], _lcd_shift(samples, 0, pick))[0]
+            y = _remove_level_bias(y[None], rig, "y", [samples.z[k]], _lcd_shift(samples, 1, pick))[0]
         pts.append(np.stack([x, y, np.full(pick.size, samples.z[k])], 1))
         pix.append(np.stack([c, r], 1).astype(float))
     return fit_pinhole(np.concatenate(pts), np.concatenate(pix)).model

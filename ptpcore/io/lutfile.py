@@ -80,6 +80,9 @@ class Lut:
     sigma_x, sigma_y : (H, W) float32 or None
         Predicted 1-sigma uncertainty (optional).
     rig_toml : str
+    provenance : dict of str
+        ``/provenance`` attributes: name -> JSON text (``corrections``: what
+        was removed from the samples before fitting, FORMATS.md).
     """
 
     kind: str
@@ -103,6 +106,7 @@ class Lut:
     sigma_y: np.ndarray | None = None
     rig_toml: str = ""
     extra_attrs: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -350,6 +354,8 @@ def _write_lut_group(group, lut: Lut) -> None:
         if val is not None:
             q.create_dataset(name, data=val.astype(np.float32), **opts)
     group.create_group("rig").attrs["toml"] = lut.rig_toml
+    if lut.provenance:
+        group.create_group("provenance").attrs.update({k: str(v) for k, v in lut.provenance.items()})
 
 
 def save_lut(lut: Lut, path) -> None:
@@ -521,6 +527,9 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
     rig_toml = ""
     if "rig" in group:
         rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
+    provenance = {}
+    if "provenance" in group:
+        provenance = {str(k): str(_str_attr(v)) for k, v in group["provenance"].attrs.items()}
     # valid stays as stored until _check_lut_values has seen it hold only 0 and 1.
     lut = Lut(
         kind=kind, degree=degree, z_center=mv["z_center"], z_scale=mv["z_scale"],
@@ -528,6 +537,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
         n_positions=q["n_positions"], pixel_z_min=q["z_min"], pixel_z_max=q["z_max"],
         rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
         sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
+        provenance=provenance,
     )
     return lut, (h, w)
 

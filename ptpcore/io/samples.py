@@ -7,7 +7,7 @@ camera pixel at every stage position, in memory or spilled to a file
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -39,6 +39,12 @@ class SampleStack:
         Background level A (grey levels).
     noise : ptpcore.decode.noise.NoiseModel or None
         The camera noise measured from the N-step fit residuals.
+    corrections : dict
+        Name -> JSON-ready record of every correction applied since decoding
+        (:mod:`ptpcore.fit.glass`); empty as decoded.
+    lcd_shift : (2,) tuple of (H, W) float64 arrays (mm), or None
+        What those corrections added to each pixel's X, Y: the decoded LCD
+        point is ``absolute - lcd_shift``. None as decoded.
     """
 
     z: np.ndarray
@@ -50,6 +56,8 @@ class SampleStack:
     modulation: np.ndarray | None = None
     background: np.ndarray | None = None
     noise: NoiseModel | None = None  # measured from the N-step residuals (ptpcore.decode.noise)
+    corrections: dict = field(default_factory=dict)
+    lcd_shift: tuple | None = None
 
     @classmethod
     def empty(cls, z, shape, with_photometry: bool = True) -> "SampleStack":
@@ -98,4 +106,5 @@ class SampleStack:
         return SampleStack(self.z[idx], self.x[idx], self.y[idx], self.x_ref, self.y_ref,
                            self.reasons[idx],
                            None if self.modulation is None else self.modulation[idx],
-                           None if self.background is None else self.background[idx], self.noise)
+                           None if self.background is None else self.background[idx], self.noise,
+                           self.corrections, self.lcd_shift)

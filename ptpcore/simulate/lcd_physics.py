@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ptpcore.fit.glass import plate_offset_mm as refraction_offset_mm  # t*(tan(theta) - tan(theta'))
+
 __all__ = ["LcdPhysics", "pose_matrix", "draw_stage_poses", "refraction_offset_mm"]
 
 
@@ -49,25 +51,6 @@ def draw_stage_poses(rng: np.random.Generator, n_positions: int, runout_um: floa
     poses[:, 3:5] = rng.normal(0.0, 1.0, size=(n_positions, 2)) * tilt_urad
     poses[:, 5] = rng.normal(0.0, 1.0, size=n_positions) * roll_urad
     return poses
-
-
-def refraction_offset_mm(tan_theta, t_mm: float, n: float):
-    """Lateral offset of a plane-parallel plate: ``t*(tan(theta) - tan(theta'))``, ``sin(theta') = sin(theta)/n``.
-
-    Parameters
-    ----------
-    tan_theta : array_like
-        Tangent of the angle between ray and plate normal.
-    t_mm, n : float
-        Plate thickness (mm) and index.
-
-    Returns
-    -------
-    ndarray, mm (same shape), >= 0
-    """
-    tt = np.asarray(tan_theta, dtype=float)
-    sin_t = tt / np.sqrt(1.0 + tt * tt) / n
-    return t_mm * (tt - sin_t / np.sqrt(1.0 - sin_t * sin_t))
 
 
 @dataclass(frozen=True)

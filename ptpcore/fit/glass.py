@@ -1,0 +1,228 @@
+"""The LCD's cover glass, removed from every sample before any fit (METHOD.md section 8).
+
+The pixel plane sits behind a plane-parallel plate (thickness ``t``, index
+``n``: top substrate, polarizer, cover glass). A ray meeting the LCD at
+``theta`` from its normal is seen ``delta = t*(tan(theta) - tan(theta'))``,
+``sin(theta') = sin(theta)/n``, closer to the foot of the normal than where
+the ray in air meets the pixel plane. With the stage moving the LCD along
+its normal, ``theta`` of a pixel is the same at every position, so ``delta``
+is a constant per pixel along its ray's lateral direction: the correction
+moves each pixel's reference ``x_ref, y_ref`` and leaves its samples'
+offsets (and any spill file) untouched.
+
+``theta`` comes from the pixel's own samples: a straight line fitted to its
+``X(z), Y(z)`` gives the slopes ``sx = dX/dZ``, ``sy = dY/dZ`` in the LCD frame
+(its normal is Z; a skewed stage translates the LCD, it does not turn it),
+``tan(theta) = hypot(sx, sy)``. The correction being constant per pixel, the
+slopes of the corrected samples are those of the raw ones: the second pass
+METHOD asks for would give the same ``theta``, so it is not run.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig
+
+__all__ = ["GlassCorrection", "plate_offset_mm", "pixel_slopes", "correct_cover_glass", "correct_samples",
+           "glass_of", "BARE_PANEL"]
+
+BARE_PANEL = ("no cover glass declared ([lcd] cover_glass_mm): a bare panel is assumed; a real LCD's"
+              " glass and polarizer (about 1 mm, see its datasheet) would leave the LUT tens of um off")
+ROW_BLOCK_PIXELS = 1 << 20
+
+
+def plate_offset_mm(tan_theta, t_mm: float, n: float):
+    """``t*(tan(theta) - tan(theta'))`` with ``sin(theta') = sin(theta)/n`` (mm, same shape as ``tan_theta``)."""
+    tt = np.asarray(tan_theta, dtype=float)
+    sin_in = tt / np.sqrt(1.0 + tt * tt) / n
+    return t_mm * (tt - sin_in / np.sqrt(1.0 - sin_in * sin_in))
+
+
+def glass_of(rig: Rig) -> tuple[float, float, float, float]:
+    """``(t_mm, index, t_sigma_mm, index_sigma)`` declared in ``rig.toml`` (``t_mm`` 0 for a bare panel)."""
+    lcd = rig.lcd
+    return (float(getattr(lcd, "cover_glass_mm", 0.0) or 0.0), float(getattr(lcd, "cover_glass_index", 1.52) or 1.52),
+            float(getattr(lcd, "cover_glass_mm_sigma", 0.0) or 0.0),
+            float(getattr(lcd, "cover_glass_index_sigma", 0.0) or 0.0))
+
+
+def pixel_slopes(samples: SampleStack, positions=None) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's straight-line slopes ``dX/dZ``, ``dY/dZ`` from its valid samples.
+
+    Parameters
+    ----------
+    samples : SampleStack
+        In memory or file-backed (read in row blocks).
+    positions : sequence of int, optional
+        Positions to use (default all).
+
+    Returns
+    -------
+    sx, sy : (H, W) float64
+        NaN where a pixel has fewer than 2 valid samples at distinct heights.
+    """
+    idx = np.arange(len(samples.z)) if positions is None else np.asarray(positions, dtype=np.intp)
+    z = samples.z[idx].astype(float)
+    h, w = samples.shape
+    out = (np.full((h, w), np.nan), np.full((h, w), np.nan))
+    rows = max(1, ROW_BLOCK_PIXELS // max(1, w * len(idx)))
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        ok = np.asarray(samples.reasons[idx, r0:r1]) == 0
+        n = ok.sum(axis=0)
+        zz = np.where(ok, z[:, None, None], 0.0)
+        zm = zz.sum(axis=0) / np.maximum(n, 1)
+        dz = np.where(ok, z[:, None, None] - zm, 0.0)
+        szz = (dz * dz).sum(axis=0)
+        for arr, dest in ((samples.x, out[0]), (samples.y, out[1])):
+            v = np.where(ok, np.asarray(arr[idx, r0:r1], dtype=float), 0.0)
+            vm = v.sum(axis=0) / np.maximum(n, 1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                s = (dz * np.where(ok, v - vm, 0.0)).sum(axis=0) / szz
+            dest[r0:r1] = np.where((n >= 2) & (szz > 0), s, np.nan)
+    return out
+
+
+@dataclass
+class GlassCorrection:
+    """The cover-glass correction applied to every pixel.
+
+    Attributes
+    ----------
+    t_mm, index, t_sigma_mm, index_sigma : float
+        The plate as declared (thickness mm, index, their 1-sigma tolerances).
+    shift_x, shift_y : (H, W) float64, mm
+        Added to each pixel's samples (what ignoring the glass would have cost,
+        per pixel); 0 where a pixel had no slope.
+    sigma : (H, W) float64, mm
+        1-sigma of the correction's length from the tolerances (0 without).
+    """
+
+    t_mm: float
+    index: float
+    t_sigma_mm: float
+    index_sigma: float
+    shift_x: np.ndarray
+    shift_y: np.ndarray
+    sigma: np.ndarray
+
+    @property
+    def shift_um(self) -> np.ndarray:
+        """(H, W) length of each pixel's shift, um."""
+        return 1e3 * np.hypot(self.shift_x, self.shift_y)
+
+    def record(self, valid=None) -> dict:
+        """JSON-ready summary: the plate, and the median and max per-pixel shift (um) over ``valid`` pixels."""
+        s = self.shift_um if valid is None else self.shift_um[valid]
+        s = s[np.isfinite(s) & (s > 0)]
+        return {"kind": "cover_glass", "t_mm": self.t_mm, "index": self.index, "t_sigma_mm": self.t_sigma_mm,
+                "index_sigma": self.index_sigma, "pixels": int(s.size),
+                "median_um": float(np.median(s)) if s.size else 0.0,
+                "max_um": float(np.max(s)) if s.size else 0.0}
+
+
+def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma_mm: float = 0.0,
+                        index_sigma: float = 0.0, positions=None) -> tuple[SampleStack, GlassCorrection]:
+    """Samples with the cover glass removed: where each pixel's ray in air meets the pixel plane.
+
+    Parameters
+    ----------
+    samples : SampleStack
+        As decoded. Not modified: the result shares its ``(K, H, W)`` arrays.
+    t_mm, index : float
+        The plate (``[lcd] cover_glass_mm``, ``cover_glass_index``).
+    t_sigma_mm, index_sigma : float
+        Datasheet tolerances (1 sigma), for :attr:`GlassCorrection.sigma`.
+    positions : sequence of int, optional
+        Positions whose samples give each pixel's slope (default all).
+
+    Returns
+    -------
+    corrected : SampleStack
+        New ``x_ref, y_ref``; ``lcd_shift`` records what was added (the decoded LCD
+        point is ``absolute - lcd_shift``), ``corrections`` gains the record.
+    correction : GlassCorrection
+    """
+    if not (t_mm >= 0 and index >= 1):
+        raise ValueError(f"cover glass needs t >= 0 mm and index >= 1, got {t_mm} mm, {index}")
+    sx, sy = pixel_slopes(samples, positions)
+    tan = np.hypot(sx, sy)
+    ok = np.isfinite(tan)
+    delta = np.where(ok, plate_offset_mm(np.where(ok, tan, 0.0), t_mm, index), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ux = np.where(ok & (tan > 0), sx / tan, 0.0)
+        uy = np.where(ok & (tan > 0), sy / tan, 0.0)
+    # The decoded point lies delta along +(sx, sy) from the air ray's point: move it back.
+    shift_x, shift_y = -delta * ux, -delta * uy
+    eps_t, eps_n = max(1e-6, 1e-3 * t_mm), 1e-6
+    d_t = (plate_offset_mm(tan, t_mm + eps_t, index) - plate_offset_mm(tan, t_mm - eps_t, index)) / (2 * eps_t)
+    d_n = (plate_offset_mm(tan, t_mm, index + eps_n) - plate_offset_mm(tan, t_mm, index - eps_n)) / (2 * eps_n)
+    sigma = np.where(ok, np.hypot(d_t * t_sigma_mm, d_n * index_sigma), 0.0)
+    corr = GlassCorrection(t_mm, index, t_sigma_mm, index_sigma, shift_x, shift_y, sigma)
+    prev = samples.lcd_shift if getattr(samples, "lcd_shift", None) is not None else (0.0, 0.0)
+    out = replace(samples, x_ref=samples.x_ref + shift_x, y_ref=samples.y_ref + shift_y,
+                  lcd_shift=(prev[0] + shift_x, prev[1] + shift_y),
+                  corrections={**samples.corrections, "cover_glass": corr.record(ok)})
+    return out, corr
+
+
+def correct_samples(samples: SampleStack, rig: Rig, positions=None) -> tuple[SampleStack, dict]:
+    """Every correction ``rig.toml`` asks for, applied right after decoding.
+
+    Returns
+    -------
+    corrected : SampleStack
+        ``samples`` itself when there is nothing to correct.
+    applied : dict
+        Name -> the correction object (e.g. ``"cover_glass"``: :class:`GlassCorrection`).
+    """
+    t, n, ts, ns = glass_of(rig)
+    applied: dict = {}
+    if t > 0:
+        samples, applied["cover_glass"] = correct_cover_glass(samples, t, n, ts, ns, positions)
+    else:
+        samples = replace(samples, corrections={**samples.corrections, "cover_glass": {
+            "kind": "cover_glass", "t_mm": 0.0, "note": BARE_PANEL}})
+    return samples, applied
+
+
+def corrections_json(samples: SampleStack) -> str:
+    """The corrections a stack carries, as the JSON of ``/provenance`` ``corrections`` (FORMATS.md)."""
+    return json.dumps(samples.corrections, sort_keys=True, allow_nan=False)
+
+
+def describe_corrections(corrections: dict) -> list[str]:
+    """One line per correction record (``SampleStack.corrections`` or the LUT's ``/provenance``).
+
+    Parameters
+    ----------
+    corrections : dict
+        Name -> record (as :meth:`GlassCorrection.record` writes).
+
+    Returns
+    -------
+    list of str
+        E.g. ``"cover glass 1.1 mm, n 1.52: per-pixel shift median 120 µm, max 257 µm"``.
+    """
+    lines = []
+    for name, rec in sorted(corrections.items()):
+        if not isinstance(rec, dict):
+            lines.append(f"{name}: {rec}")
+        elif rec.get("kind") == "cover_glass" and not rec.get("t_mm"):
+            lines.append(rec.get("note", BARE_PANEL))
+        elif rec.get("kind") == "cover_glass":
+            tol = ""
+            if rec.get("t_sigma_mm") or rec.get("index_sigma"):
+                tol = f" (± {rec.get('t_sigma_mm', 0):g} mm, ± {rec.get('index_sigma', 0):g})"
+            lines.append(f"cover glass {rec['t_mm']:g} mm, n {rec['index']:g}{tol} removed: per-pixel shift"
+                         f" median {rec['median_um']:.1f} µm, max {rec['max_um']:.1f} µm over"
+                         f" {rec['pixels']} pixels (what ignoring it would have cost)")
+        else:
+            extra = ", ".join(f"{k} {v}" for k, v in rec.items() if k != "kind")
+            lines.append(f"{name}: {extra}")
+    return lines
