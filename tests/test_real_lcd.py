@@ -86,8 +86,7 @@ def test_real_preset_has_everything_at_realistic_sizes():
     assert 3.0 < np.std(pose[:, 3:5]) < 60.0 and np.all(pose[:, 5] == 0)
     # Older presets keep their images bit for bit: no pose, no glass.
     assert not preset("realistic")[1].cover_glass_mm
-    if hasattr(rig.lcd, "cover_glass_mm"):
-        assert rig.lcd.cover_glass_mm == 1.1
+    assert rig.lcd.cover_glass_mm == 1.1
 
 
 # ---------------------------------------------------------------- the cover glass removed
@@ -152,8 +151,7 @@ def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
     raw = collect_samples(SimulatedSource(glass))
     rig = glass.rig
     # A rig that declares no glass: a bare panel is assumed, and said.
-    if hasattr(rig.lcd, "cover_glass_mm"):
-        rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0))
+    rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0))
     same, applied = correct_samples(raw, rig)
     assert not applied and same.x_ref is raw.x_ref
     lut = fit_lut(same, "poly", 1)
@@ -195,3 +193,21 @@ def test_real_rig_with_glass_declared_is_as_good_as_without_glass():
     std = np.hypot(pb.param_std, pg.param_std) / np.sqrt(2)
     free = std > 0
     assert np.all(np.abs(np.asarray(pg.param_values) - pb.param_values)[free] < 2 * std[free])
+
+
+def test_glass_tolerances_enter_the_sigma_maps():
+    from ptpcore.fit.glass import add_tolerances_to_sigma, correct_cover_glass
+    from ptpcore.fit.perpixel import fit_lut
+    from ptpcore.run.pipeline import collect_samples
+
+    _bare, glass = _glass_rigs(48, positions=4)
+    raw = collect_samples(SimulatedSource(glass))
+    fixed, corr = correct_cover_glass(raw, 1.1, 1.52, 0.05, 0.0)
+    lut = fit_lut(fixed, "poly", 1)
+    lut.sigma_x = np.zeros(lut.shape, np.float32)
+    lut.sigma_y = np.zeros(lut.shape, np.float32)
+    add_tolerances_to_sigma(lut, {"cover_glass": corr})
+    # +-0.05 mm of 1.1 mm: 4.5 % of each pixel's shift (the offset is proportional to t).
+    total = np.hypot(lut.sigma_x, lut.sigma_y)
+    ok = corr.shift_um > 1.0
+    assert np.allclose(1e3 * total[ok], 0.05 / 1.1 * corr.shift_um[ok], rtol=1e-4)

@@ -8,6 +8,8 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QHBoxLayout, QLabel, QPushButton, QSpinBox, QVBoxLayout)
 
 from ptpcore.fit import describe_lut, fit_model
+from ptpcore.fit.glass import (add_tolerances_to_sigma, correct_samples, corrected_samples, corrections_json,
+    describe_corrections)
 from ptpcore.evaluate import pixel_series, reason_text
 
 from ..widgets.maps import HeatmapPanel, axis_label
@@ -237,13 +239,28 @@ class CalibratePage(StudioPage):
         samples, rig = s.samples, s.rig
         stage_mm = fit["stage_sigma_um"] * 1e-3
         gen = self.model.generation
-        job = Job(lambda ctx: fit_model(samples, rig, model, degree, positions=positions, progress=ctx.progress,
-                                        stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
-                                        footprint=fit["footprint"]),
-                  f"fitting the {model} LUT")
+
+        def work(ctx):
+            # The cover glass (rig.toml) leaves the samples before the fit; the session keeps them as decoded.
+            fixed, applied = correct_samples(samples, rig)
+            self._corrected_cache = (samples, rig, fixed)
+            lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
+                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"])
+            lut.provenance["corrections"] = corrections_json(fixed)
+            add_tolerances_to_sigma(lut, applied)
+            return lut
+
+        job = Job(work, f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self._fitted(lut, positions, fit))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
+
+    def _corrected(self, samples, rig):
+        """The samples every fit reads: with the corrections ``rig`` asks for (cached per stack and rig)."""
+        cached = getattr(self, "_corrected_cache", None)
+        if cached is None or cached[0] is not samples or cached[1] != rig:
+            cached = self._corrected_cache = (samples, rig, corrected_samples(samples, rig))
+        return cached[2]
 
     def _fitted(self, lut, positions, fit: dict) -> None:
         self.fitted = dict(fit)
@@ -282,6 +299,9 @@ class CalibratePage(StudioPage):
         if "sigma_x" in self.maps and rms.size:
             text += (f" Predicted 1σ (median) X {np.nanmedian(self.maps['sigma_x'][1][v]):.2f} µm,"
                      f" Y {np.nanmedian(self.maps['sigma_y'][1][v]):.2f} µm.")
+        for line in describe_corrections(self._corrected(self.model.session.samples, self.model.session.rig)
+                                         .corrections if self.model.session.samples is not None else {}):
+            text += f" {line[0].upper()}{line[1:]}."
         self.stats.setText(text)
         # Start with the valid pixel nearest the sensor's centre.
         if v.any():
@@ -325,7 +345,7 @@ class CalibratePage(StudioPage):
             return
         self.selected = (row, col)
         self.heatmap.view.set_marker(row, col)
-        ps = pixel_series(s.lut, s.samples, row, col, s.lut_positions)
+        ps = pixel_series(s.lut, self._corrected(s.samples, s.rig), row, col, s.lut_positions)
         self.series = ps
         for plot, vals, curve in ((self.plot_x, ps.x, ps.x_curve), (self.plot_y, ps.y, ps.y_curve)):
             plot.curve.setData(ps.z_curve, curve, connect="finite")

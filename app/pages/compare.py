@@ -12,6 +12,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHB
 
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, robust_levels,
                               smooth_degree_for, split_positions)
+from ptpcore.fit.glass import corrected_samples, describe_corrections
 
 from ..widgets.maps import PEN, MapView, axis_label, colormap, plain_axes
 from ..worker import Job
@@ -197,7 +198,8 @@ class ComparePage(StudioPage):
             self.settings_note = ""
         samples, rig = s.samples, s.rig
         gen = self.model.generation
-        job = Job(lambda ctx: compare(samples, rig, progress=ctx.progress, **args), "running the comparison")
+        job = Job(lambda ctx: compare(corrected_samples(samples, rig), rig, progress=ctx.progress, **args),
+                  "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
         return self.run_job(job)
 
@@ -357,6 +359,7 @@ class ComparePage(StudioPage):
             smooth = (f" PTP smooth: poly degree {r.smooth_degree}, smoothing scale {scale} px (cross-validated)."
                       f"{self.settings_note}")
         notes = "".join(f" {n}." for n in r.notes)
+        notes += "".join(f" {line[0].upper()}{line[1:]}." for line in describe_corrections(r.corrections))
         self.coverage.setText(
             f"Held-out positions {', '.join(str(int(k) + 1) for k in r.held_positions)}; pixels compared"
             f" {100 * c.n_compared.sum() / nm:.1f} % of the valid held-out samples; pairs "

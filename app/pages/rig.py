@@ -12,7 +12,7 @@ from PySide6.QtWidgets import (QButtonGroup, QComboBox, QDoubleSpinBox, QFileDia
                                QRadioButton, QSpinBox, QVBoxLayout, QWidget)
 
 from ptpcore.errors import PtpError
-from ptpcore.rig import Camera, Lcd, Rig, Stage, load_rig, rig_from_toml, rig_to_toml, save_rig
+from ptpcore.rig import Camera, Rig, Stage, load_rig, rig_from_toml, rig_to_toml, save_rig
 from ptpcore.simulate import PRESETS, preset
 
 from ..assets import default_rigs
@@ -176,6 +176,23 @@ class RigPage(StudioPage):
         hf.addRow("LCD height", self.lcd_h)
         hf.addRow("LCD pitch x (columns)", self.pitch_x)
         hf.addRow("LCD pitch y (rows)", self.pitch_y)
+        # The cover glass (METHOD.md section 8): removed from every sample before any fit.
+        glass_tip = ("Everything between the LCD's pixel plane and the air, as one plate: top substrate,\n"
+                     "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
+                     "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"
+                     "Nothing in the data reveals them: left at 0, a bare panel is assumed and the LUT is\n"
+                     "off by the refraction, tens to hundreds of um at oblique pixels.")
+        self.glass_t = _dspin(0.0, 20.0, 0.0, 3, 0.1, " mm")
+        self.glass_n = _dspin(1.0, 3.0, 1.52, 3, 0.01)
+        self.glass_t.setToolTip(glass_tip)
+        self.glass_n.setToolTip(glass_tip)
+        hf.addRow("Cover glass thickness", self.glass_t)
+        hf.addRow("Cover glass index", self.glass_n)
+        self.glass_hint = QLabel()
+        self.glass_hint.setObjectName("hint")
+        self.glass_hint.setWordWrap(True)
+        self.glass_hint.setToolTip(glass_tip)
+        hf.addRow(self.glass_hint)
         right.addWidget(hw)
 
         # ---- stage
@@ -225,7 +242,7 @@ class RigPage(StudioPage):
         self.save_button.clicked.connect(self._save_dialog)
         self.open_button.clicked.connect(self._open_dialog)
         for w in (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
-                  self.z_start, self.z_step, self.z_count, self.skew_a, self.skew_b):
+                  self.glass_t, self.glass_n, self.z_start, self.z_step, self.z_count, self.skew_a, self.skew_b):
             w.valueChanged.connect(self._edited)
         self.z_list.editingFinished.connect(self._edited)
         self.stage_group.idToggled.connect(lambda _i, on: on and self._edited())
@@ -262,7 +279,7 @@ class RigPage(StudioPage):
 
     def _rig_widgets(self):
         return (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
-                self.stage_regular, self.stage_list, self.z_start, self.z_step, self.z_count, self.z_list,
+                self.glass_t, self.glass_n, self.stage_regular, self.stage_list, self.z_start, self.z_step, self.z_count, self.z_list,
                 self.skew_a, self.skew_b)
 
     def _show_rig(self) -> None:
@@ -277,6 +294,9 @@ class RigPage(StudioPage):
             self.lcd_h.setValue(lcd.height)
             self.pitch_x.setValue(lcd.pitch_mm[0])
             self.pitch_y.setValue(lcd.pitch_mm[1])
+            self.glass_t.setValue(lcd.cover_glass_mm)
+            self.glass_n.setValue(lcd.cover_glass_index)
+            self._update_glass_hint()
             z = np.asarray(st.z_mm)
             steps = np.diff(z)
             regular = len(z) >= 2 and np.allclose(steps, steps[0], rtol=0, atol=1e-9)
@@ -293,6 +313,15 @@ class RigPage(StudioPage):
         self._error = None
         self._update_stage_summary()
         self.update_complete()
+
+    def _update_glass_hint(self) -> None:
+        lcd = self.model.session.rig.lcd
+        if lcd.cover_glass_mm > 0:
+            tol = (f" (± {lcd.cover_glass_mm_sigma:g} mm)" if lcd.cover_glass_mm_sigma else "")
+            self.glass_hint.setText(f"Cover glass {lcd.cover_glass_mm:g} mm{tol}, n {lcd.cover_glass_index:g}:"
+                                    " removed from every sample before fitting.")
+        else:
+            self.glass_hint.setText("No cover glass declared: a bare panel is assumed (see the tooltip).")
 
     def _update_stage_summary(self) -> None:
         z = self.model.session.rig.stage.z_mm
@@ -460,7 +489,9 @@ class RigPage(StudioPage):
         rig = replace(
             old,
             camera=Camera(self.cam_w.value(), self.cam_h.value(), self.cam_bits.value()),
-            lcd=Lcd(self.lcd_w.value(), self.lcd_h.value(), (self.pitch_x.value(), self.pitch_y.value())),
+            lcd=replace(old.lcd, width=self.lcd_w.value(), height=self.lcd_h.value(),
+                        pitch_mm=(self.pitch_x.value(), self.pitch_y.value()),
+                        cover_glass_mm=self.glass_t.value(), cover_glass_index=self.glass_n.value()),
             stage=Stage(tuple(float(v) for v in z), (self.skew_a.value(), self.skew_b.value(), 1.0)),
         )
         # The same validation as a rig.toml on disk, with the same messages.
@@ -477,6 +508,7 @@ class RigPage(StudioPage):
             self._error = None
             self.model.set_rig(rig)
             self._update_stage_summary()
+            self._update_glass_hint()
         self.update_complete()
 
     # ---- session files -------------------------------------------------------

@@ -29,7 +29,7 @@ from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["GlassCorrection", "plate_offset_mm", "pixel_slopes", "correct_cover_glass", "correct_samples",
-           "glass_of", "BARE_PANEL"]
+           "corrected_samples", "corrections_json", "add_tolerances_to_sigma", "describe_corrections", "glass_of", "BARE_PANEL"]
 
 BARE_PANEL = ("no cover glass declared ([lcd] cover_glass_mm): a bare panel is assumed; a real LCD's"
               " glass and polarizer (about 1 mm, see its datasheet) would leave the LUT tens of um off")
@@ -46,9 +46,8 @@ def plate_offset_mm(tan_theta, t_mm: float, n: float):
 def glass_of(rig: Rig) -> tuple[float, float, float, float]:
     """``(t_mm, index, t_sigma_mm, index_sigma)`` declared in ``rig.toml`` (``t_mm`` 0 for a bare panel)."""
     lcd = rig.lcd
-    return (float(getattr(lcd, "cover_glass_mm", 0.0) or 0.0), float(getattr(lcd, "cover_glass_index", 1.52) or 1.52),
-            float(getattr(lcd, "cover_glass_mm_sigma", 0.0) or 0.0),
-            float(getattr(lcd, "cover_glass_index_sigma", 0.0) or 0.0))
+    return (float(lcd.cover_glass_mm), float(lcd.cover_glass_index), float(lcd.cover_glass_mm_sigma),
+            float(lcd.cover_glass_index_sigma))
 
 
 def pixel_slopes(samples: SampleStack, positions=None) -> tuple[np.ndarray, np.ndarray]:
@@ -189,6 +188,36 @@ def correct_samples(samples: SampleStack, rig: Rig, positions=None) -> tuple[Sam
         samples = replace(samples, corrections={**samples.corrections, "cover_glass": {
             "kind": "cover_glass", "t_mm": 0.0, "note": BARE_PANEL}})
     return samples, applied
+
+
+def add_tolerances_to_sigma(lut, applied: dict) -> None:
+    """The datasheet tolerances of the glass into the LUT's sigma maps, in quadrature (in place).
+
+    No data can reveal a wrong thickness or index: a pixel's correction is
+    uncertain by :attr:`GlassCorrection.sigma` along its ray's lateral
+    direction, the same at every height.
+
+    Parameters
+    ----------
+    lut : ptpcore.io.lutfile.Lut
+        ``sigma_x, sigma_y`` (H, W) float32 mm, or None (then nothing to do).
+    applied : dict
+        From :func:`correct_samples`.
+    """
+    corr = applied.get("cover_glass")
+    if corr is None or lut.sigma_x is None or lut.sigma_y is None or not np.any(corr.sigma):
+        return
+    length = np.hypot(corr.shift_x, corr.shift_y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ux = np.where(length > 0, np.abs(corr.shift_x) / length, 0.0)
+        uy = np.where(length > 0, np.abs(corr.shift_y) / length, 0.0)
+    lut.sigma_x = np.hypot(lut.sigma_x, corr.sigma * ux).astype(np.float32)
+    lut.sigma_y = np.hypot(lut.sigma_y, corr.sigma * uy).astype(np.float32)
+
+
+def corrected_samples(samples: SampleStack, rig: Rig) -> SampleStack:
+    """``correct_samples(samples, rig)[0]``: the stack every fit and comparison reads."""
+    return correct_samples(samples, rig)[0]
 
 
 def corrections_json(samples: SampleStack) -> str:

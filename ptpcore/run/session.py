@@ -69,7 +69,7 @@ from ptpcore.errors import ConfigError, DatasetError, FileFormatError
 from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_group, _str_attr,
     _write_lut_group, check_format, open_hdf5)
 from ptpcore.io.samples import SampleStack
-from ptpcore.fit.glass import correct_samples, corrections_json
+from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
 from ptpcore.fit.models import LUT_MODELS, fit_model
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.rig.rigfile import Rig, rig_from_toml, rig_to_toml
@@ -298,12 +298,13 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     if session.lut is None:
         # The cover glass (and any other correction rig.toml asks for) leaves the
         # samples here, before any fit; the session keeps them as decoded.
-        samples, _applied = correct_samples(session.samples, session.rig, session.positions)
+        samples, applied = correct_samples(session.samples, session.rig, session.positions)
         session.lut = fit_model(samples, session.rig, session.model, session.degree,
                                 positions=session.positions, progress=sub(0.9, 1.0),
                                 stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias,
                                 footprint=session.footprint)
         session.lut.provenance["corrections"] = corrections_json(samples)
+        add_tolerances_to_sigma(session.lut, applied)
         if path is not None:
             save_session(session, path)
     if progress:

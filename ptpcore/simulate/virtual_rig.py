@@ -187,11 +187,8 @@ def _presets():
 
 
 def _lcd_with_glass(lcd: Lcd, t_mm: float, index: float) -> Lcd:
-    """``lcd`` declaring its cover glass, where the rig file has the keys (ptp-dataset/2)."""
-    fields = getattr(Lcd, "__dataclass_fields__", {})
-    if "cover_glass_mm" in fields:
-        return replace(lcd, cover_glass_mm=t_mm, cover_glass_index=index)
-    return lcd
+    """``lcd`` declaring its cover glass (``[lcd] cover_glass_mm``, ptp-dataset/2)."""
+    return replace(lcd, cover_glass_mm=t_mm, cover_glass_index=index)
 
 
 PRESETS = _presets()
