@@ -10,6 +10,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
 from ptpcore.fit import describe_lut, fit_model
 from ptpcore.fit.glass import (add_tolerances_to_sigma, correct_samples, corrected_samples, corrections_json,
     describe_corrections)
+from ptpcore.fit.stage_pose import refine_and_correct
 from ptpcore.evaluate import pixel_series, reason_text
 
 from ..widgets.maps import HeatmapPanel, axis_label
@@ -88,10 +89,15 @@ class CalibratePage(StudioPage):
                                   " black level lower the contrast.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")
+        self.refine_stage = QCheckBox("refine stage")
+        self.refine_stage.setToolTip("Estimate each position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from"
+                                     " the straightness of the rays many pixels see, up to a common offset, scale"
+                                     " and linear trend, and correct the samples before fitting (METHOD.md section 8)."
+                                     " The estimates and their 1-sigma go into the LUT's /provenance/stage_pose.")
         # Two rows: the choices, then the fit and its progress (one row is wider than a laptop screen).
         row1 = QHBoxLayout()
         for w in (self.model_combo, self.degree, self.positions_combo, self.stage_sigma, self.level_bias,
-                  self.footprint):
+                  self.footprint, self.refine_stage):
             row1.addWidget(w)
         row1.addStretch(1)
         row2 = QHBoxLayout()
@@ -237,17 +243,23 @@ class CalibratePage(StudioPage):
         k = s.rig.stage.n_positions
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
         samples, rig = s.samples, s.rig
+        refine = self.refine_stage.isChecked()
         stage_mm = fit["stage_sigma_um"] * 1e-3
         gen = self.model.generation
 
         def work(ctx):
             # The cover glass (rig.toml) leaves the samples before the fit; the session keeps them as decoded.
             fixed, applied = correct_samples(samples, rig)
+            est = None
+            if refine:
+                fixed, est = refine_and_correct(fixed, rig)
             self._corrected_cache = (samples, rig, fixed)
             lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
                             stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"])
             lut.provenance["corrections"] = corrections_json(fixed)
             add_tolerances_to_sigma(lut, applied)
+            if est is not None:
+                lut.stage_pose, lut.stage_pose_sigma = est.pose, est.sigma
             return lut
 
         job = Job(work, f"fitting the {model} LUT")

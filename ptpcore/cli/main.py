@@ -52,7 +52,7 @@ def cmd_calibrate(args) -> int:
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
-                          footprint=not args.no_footprint)
+                          footprint=not args.no_footprint, refine_stage=args.refine_stage)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -118,7 +118,22 @@ def _lut_summary(lut, path) -> str:
     except ValueError:
         corrections = {"corrections": "unreadable /provenance record"}
     for msg in describe_corrections(corrections if isinstance(corrections, dict) else {}):
-        lines.append(f"  correction          {msg}")
+        if not msg.startswith("stage_refinement"):
+            lines.append(f"  correction          {msg}")
+    if lut.stage_pose is not None:
+        from ptpcore.fit.stage_pose import describe_stage_pose
+
+        from ptpcore.rig import rig_from_toml
+
+        try:
+            z = rig_from_toml(lut.rig_toml, "lut").stage.z_mm
+        except (PtpError, ValueError):
+            z = ()
+        if len(z) != len(lut.stage_pose):
+            z = np.arange(len(lut.stage_pose), dtype=float)  # positions by index
+        lines.append("  stage pose refined  per position (um, urad; up to a common offset, scale and linear trend):")
+        sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
+        lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
     return "\n".join(lines)
 
 
@@ -303,6 +318,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-footprint", action="store_true",
                    help="smooth: keep each pixel's footprint-centroid bias (its size is read from the fringe"
                         " contrast; turn off when ambient light or a camera black level lower the contrast)")
+    c.add_argument("--refine-stage", action="store_true",
+                   help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
+                        " straightness of the rays, up to a common offset, scale and linear trend, and correct"
+                        " the samples before fitting (METHOD.md section 8)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("-q", "--quiet", action="store_true")

@@ -83,6 +83,9 @@ class Lut:
     provenance : dict of str
         ``/provenance`` attributes: name -> JSON text (``corrections``: what
         was removed from the samples before fitting, FORMATS.md).
+    stage_pose, stage_pose_sigma : (K, 6) float64 or None
+        ``/provenance/stage_pose`` and ``_sigma``: the stage refinement's
+        per-position dx, dy, dz (um), pitch, yaw, roll (urad) and 1 sigma.
     """
 
     kind: str
@@ -107,6 +110,8 @@ class Lut:
     rig_toml: str = ""
     extra_attrs: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    stage_pose: np.ndarray | None = None
+    stage_pose_sigma: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -354,8 +359,12 @@ def _write_lut_group(group, lut: Lut) -> None:
         if val is not None:
             q.create_dataset(name, data=val.astype(np.float32), **opts)
     group.create_group("rig").attrs["toml"] = lut.rig_toml
-    if lut.provenance:
-        group.create_group("provenance").attrs.update({k: str(v) for k, v in lut.provenance.items()})
+    if lut.provenance or lut.stage_pose is not None:
+        prov = group.create_group("provenance")
+        prov.attrs.update({k: str(v) for k, v in lut.provenance.items()})
+        for name in ("stage_pose", "stage_pose_sigma"):
+            if getattr(lut, name) is not None:
+                prov[name] = np.asarray(getattr(lut, name), dtype=np.float64)
 
 
 def save_lut(lut: Lut, path) -> None:
@@ -527,9 +536,11 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
     rig_toml = ""
     if "rig" in group:
         rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
-    provenance = {}
+    provenance, poses = {}, {}
     if "provenance" in group:
         provenance = {str(k): str(_str_attr(v)) for k, v in group["provenance"].attrs.items()}
+        poses = {n: rd.array(f"provenance/{n}", 2, "f") for n in ("stage_pose", "stage_pose_sigma")
+                 if f"provenance/{n}" in group}
     # valid stays as stored until _check_lut_values has seen it hold only 0 and 1.
     lut = Lut(
         kind=kind, degree=degree, z_center=mv["z_center"], z_scale=mv["z_scale"],
@@ -537,7 +548,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
         n_positions=q["n_positions"], pixel_z_min=q["z_min"], pixel_z_max=q["z_max"],
         rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
         sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
-        provenance=provenance,
+        provenance=provenance, stage_pose=poses.get("stage_pose"), stage_pose_sigma=poses.get("stage_pose_sigma"),
     )
     return lut, (h, w)
 

@@ -71,6 +71,7 @@ from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_grou
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
 from ptpcore.fit.models import LUT_MODELS, fit_model
+from ptpcore.fit.stage_pose import refine_and_correct
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.rig.rigfile import Rig, rig_from_toml, rig_to_toml
 
@@ -115,6 +116,9 @@ class Session:
         ``smooth``: remove the display's level bias (:mod:`ptpcore.decode.display`).
     footprint : bool
         ``smooth``: remove the footprint-centroid bias (:func:`ptpcore.fit.smooth.footprint_bias`).
+    refine_stage : bool
+        Estimate each position's pose errors and correct the samples before fitting
+        (:mod:`ptpcore.fit.stage_pose`).
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -138,6 +142,7 @@ class Session:
     model: str = "poly"
     degree: int = 3
     stage_sigma_um: float = 0.0
+    refine_stage: bool = False
     level_bias: bool = True
     footprint: bool = True
     options: DecodeOptions = field(default_factory=DecodeOptions)
@@ -182,7 +187,7 @@ def next_step(session: Session) -> str | None:
 def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
                 full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True,
-                footprint: bool = True) -> Session:
+                footprint: bool = True, refine_stage: bool = False) -> Session:
     """Start a session on a dataset folder, validating it first.
 
     Parameters
@@ -190,7 +195,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     dataset : path
         A ``ptp-dataset/1`` folder.
     model, degree : see :func:`ptpcore.fit.models.fit_model`
-    stage_sigma_um, level_bias, footprint : see :class:`Session`
+    stage_sigma_um, level_bias, footprint, refine_stage : see :class:`Session`
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
@@ -222,6 +227,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
             raise ValueError(f"positions {bad} do not exist (the rig has {source.rig.stage.n_positions})")
     return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
                    stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
+                   refine_stage=bool(refine_stage),
                    options=options, positions=positions, out=None if out is None else str(out),
                    sim_settings=_sim_settings_of(source.folder))
 
@@ -299,12 +305,17 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
         # The cover glass (and any other correction rig.toml asks for) leaves the
         # samples here, before any fit; the session keeps them as decoded.
         samples, applied = correct_samples(session.samples, session.rig, session.positions)
+        est = None
+        if session.refine_stage:
+            samples, est = refine_and_correct(samples, session.rig)
         session.lut = fit_model(samples, session.rig, session.model, session.degree,
                                 positions=session.positions, progress=sub(0.9, 1.0),
                                 stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias,
                                 footprint=session.footprint)
         session.lut.provenance["corrections"] = corrections_json(samples)
         add_tolerances_to_sigma(session.lut, applied)
+        if est is not None:
+            session.lut.stage_pose, session.lut.stage_pose_sigma = est.pose, est.sigma
         if path is not None:
             save_session(session, path)
     if progress:
@@ -364,6 +375,7 @@ def save_session(session: Session, path) -> None:
                             "stage_sigma_um": float(session.stage_sigma_um),
                             "level_bias": int(bool(session.level_bias)),
                             "footprint": int(bool(session.footprint)),
+                            "refine_stage": int(bool(session.refine_stage)),
                             "min_modulation": float(session.options.min_modulation),
                             "border_margin_px": int(session.options.border_margin_px)})
             if session.positions is not None:
@@ -555,6 +567,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
     stage_sigma_um = _attr(f, "calibration", "stage_sigma_um", where, float, 0.0)
     level_bias = _attr(f, "calibration", "level_bias", where, int, 1)
     footprint = _attr(f, "calibration", "footprint", where, int, 1)
+    refine = _attr(f, "calibration", "refine_stage", where, int, 0)
     if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1) or footprint not in (0, 1):
         raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0),"
                               f" level_bias {level_bias} or footprint {footprint} (0 or 1) out of range")
@@ -594,7 +607,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
 
     stage = _str_attr(f.attrs.get("stage"))
     session = Session(rig=rig, dataset=dataset, model=model, degree=degree, stage_sigma_um=stage_sigma_um,
-                      level_bias=bool(level_bias), footprint=bool(footprint), options=DecodeOptions(min_mod, border), positions=positions, out=out,
+                      level_bias=bool(level_bias), footprint=bool(footprint), refine_stage=bool(refine), options=DecodeOptions(min_mod, border), positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
                       created=_str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:
