@@ -19,10 +19,12 @@ each of the six), so the estimates are the true errors minus their
 least-squares constant-plus-linear part, up to the small seen part of the
 angles' trend (about 1 urad of a 30 urad trend, tests/test_stage_pose.py).
 
-The joint fit of the rays of a subsample of pixels and the poses is
-:func:`scipy.optimize.least_squares` with a sparse Jacobian; the poses'
-covariance is the pose block of the inverse normal matrix (gauge fixed by the
-constraints), scaled by the residuals' variance.
+The fit runs over a subsample of pixels by variable projection: for given
+poses every pixel's ray is its straight-line fit in closed form, so
+:func:`scipy.optimize.least_squares` sees only the 6 K pose errors (and the
+gauge constraints as residuals); its Jacobian is that of the projected
+residuals. The poses' covariance is ``s2 (J^T J)^-1``: the Schur complement
+of the joint problem's normal matrix, i.e. the pose block of its inverse.
 """
 
 from __future__ import annotations
@@ -30,9 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.optimize import least_squares
-from scipy.sparse.linalg import splu
 
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
@@ -109,7 +109,12 @@ def _observations(samples: SampleStack, rig: Rig, flat: np.ndarray):
 
 
 class _Problem:
-    """Residuals (um) and their sparse Jacobian over rays of N pixels and poses of K positions."""
+    """Residuals (um) of N pixels' samples to their rays, as a function of the K positions' poses only.
+
+    For given poses every pixel's ray is its straight-line fit (closed form), so
+    the fit runs over the 6 K pose errors alone (variable projection), with
+    the gauge constraints as extra residuals.
+    """
 
     def __init__(self, x, y, ok, u, v, z):
         self.n, self.k = x.shape
@@ -117,6 +122,7 @@ class _Problem:
         self.x, self.y = x[ok], y[ok]
         self.u, self.v = u[ok], v[ok]
         self.z = z[self.kk]
+        self.count = np.bincount(self.i, minlength=self.n).astype(float)
         zc = z - z.mean()
         span = max(float(np.ptp(z)), 1e-9)
         self.gauge = np.zeros((N_GAUGE, 6 * self.k))
@@ -125,71 +131,36 @@ class _Problem:
             self.gauge[2 * j + 1, j::6] = zc / span / self.k
         self.gauge *= _GAUGE_WEIGHT
 
-    def split(self, p):
-        rays = p[:4 * self.n].reshape(self.n, 4)
-        pose = p[4 * self.n:].reshape(self.k, 6)
-        return rays, pose
+    def _line_residual(self, t, vals):
+        """``vals`` minus each pixel's least-squares line in ``t`` (both per observation)."""
+        n = self.n
+        st = np.bincount(self.i, t, n)
+        stt = np.bincount(self.i, t * t, n)
+        sv = np.bincount(self.i, vals, n)
+        stv = np.bincount(self.i, t * vals, n)
+        det = self.count * stt - st * st
+        slope = (self.count * stv - st * sv) / det
+        icpt = (sv - slope * st) / self.count
+        return vals - icpt[self.i] - slope[self.i] * t, slope
 
-    def _height(self, pose):
-        q = pose[self.kk]
-        return self.z + 1e-3 * q[:, 2] + 1e-6 * (q[:, 3] * self.v - q[:, 4] * self.u), q
+    def rays(self, p):
+        """(N, 4) ``x0, sx, y0, sy`` of every pixel for poses ``p`` (6K,)."""
+        q = p.reshape(self.k, 6)[self.kk]
+        zt = self.z + 1e-3 * q[:, 2] + 1e-6 * (q[:, 3] * self.v - q[:, 4] * self.u)
+        xs = self.x + 1e-3 * q[:, 0] - 1e-6 * q[:, 5] * self.v
+        ys = self.y + 1e-3 * q[:, 1] + 1e-6 * q[:, 5] * self.u
+        return zt, xs, ys
 
     def residuals(self, p) -> np.ndarray:
-        rays, pose = self.split(p)
-        zt, q = self._height(pose)
-        ray = rays[self.i]
-        rx = self.x + 1e-3 * q[:, 0] - 1e-6 * q[:, 5] * self.v - ray[:, 0] - ray[:, 1] * zt
-        ry = self.y + 1e-3 * q[:, 1] + 1e-6 * q[:, 5] * self.u - ray[:, 2] - ray[:, 3] * zt
-        return np.concatenate([1e3 * rx, 1e3 * ry, self.gauge @ p[4 * self.n:]])
-
-    def jacobian(self, p) -> sp.csr_matrix:
-        rays, pose = self.split(p)
-        zt, _q = self._height(pose)
-        ray = rays[self.i]
-        m = self.i.size
-        rows_x, rows_y = np.arange(m), m + np.arange(m)
-        pc = 4 * self.n + 6 * self.kk  # first pose column of each observation
-        one = np.ones(m)
-        entries = [
-            (rows_x, 4 * self.i, -1e3 * one), (rows_x, 4 * self.i + 1, -1e3 * zt),
-            (rows_y, 4 * self.i + 2, -1e3 * one), (rows_y, 4 * self.i + 3, -1e3 * zt),
-            (rows_x, pc, one), (rows_y, pc + 1, one),
-        ]
-        for s, rows in ((ray[:, 1], rows_x), (ray[:, 3], rows_y)):
-            entries += [(rows, pc + 2, -s), (rows, pc + 3, -1e-3 * s * self.v), (rows, pc + 4, 1e-3 * s * self.u)]
-        entries += [(rows_x, pc + 5, -1e-3 * self.v), (rows_y, pc + 5, 1e-3 * self.u)]
-        r = np.concatenate([e[0] for e in entries])
-        c = np.concatenate([e[1] for e in entries])
-        d = np.concatenate([e[2] for e in entries])
-        g = sp.coo_matrix(self.gauge)
-        r = np.concatenate([r, 2 * m + g.row])
-        c = np.concatenate([c, 4 * self.n + g.col])
-        d = np.concatenate([d, g.data])
-        return sp.csr_matrix((d, (r, c)), shape=(2 * m + N_GAUGE, 4 * self.n + 6 * self.k))
-
-    def start(self) -> np.ndarray:
-        """Straight-line fits of every pixel with zero pose errors."""
-        rays = np.zeros((self.n, 4))
-        for col, vals in ((0, self.x), (2, self.y)):
-            sw = np.bincount(self.i, minlength=self.n).astype(float)
-            sz = np.bincount(self.i, self.z, self.n)
-            szz = np.bincount(self.i, self.z * self.z, self.n)
-            sv = np.bincount(self.i, vals, self.n)
-            szv = np.bincount(self.i, self.z * vals, self.n)
-            det = sw * szz - sz * sz
-            rays[:, col + 1] = (sw * szv - sz * sv) / det
-            rays[:, col] = (sv - rays[:, col + 1] * sz) / sw
-        return np.concatenate([rays.ravel(), np.zeros(6 * self.k)])
+        zt, xs, ys = self.rays(p)
+        rx, _ = self._line_residual(zt, xs)
+        ry, _ = self._line_residual(zt, ys)
+        return np.concatenate([1e3 * rx, 1e3 * ry, self.gauge @ p])
 
 
-def _pose_covariance(prob: _Problem, p: np.ndarray, s2: float) -> np.ndarray:
-    """(6K, 6K) covariance of the poses: pose block of ``s2 * (J^T J)^-1`` (gauge fixed)."""
-    j = prob.jacobian(p)
-    m = (j.T @ j).tocsc()
-    n_rays = 4 * prob.n
-    rhs = np.zeros((m.shape[0], 6 * prob.k))
-    rhs[n_rays + np.arange(6 * prob.k), np.arange(6 * prob.k)] = 1.0
-    return s2 * splu(m).solve(rhs)[n_rays:]
+def _pose_covariance(jac: np.ndarray, s2: float) -> np.ndarray:
+    """(6K, 6K) covariance of the poses: ``s2 * (J^T J)^-1``, J the projected Jacobian with the gauge rows."""
+    return s2 * np.linalg.inv(jac.T @ jac)
 
 
 def refine_stage(samples: SampleStack, rig: Rig, *, n_pixels: int = 3000, seed: int = 0,
@@ -228,10 +199,12 @@ def refine_stage(samples: SampleStack, rig: Rig, *, n_pixels: int = 3000, seed: 
         raise ValueError(f"stage refinement needs at least 20 pixels seen at most positions, got {flat.size}")
     x, y, ok, u, v = _observations(samples, rig, flat)
     z = np.asarray(samples.z, dtype=float)
-    for _round in range(2):
+    p0 = np.zeros(6 * k)
+    for _round in range(3):
         prob = _Problem(x, y, ok, u, v, z)
-        sol = least_squares(prob.residuals, prob.start(), jac=prob.jacobian, method="trf",
-                            tr_solver="lsmr", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=50)
+        # Poses only (rays projected out): 6 K unknowns, a dense Jacobian, a few Gauss-Newton steps.
+        sol = least_squares(prob.residuals, p0, jac="2-point", method="lm", x_scale=1.0)
+        p0 = sol.x
         res = sol.fun[:-N_GAUGE].reshape(2, -1)
         rms = float(np.sqrt(np.mean(res ** 2)))
         bad = np.max(np.abs(res), axis=0) > clip_sigma * rms
@@ -239,11 +212,13 @@ def refine_stage(samples: SampleStack, rig: Rig, *, n_pixels: int = 3000, seed: 
             break
         ok = ok.copy()
         ok[prob.i[bad], prob.kk[bad]] = False
+        keep = ok.sum(axis=1) >= 3
+        x, y, ok, u, v = x[keep], y[keep], ok[keep], u[keep], v[keep]
     dof = max(1, res.size - (4 * prob.n + 6 * k - N_GAUGE))
     s2 = float(np.sum(res ** 2) / dof)
-    cov = _pose_covariance(prob, sol.x, s2)
+    cov = _pose_covariance(sol.jac, s2)
     sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(k, 6)
-    return StagePose(prob.split(sol.x)[1].copy(), sigma, float(np.sqrt(s2)), int(flat.size))
+    return StagePose(sol.x.reshape(k, 6).copy(), sigma, float(np.sqrt(s2)), int(prob.n))
 
 
 def apply_stage_pose(samples: SampleStack, rig: Rig, pose: StagePose, slopes) -> SampleStack:
