@@ -176,23 +176,7 @@ class RigPage(StudioPage):
         hf.addRow("LCD height", self.lcd_h)
         hf.addRow("LCD pitch x (columns)", self.pitch_x)
         hf.addRow("LCD pitch y (rows)", self.pitch_y)
-        # The cover glass (METHOD.md section 8): removed from every sample before any fit.
-        glass_tip = ("Everything between the LCD's pixel plane and the air, as one plate: top substrate,\n"
-                     "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
-                     "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"
-                     "Nothing in the data reveals them: left at 0, a bare panel is assumed and the LUT is\n"
-                     "off by the refraction, tens to hundreds of um at oblique pixels.")
-        self.glass_t = _dspin(0.0, 20.0, 0.0, 3, 0.1, " mm")
-        self.glass_n = _dspin(1.0, 3.0, 1.52, 3, 0.01)
-        self.glass_t.setToolTip(glass_tip)
-        self.glass_n.setToolTip(glass_tip)
-        hf.addRow("Cover glass thickness", self.glass_t)
-        hf.addRow("Cover glass index", self.glass_n)
-        self.glass_hint = QLabel()
-        self.glass_hint.setObjectName("hint")
-        self.glass_hint.setWordWrap(True)
-        self.glass_hint.setToolTip(glass_tip)
-        hf.addRow(self.glass_hint)
+        self._glass_rows(hf)
         right.addWidget(hw)
 
         # ---- stage
@@ -250,6 +234,26 @@ class RigPage(StudioPage):
         model.sourceChanged.connect(self._show_source)
         self._show_source()
         self._show_rig()
+
+    def _glass_rows(self, hf) -> None:
+        """Cover glass thickness and index, with the datasheet tooltip and the bare-panel hint."""
+        # The cover glass (METHOD.md section 8): removed from every sample before any fit.
+        glass_tip = ("Everything between the LCD's pixel plane and the air, as one plate: top substrate,\n"
+                     "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
+                     "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"
+                     "Nothing in the data reveals them: left at 0, a bare panel is assumed and the LUT is\n"
+                     "off by the refraction, tens to hundreds of um at oblique pixels.")
+        self.glass_t = _dspin(0.0, 20.0, 0.0, 3, 0.1, " mm")
+        self.glass_n = _dspin(1.0, 3.0, 1.52, 3, 0.01)
+        self.glass_t.setToolTip(glass_tip)
+        self.glass_n.setToolTip(glass_tip)
+        hf.addRow("Cover glass thickness", self.glass_t)
+        hf.addRow("Cover glass index", self.glass_n)
+        self.glass_hint = QLabel()
+        self.glass_hint.setObjectName("hint")
+        self.glass_hint.setWordWrap(True)
+        self.glass_hint.setToolTip(glass_tip)
+        hf.addRow(self.glass_hint)
 
     # ---- model -> widgets ---------------------------------------------------
     def _show_source(self) -> None:
