@@ -13,7 +13,7 @@ from ptpcore.fit.perpixel import _z_normalisation
 from ptpcore.io.lutfile import _group_by_pattern
 from ptpcore.io.samples import SampleStack
 
-__all__ = ["sample_sigma", "predicted_poly_sigma"]
+__all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat"]
 
 
 def sample_sigma(samples: SampleStack, noise_dn, n_steps: int, period_px: int, pitch_mm: float,
@@ -65,15 +65,41 @@ def predicted_poly_sigma(samples: SampleStack, sigma: np.ndarray, degree: int, p
     (E, H, W) float64
     """
     positions = np.asarray(positions)
-    z = samples.z[positions]
-    zc, zs = _z_normalisation(z)
-    t = (z - zc) / zs
-    te = (np.asarray(z_eval, float) - zc) / zs
+    t, te = _normalised_heights(samples.z[positions], z_eval)
     k = len(positions)
     h, w = samples.shape
     mask = samples.valid[positions].reshape(k, -1)
     sig = sigma[positions].reshape(k, -1)
-    out = np.full((len(te), h * w), np.nan)
+    return predicted_poly_sigma_flat(t, te, mask, sig, degree).reshape(len(te), h, w)
+
+
+def _normalised_heights(z: np.ndarray, z_eval) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's normalised heights ``t`` (K,) of the positions ``z`` and ``te`` (E,) of ``z_eval`` (mm)."""
+    zc, zs = _z_normalisation(z)
+    return (z - zc) / zs, (np.asarray(z_eval, float) - zc) / zs
+
+
+def predicted_poly_sigma_flat(t: np.ndarray, te: np.ndarray, mask: np.ndarray, sig: np.ndarray,
+                              degree: int) -> np.ndarray:
+    """:func:`predicted_poly_sigma` of ``n`` pixels (any block of them: each pixel's value is its own).
+
+    Parameters
+    ----------
+    t : (K,) float64
+        Normalised heights of the fitted positions.
+    te : (E,) float64
+        Normalised heights to evaluate at.
+    mask : (K, n) bool
+        Valid samples.
+    sig : (K, n) float
+        Per-sample sigma (mm), any value where ``mask`` is False.
+    degree : int
+
+    Returns
+    -------
+    (E, n) float64, mm; NaN where a pixel has fewer than ``degree + 2`` valid samples.
+    """
+    out = np.full((len(te), mask.shape[1]), np.nan)
     vander = np.vander(t, degree + 1, increasing=True)
     ve = np.vander(te, degree + 1, increasing=True)
     for pattern, cols in _group_by_pattern(mask):
@@ -81,4 +107,4 @@ def predicted_poly_sigma(samples: SampleStack, sigma: np.ndarray, degree: int, p
             continue
         g = ve @ np.linalg.pinv(vander[pattern])  # (E, n): value weights per sample
         out[:, cols] = np.sqrt((g * g) @ (sig[pattern][:, cols] ** 2))
-    return out.reshape(len(te), h, w)
+    return out

@@ -1233,29 +1233,38 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     averaged (RMS) over the pixel's calibrated range. With ``stage_sigma_mm``
     (the stage readings' 1-sigma error) each sample also carries
     ``|dX/dz - a| * stage_sigma_mm``, with the pixel's own slope ``dX/dz``.
+    Built in row blocks from the (possibly spilled) samples: never a whole
+    ``(K, H, W)`` array.
 
     Returns
     -------
     sigma_x, sigma_y : (H, W) float32
     """
-    from ptpcore.fit.sigma import predicted_poly_sigma
+    from ptpcore.fit.sigma import _normalised_heights, predicted_poly_sigma_flat
 
     positions = list(range(samples.z.size)) if positions is None else list(positions)
     scale = sigma_scale(samples, rig, positions)
-    sig = sample_sigma_from_noise(samples, rig) * scale
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
     # RMS over the calibrated range: evaluate on a fine uniform grid of z.
     zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
-    inside = (zs[:, None, None] >= lut.pixel_z_min) & (zs[:, None, None] <= lut.pixel_z_max)
-
-    def rms_map(sample_sigma):
-        pred = predicted_poly_sigma(samples, sample_sigma, lut.degree, positions, zs)  # (E, H, W)
-        with np.errstate(all="ignore"):
-            s = np.sqrt(_nanmean(np.where(inside, pred * pred, np.nan), axis=0))
-        return np.where(lut.valid, s, np.nan).astype(np.float32)
-
-    if not stage_sigma_mm:
-        s = rms_map(sig)
-        return s, s.copy()
+    t, te = _normalised_heights(z, zs)
+    h, w = samples.shape
     # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
-    return tuple(rms_map(np.hypot(sig, np.abs(coef[1] / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm))
-                 for d, coef in enumerate((lut.x, lut.y)))
+    axes = ((0, lut.x), (1, lut.y)) if stage_sigma_mm else ((0, None),)
+    maps = [np.empty((h, w), np.float32) for _ in axes]
+
+    def block(r0, r1):
+        valid, sig, _, _ = _block_samples(samples, rig, sel, z, r0, r1, None)
+        sig = sig * scale
+        inside = (zs[:, None] >= lut.pixel_z_min[r0:r1].reshape(-1)) & (zs[:, None] <= lut.pixel_z_max[r0:r1].reshape(-1))
+        for (d, coef), out in zip(axes, maps):
+            s = sig if coef is None else np.hypot(sig, np.abs(
+                coef[1, r0:r1].reshape(-1) / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm)
+            pred = predicted_poly_sigma_flat(t, te, valid, s, lut.degree)  # (E, n)
+            with np.errstate(all="ignore"):
+                rms = np.sqrt(_nanmean0(np.where(inside, pred * pred, np.nan)))
+            out[r0:r1] = np.where(lut.valid[r0:r1].reshape(-1), rms, np.nan).reshape(r1 - r0, w)
+
+    _run_blocks(block, _row_blocks(h, w))
+    return (maps[0], maps[0].copy()) if len(maps) == 1 else tuple(maps)
