@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 import threading
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -201,6 +203,37 @@ _fused_tried = False
 _fused_lock = threading.Lock()
 
 
+def user_cache_dir() -> Path:
+    """The per-user cache folder of PTP Studio (never inside the installed package).
+
+    ``$XDG_CACHE_HOME/ptp-studio`` (default ``~/.cache/ptp-studio``) on Linux,
+    ``~/Library/Caches/ptp-studio`` on macOS, ``%LOCALAPPDATA%\\ptp-studio\\Cache``
+    on Windows.
+    """
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+        return base / "ptp-studio" / "Cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "ptp-studio"
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache") / "ptp-studio"
+
+
+def _use_user_numba_cache() -> None:
+    """Point numba's cache of compiled kernels at :func:`user_cache_dir` ``/ numba``.
+
+    An installed package may be read-only, so the cache never goes next to
+    the sources. A ``NUMBA_CACHE_DIR`` the user set is kept. Called before
+    :mod:`ptpcore.decode._fused` is imported (numba picks a function's cache
+    folder when it is decorated).
+    """
+    folder = os.environ.setdefault("NUMBA_CACHE_DIR", str(user_cache_dir() / "numba"))
+    import numba
+
+    if not numba.config.CACHE_DIR:  # numba was imported before the variable was set
+        numba.config.CACHE_DIR = folder
+
+
 def fused_kernels():
     """The numba kernels module :mod:`ptpcore.decode._fused`, or None.
 
@@ -215,6 +248,7 @@ def fused_kernels():
         with _fused_lock:
             if not _fused_tried:
                 try:
+                    _use_user_numba_cache()
                     from ptpcore.decode import _fused
                 except ImportError:
                     _fused = None
