@@ -43,3 +43,33 @@ def test_poly_sigma_maps_in_row_blocks_are_bit_identical(rough_rig, stage_sigma_
     for g, w in zip(got, want):
         assert g.dtype == np.float32 and np.isfinite(g).sum() > 0.5 * g.size
         np.testing.assert_array_equal(g, w)
+
+
+def _whole_image_smooth_sigma(fits, zc, zs, degree, noise_scale):
+    """The former whole-image formula of :func:`ptpcore.fit.smooth._smooth_sigma_maps` (no stage term)."""
+    d1 = degree + 1
+    with np.errstate(all="ignore"):
+        mom = smooth_mod._range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
+                                        ((fits.pz_max - zc) / zs).astype(np.float64), 2 * degree)
+        smooth_diag = np.einsum("jhw,jhw->hw", fits.var, mom[2 * np.arange(d1)])
+        s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
+        s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+    return (np.sqrt(s2) * noise_scale).astype(np.float32)
+
+
+def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
+    rng = np.random.default_rng(3)
+    h, w, degree = 67, 50, 3
+    fits = smooth_mod._PixelFits.empty((h, w), degree + 1)
+    fits.var[:] = rng.uniform(0.0, 2.0, fits.var.shape)
+    lo = rng.uniform(0.0, 30.0, (h, w))
+    fits.pz_min[:] = lo
+    fits.pz_max[:] = lo + rng.choice([0.0, 5.0, 30.0], (h, w))
+    fits.own_var[:] = rng.uniform(0.0, 1.0, (h, w))
+    fits.own_diag[:] = rng.uniform(-0.1, 1.0, (h, w))  # some <= 0: the uncorrelated form
+    fits.var[:, :3] = np.nan
+    monkeypatch.setattr(smooth_mod, "_BLOCK_PIXELS", 512)
+    got = smooth_mod._smooth_sigma_maps(fits, 30.0, 30.0, degree, 1.3, {})
+    want = _whole_image_smooth_sigma(fits, 30.0, 30.0, degree, 1.3)
+    np.testing.assert_array_equal(got["x"], want)
+    np.testing.assert_array_equal(got["y"], want)

@@ -1208,16 +1208,18 @@ def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, nois
     variance over its calibrated range.
     """
     d1 = degree + 1
-    with np.errstate(all="ignore"):
-        mom = _range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
-                             ((fits.pz_max - zc) / zs).astype(np.float64), 2 * degree)
-        smooth_diag = np.einsum("jhw,jhw->hw", fits.var, mom[2 * np.arange(d1)])
-        s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
-        # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
-        s2 = np.where(np.isfinite(s2), s2, smooth_diag)
-    del mom, smooth_diag
-    sig1 = (np.sqrt(s2) * noise_scale).astype(np.float32)
-    del s2
+    h, w = fits.pz_min.shape
+    sig1 = np.empty((h, w), np.float32)
+    for r0, r1 in _row_blocks(h, w):  # row blocks: the moments are (2D+1) float64 maps
+        with np.errstate(all="ignore"):
+            mom = _range_moments(((fits.pz_min[r0:r1] - zc) / zs).astype(np.float64),
+                                 ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
+            smooth_diag = np.einsum("jhw,jhw->hw", fits.var[:, r0:r1], mom[2 * np.arange(d1)])
+            own_diag = fits.own_diag[r0:r1]
+            s2 = fits.own_var[r0:r1] * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+            # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
+            s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+        sig1[r0:r1] = np.sqrt(s2) * noise_scale
     sig = {"x": sig1, "y": sig1.copy()}
     for a, sv in stage_var.items():
         sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
