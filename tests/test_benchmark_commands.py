@@ -1,0 +1,31 @@
+"""The command benchmark (``benchmarks/commands.py``) runs on a tiny dataset, so it cannot rot.
+
+It runs ``ptp calibrate`` in a fresh process as the user does and reports the child's own
+rusage beside the read floor measured in the same run.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+synth = pytest.importorskip("benchmarks.synth")
+commands = pytest.importorskip("benchmarks.commands")
+
+
+def test_command_benchmark_runs_the_cli_in_a_fresh_process(tmp_path):
+    rig = synth.make_rig(0.02, 5, steps=(4, 4, 4))  # 160 x 128 px, 5 positions, 24 frames each
+    data = synth.write_dataset(tmp_path / "tiny", rig)
+    res = commands.measure(data, ["calibrate-poly"], repeat=1, floor_repeat=1)
+    r = res["commands"]["calibrate-poly"]
+    assert r["returncode"] == 0 and "predicted sigma" in " ".join(r["tail"])  # the LUT summary
+    # The child's own rusage: a Python process with numpy and OpenCV is > 30 MB, this one < 2 GB.
+    assert 30 < r["maxrss_mb"] < 2000 and r["cpu_s"] > 0
+    assert 0 < res["floor_s"] <= min(res["floors_s"]) + 1e-12
+    assert r["ratio"] == pytest.approx(r["wall_s"] / res["floor_s"])
+    assert len(res["load"]) == 2
+
+
+def test_unknown_command_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        commands.main([str(tmp_path), "--commands", "calibrate,nonsense"])
+    assert "nonsense" in capsys.readouterr().err
