@@ -9,7 +9,8 @@ Every command runs as the user runs it (``ptp calibrate DIR --out F`` through
 (``os.wait4``: ``ru_maxrss``, numpy, OpenCV and libc allocations alike). The
 read floor is reading the same images with ``cv2.imread`` on all cores
 (:func:`benchmarks.measure.task_read`, in this process), timed before and after
-the commands; the ratio divides by the smaller of the two. ``--cold`` also runs
+the commands; the ratio divides by the smaller of the two. On a shared machine the
+CPU-time ratio (command's CPU time over the read's, all threads) moves less than the wall ratio. ``--cold`` also runs
 the first command once with an empty numba cache (``NUMBA_CACHE_DIR`` set to a
 new folder): its extra time over the warm run is the first run's compile time.
 
@@ -77,13 +78,19 @@ def command_argv(name: str, dataset: Path, out: Path) -> list[str]:
     return [sys.executable, "-c", CLI] + [a.format(dir=dataset, out=out) for a in COMMANDS[name]]
 
 
-def read_floor(dataset: Path, repeat: int) -> float:
-    """Seconds to read every image of ``dataset`` with ``cv2.imread`` on all cores (best of ``repeat``)."""
-    from benchmarks.measure import task_read
+def read_floor(dataset: Path, repeat: int) -> tuple[float, float]:
+    """Reading every image of ``dataset`` with ``cv2.imread`` on all cores (best of ``repeat``).
+
+    Returns
+    -------
+    wall_s, cpu_s : float
+        Least wall time and least process CPU time (all threads), seconds.
+    """
+    from benchmarks.measure import CPU, task_read
     from ptpcore.rig import load_rig
 
     rig = load_rig(dataset / "rig.toml")
-    return task_read(dataset, rig, repeat, None)["read_cv2_s"]
+    return task_read(dataset, rig, repeat, None)["read_cv2_s"], CPU[0]
 
 
 def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool = False) -> dict:
@@ -92,8 +99,9 @@ def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool =
     Returns
     -------
     dict
-        ``floor_s`` (the smaller floor), ``floors_s`` (before, after), ``commands``:
-        name -> {``wall_s``, ``cpu_s``, ``maxrss_mb`` (largest), ``ratio`` (wall / floor)},
+        ``floor_s`` (the smaller floor), ``floor_cpu_s`` (its CPU time, all threads), ``floors_s``
+        (before, after), ``commands``: name -> {``wall_s``, ``cpu_s``, ``maxrss_mb`` (largest),
+        ``ratio`` (wall / floor), ``cpu_ratio`` (CPU time / the floor's)},
         ``cold`` (first run with an empty numba cache, if asked), ``load`` (load averages before, after).
     """
     dataset = Path(dataset)
@@ -117,12 +125,13 @@ def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool =
     finally:
         shutil.rmtree(work, ignore_errors=True)
     floors.append(read_floor(dataset, floor_repeat))
-    floor = min(floors)
+    floor, floor_cpu = min(f[0] for f in floors), min(f[1] for f in floors)
     for r in runs.values():
         r["ratio"] = r["wall_s"] / floor
+        r["cpu_ratio"] = r["cpu_s"] / floor_cpu
     if "cold" in result:
         result["cold"]["compile_s"] = result["cold"]["wall_s"] - runs[result["cold"]["command"]]["wall_s"]
-    result.update(floor_s=floor, floors_s=floors, commands=runs)
+    result.update(floor_s=floor, floor_cpu_s=floor_cpu, floors_s=[f[0] for f in floors], commands=runs)
     result["load"].append(os.getloadavg())
     return result
 
@@ -149,6 +158,7 @@ def main(argv=None) -> int:
           f" load {res['load'][0][0]:.1f} -> {res['load'][1][0]:.1f}", file=sys.stderr)
     for name, r in res["commands"].items():
         print(f"{name:18s} {r['wall_s']:8.2f} s  {r['ratio']:6.2f}x read  cpu {r['cpu_s']:8.2f} s"
+              f" ({r['cpu_ratio']:.2f}x the read's {res['floor_cpu_s']:.2f} s)"
               f"  peak {r['maxrss_mb']:7.0f} MB", file=sys.stderr)
     return 0
 

@@ -22,6 +22,7 @@ def test_command_benchmark_runs_the_cli_in_a_fresh_process(tmp_path):
     assert 30 < r["maxrss_mb"] < 2000 and r["cpu_s"] > 0
     assert 0 < res["floor_s"] <= min(res["floors_s"]) + 1e-12
     assert r["ratio"] == pytest.approx(r["wall_s"] / res["floor_s"])
+    assert r["cpu_ratio"] == pytest.approx(r["cpu_s"] / res["floor_cpu_s"])
     assert len(res["load"]) == 2
 
 
