@@ -31,6 +31,8 @@ __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_
 
 SOURCE_KINDS = ("simulated", "folder", "live")
 _DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
+_DECODED_CACHE_PIXELS = 2_000_000
+"""Above this many camera pixels only one decoded position is kept (at 5 MP one holds about 1 GB of maps)."""
 
 
 @dataclass
@@ -204,10 +206,18 @@ class Session:
     def reset_positions(self) -> None:
         self.positions = [PositionStatus(k, float(z)) for k, z in enumerate(self.rig.stage.z_mm)]
 
+    def decoded_cache_size(self) -> int:
+        """How many decoded positions :meth:`cache_decoded` keeps: 2, or 1 above :data:`_DECODED_CACHE_PIXELS`."""
+        h, w = self.rig.camera.shape
+        return 1 if h * w > _DECODED_CACHE_PIXELS else _DECODED_CACHE
+
     def cache_decoded(self, decoded) -> None:
-        self.decoded[decoded.index] = decoded
-        while len(self.decoded) > _DECODED_CACHE:
+        """Keep ``decoded`` (a :class:`ptpcore.decode.phase.DecodedPosition`), dropping the oldest first."""
+        self.decoded.pop(decoded.index, None)
+        limit = self.decoded_cache_size()
+        while self.decoded and len(self.decoded) >= limit:
             self.decoded.pop(next(iter(self.decoded)))
+        self.decoded[decoded.index] = decoded
 
 
 class SessionModel(QObject):
