@@ -32,7 +32,7 @@ __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_
 SOURCE_KINDS = ("simulated", "folder", "live")
 _DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
 _DECODED_CACHE_PIXELS = 2_000_000
-"""Above this many camera pixels only one decoded position is kept (at 5 MP one holds about 1 GB of maps)."""
+"""Above this many camera pixels only one decoded position is kept (at 5 MP one holds several hundred MB of maps)."""
 
 
 @dataclass
