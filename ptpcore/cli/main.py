@@ -134,7 +134,28 @@ def _lut_summary(lut, path) -> str:
         lines.append("  stage pose refined  per position (um, urad; up to a common offset, scale and linear trend):")
         sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
+    lines += _choice_lines(lut)
     return "\n".join(lines)
+
+
+def _choice_lines(lut) -> list[str]:
+    """The model-choice table of an ``auto`` LUT (``/provenance`` ``model_choice``), indented."""
+    from ptpcore.fit.choice import ModelChoice
+
+    text = lut.provenance.get("model_choice") if lut.provenance else None
+    if not text:
+        return []
+    try:
+        choice = ModelChoice.from_json(text)
+    except (ValueError, KeyError, TypeError, StopIteration):
+        return ["  model choice        (unreadable /provenance model_choice)"]
+    held = ", ".join(" ".join(str(k + 1) for k in h) for h in choice.held_out)
+    lines = [f"  model chosen by its error at held-out positions ({held}; {choice.rule}):"]
+    lines += ["    " + row for row in choice.table()]
+    if np.isfinite(choice.noise_rms_um):
+        lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} um RMS;"
+                     " model error = held-out RMS with it taken out)")
+    return lines
 
 
 def cmd_inspect(args) -> int:
@@ -178,6 +199,34 @@ def _height_argument(text: str, shape) -> tuple[object, str]:
     if not np.isfinite(z):
         raise ValueError(f"--z {text}: the height must be a finite number of mm")
     return z, f"z = {z:g} mm"
+
+
+def cmd_diff(args) -> int:
+    """``ptp diff A B``: exit 0 consistent, 1 differ (2 on bad input, from :func:`main`)."""
+    import json
+
+    from ptpcore.atomic import atomic_path
+    from ptpcore.evaluate.diff import diff_luts, diff_png
+    from ptpcore.io.lutfile import load_lut
+
+    a, b = load_lut(args.lut_a), load_lut(args.lut_b)
+    r = diff_luts(a, b, tolerance_sigma=args.tolerance_sigma, tolerance_um=args.tolerance_um,
+                  max_fraction=args.max_fraction)
+    print(f"{args.lut_a} vs {args.lut_b}: {r.n_pixels} common pixels, z {r.z[0]:g} .. {r.z[-1]:g} mm"
+          f" ({r.z.size} heights)")
+    print(f"  difference          RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm")
+    if np.isfinite(r.predicted_rms_um):
+        print(f"  predicted (sigma)   RMS {r.predicted_rms_um:.3f} µm; observed / predicted {r.ratio:.2f}")
+    tol = f"{r.tolerance_sigma:g} sigma" + (f", at least {r.tolerance_um:g} µm" if r.tolerance_um else "")
+    print(f"  beyond tolerance    {100 * r.fraction_beyond:.2f} % of the pixels ({tol}; limit"
+          f" {100 * r.max_fraction:g} %)")
+    print(f"  verdict             {'consistent' if r.consistent else 'DIFFER'}")
+    if args.json:
+        with atomic_path(args.json) as tmp:
+            Path(tmp).write_text(json.dumps({"a": str(args.lut_a), "b": str(args.lut_b), **r.summary()}, indent=1))
+    if args.png:
+        diff_png(r, args.png)
+    return 0 if r.consistent else 1
 
 
 def cmd_demo(args) -> int:
@@ -305,11 +354,13 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
     c.add_argument("dataset_dir", metavar="DATASET_DIR")
     c.add_argument("--out", required=True, metavar="FILE.lut.h5")
-    c.add_argument("--model", default="poly", choices=list(LUT_MODELS),
-                   help="poly: per-pixel polynomial; pchip, linear: interpolated tables; smooth: per-pixel"
-                        " polynomial regularised across neighbouring pixels (default poly)")
+    c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
+                   help="auto: the most accurate of poly degrees 1-3 and smooth at held-out positions (the"
+                        " summary shows the table); poly: per-pixel polynomial; pchip, linear: interpolated"
+                        " tables; smooth: per-pixel polynomial regularised across neighbouring pixels"
+                        " (default auto)")
     c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                   help="polynomial degree 1-5 (poly and smooth, default 3)")
+                   help="polynomial degree 1-5 (poly and smooth, default 3; auto chooses its own)")
     c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
                    help="1-sigma error of the stage readings in um (its specification); part of the LUT's"
                         " predicted sigma maps (default 0)")
@@ -351,6 +402,22 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--extrapolate", action="store_true",
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
     a.set_defaults(func=cmd_apply)
+
+    df = sub.add_parser("diff", help="are two LUTs of one camera consistent within their predicted noise?",
+                        description="Per-pixel difference of two ptp-lut/1 files over the pixels and heights"
+                                    " both cover, against the difference their sigma maps predict. Exit 0:"
+                                    " consistent; 1: they differ; 2: bad input.")
+    df.add_argument("lut_a", metavar="A.lut.h5")
+    df.add_argument("lut_b", metavar="B.lut.h5")
+    df.add_argument("--json", metavar="FILE", help="write the numbers and the verdict as JSON")
+    df.add_argument("--png", metavar="FILE", help="write the difference map (in units of the tolerance) as PNG")
+    df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
+                    help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
+    df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
+                    help="absolute floor of the tolerance in um (needed for LUTs without sigma maps)")
+    df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
+                    help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
+    df.set_defaults(func=cmd_diff)
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
                         description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"

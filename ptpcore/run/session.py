@@ -139,7 +139,7 @@ class Session:
 
     rig: Rig
     dataset: str | None = None
-    model: str = "poly"
+    model: str = "auto"
     degree: int = 3
     stage_sigma_um: float = 0.0
     refine_stage: bool = False
@@ -184,7 +184,7 @@ def next_step(session: Session) -> str | None:
     return None
 
 
-def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
+def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
                 full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True,
                 footprint: bool = True, refine_stage: bool = False) -> Session:
@@ -247,7 +247,7 @@ def _sim_settings_of(folder: Path) -> str | None:
 def _check_model(model: str, degree: int) -> None:
     if model not in LUT_MODELS:
         raise ValueError(f"model must be one of {LUT_MODELS}, got {model!r}")
-    if model in ("poly", "smooth") and not 1 <= int(degree) <= 5:
+    if model in ("poly", "smooth", "auto") and not 1 <= int(degree) <= 5:
         raise ValueError(f"{model} degree must be 1 to 5, got {degree}")
 
 
