@@ -93,3 +93,21 @@ def test_auto_is_within_5_percent_of_the_best_fixed_candidate(name, seed):
     print(name, seed, {k: round(v, 3) for k, v in fixed.items()}, "auto", round(auto, 3), choice.model)
     assert auto <= 1.05 * min(fixed.values())
     assert auto <= fixed["poly 1"]
+
+
+def test_compare_auto_chooses_the_plain_lut_degree_per_fold():
+    """``ptp compare`` defaults to auto: the plain LUT is the poly degree (1-3) most accurate at positions
+    held out of the fold's calibration positions; the degree is in the report and the summary."""
+    from ptpcore.cli.main import build_parser
+    from ptpcore.evaluate import compare, format_summary
+    from ptpcore.evaluate.protocol import AUTO_PLAIN
+    from ptpcore.fit.choice import fit_auto
+
+    assert build_parser().parse_args(["compare", "d", "--out", "r.json"]).model == "auto"
+    vr, samples = _rig("rough", 3, positions=13)
+    r = compare(samples, vr.rig, model="auto", with_smooth=False, n_points=300, n_pairs=500)
+    (fold,) = r.folds
+    _lut, choice = fit_auto(samples, vr.rig, list(map(int, fold.calibration)), candidates=AUTO_PLAIN)
+    assert fold.lut_degree == choice.degree and 1 <= fold.lut_degree <= 3
+    assert r.to_json_dict()["folds"][0]["lut_degree"] == fold.lut_degree
+    assert f"auto: poly degree {fold.lut_degree}" in format_summary(r)

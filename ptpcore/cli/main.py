@@ -329,6 +329,25 @@ def cmd_compare(args) -> int:
 
 # --------------------------------------------------------------------------- parser
 
+def _add_diff_parser(sub) -> None:
+    """The ``ptp diff`` subcommand."""
+    df = sub.add_parser("diff", help="are two LUTs of one camera consistent within their predicted noise?",
+                        description="Per-pixel difference of two ptp-lut/1 files over the pixels and heights"
+                                    " both cover, against the difference their sigma maps predict. Exit 0:"
+                                    " consistent; 1: they differ; 2: bad input.")
+    df.add_argument("lut_a", metavar="A.lut.h5")
+    df.add_argument("lut_b", metavar="B.lut.h5")
+    df.add_argument("--json", metavar="FILE", help="write the numbers and the verdict as JSON")
+    df.add_argument("--png", metavar="FILE", help="write the difference map (in units of the tolerance) as PNG")
+    df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
+                    help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
+    df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
+                    help="absolute floor of the tolerance in um (needed for LUTs without sigma maps)")
+    df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
+                    help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
+    df.set_defaults(func=cmd_diff)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ptpcore.io.lutfile import MODELS
     from ptpcore.fit.models import LUT_MODELS
@@ -403,21 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
     a.set_defaults(func=cmd_apply)
 
-    df = sub.add_parser("diff", help="are two LUTs of one camera consistent within their predicted noise?",
-                        description="Per-pixel difference of two ptp-lut/1 files over the pixels and heights"
-                                    " both cover, against the difference their sigma maps predict. Exit 0:"
-                                    " consistent; 1: they differ; 2: bad input.")
-    df.add_argument("lut_a", metavar="A.lut.h5")
-    df.add_argument("lut_b", metavar="B.lut.h5")
-    df.add_argument("--json", metavar="FILE", help="write the numbers and the verdict as JSON")
-    df.add_argument("--png", metavar="FILE", help="write the difference map (in units of the tolerance) as PNG")
-    df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
-                    help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
-    df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
-                    help="absolute floor of the tolerance in um (needed for LUTs without sigma maps)")
-    df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
-                    help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
-    df.set_defaults(func=cmd_diff)
+    _add_diff_parser(sub)
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
                         description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"
@@ -431,9 +436,11 @@ def build_parser() -> argparse.ArgumentParser:
     cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
                     help="hold out every second position (default) or leave one position out")
     cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
-    cm.add_argument("--model", default="poly", choices=list(MODELS), help="plain PTP LUT model (default poly)")
+    cm.add_argument("--model", default="auto", choices=["auto", *MODELS],
+                    help="plain PTP LUT model; auto: poly of the degree 1-3 most accurate at positions held out of"
+                         " each calibration (default auto)")
     cm.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                    help="polynomial degree 1-5 (poly only, default 3)")
+                    help="polynomial degree 1-5 (poly only, default 3; also the smooth LUT's upper bound)")
     cm.add_argument("--no-smooth", dest="smooth", action="store_false",
                     help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
     cm.add_argument("-q", "--quiet", action="store_true")
