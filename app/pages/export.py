@@ -19,6 +19,7 @@ from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
 from ..widgets.confirm import confirm
+from ..widgets.lutdiff import LutDiffPanel
 from ..widgets.pointcloud import PointCloudPanel
 from ..worker import Job
 from .base import StudioPage
@@ -68,7 +69,7 @@ class ExportPage(StudioPage):
     heading = "Export"
     subheading = ("Write what this session produced: the LUT a scanner loads (ptp-lut/1), the comparison "
                   "report (JSON plus PNG plots) and the session itself, to resume later; try the LUT on a "
-                  "height map and save the point cloud.")
+                  "height map and save the point cloud; check it against a reference LUT.")
 
     sessionWritten = Signal(object)
 
@@ -126,11 +127,16 @@ class ExportPage(StudioPage):
                                            lambda: Path(self.folder.text().strip() or "."))
         grid.addWidget(self.cloud_panel, 3, 0, 1, 2)
         grid.setRowStretch(3, 1)
+        # Trusting the LUT: its difference to a reference LUT (a second sweep, last month's).
+        self.diff_panel = LutDiffPanel(lambda: self.model.session.lut)
+        grid.addWidget(self.diff_panel, 4, 0, 1, 2)
+        grid.setRowStretch(4, 1)
         self.files: list[Path] = []
         self._outcome = None
         self.export_button.clicked.connect(self.export)
         model.lutChanged.connect(self._reset)
         model.lutChanged.connect(self.cloud_panel.reset)
+        model.lutChanged.connect(self.diff_panel.reset)
         model.compareChanged.connect(self.on_enter)
 
     def _browse(self) -> None:
