@@ -131,9 +131,11 @@ def test_stage_sigma_and_level_bias_round_trip_and_reach_the_sigma_maps(dataset,
     run_session(s, tmp_path / "s.ptps.h5")
     back = load_session(tmp_path / "s.ptps.h5")
     assert back.stage_sigma_um == 0.5 and back.level_bias is False and back.footprint is True
-    off = new_session(dataset, model="smooth", degree=1, footprint=False)
+    assert back.robust is True and "robust" in s.lut.provenance  # the robust fit is the default
+    off = new_session(dataset, model="smooth", degree=1, footprint=False, robust=False)
     save_session(off, tmp_path / "off.ptps.h5")
     assert load_session(tmp_path / "off.ptps.h5").footprint is False
+    assert load_session(tmp_path / "off.ptps.h5").robust is False
     m = s.lut.valid
     # The stage term adds (dX/dz * 0.5 um)^2 * leverage: nothing where the ray is vertical.
     assert np.all(s.lut.sigma_x[m] >= plain.lut.sigma_x[m]) and np.mean(s.lut.sigma_x[m] > plain.lut.sigma_x[m]) > 0.9

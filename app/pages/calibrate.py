@@ -280,7 +280,7 @@ class CalibratePage(StudioPage):
                 fixed, est = refine_and_correct(fixed, rig)
             self._corrected_cache = (samples, rig, fixed)
             lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
-                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"])
+                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"], robust=True)
             lut.provenance["corrections"] = corrections_json(fixed)
             add_tolerances_to_sigma(lut, applied)
             if est is not None:

@@ -52,7 +52,8 @@ def cmd_calibrate(args) -> int:
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
-                          footprint=not args.no_footprint, refine_stage=args.refine_stage)
+                          footprint=not args.no_footprint, refine_stage=args.refine_stage,
+                          robust=not args.no_robust)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -135,6 +136,7 @@ def _lut_summary(lut, path) -> str:
         sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
     lines += _choice_lines(lut)
+    lines += _robust_lines(lut)
     return "\n".join(lines)
 
 
@@ -155,6 +157,26 @@ def _choice_lines(lut) -> list[str]:
     if np.isfinite(choice.noise_rms_um):
         lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} um RMS;"
                      " model error = held-out RMS with it taken out)")
+    return lines
+
+
+def _robust_lines(lut) -> list[str]:
+    """What the robust fit left out (``/provenance`` ``robust``), suspect positions first."""
+    import json
+
+    text = lut.provenance.get("robust") if lut.provenance else None
+    if not text:
+        return []
+    try:
+        d = json.loads(text)
+    except ValueError:
+        return ["  robust fit          (unreadable /provenance robust)"]
+    lines = [f"  SUSPECT position    {k + 1}: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its samples"
+             " far from the curve of the others (wrong images? a stage glitch?); left out everywhere"
+             for k in d.get("suspect_positions", [])]
+    n_pix = int((lut.n_rejected > 0).sum()) if lut.n_rejected is not None else 0
+    lines.append(f"  robust fit          {d.get('n_rejected', 0)} samples left out at {n_pix} pixels (beyond"
+                 f" {d.get('k_sigma', 0):g} x {d.get('noise_scale', 1):.2f} predicted sigma)")
     return lines
 
 
@@ -392,6 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
                         " straightness of the rays, up to a common offset, scale and linear trend, and correct"
                         " the samples before fitting (METHOD.md section 8)")
+    c.add_argument("--no-robust", action="store_true",
+                   help="keep every sample (default: samples beyond 5 predicted sigmas of their pixel's curve are"
+                        " left out and counted, a position rejected at most pixels is named suspect and left out)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("-q", "--quiet", action="store_true")

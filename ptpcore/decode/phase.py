@@ -51,6 +51,7 @@ class Reason:
     UNWRAP = 4
     OUTSIDE_LCD = 8
     BORDER = 16
+    OUTLIER = 32  # set by the robust fit (ptpcore.fit.robust), never by the decoder
 
 
 REASON_NAMES = {
@@ -59,6 +60,7 @@ REASON_NAMES = {
     Reason.UNWRAP: "unwrapping disagreement",
     Reason.OUTSIDE_LCD: "outside the LCD",
     Reason.BORDER: "near the LCD border",
+    Reason.OUTLIER: "far from its pixel's curve (robust fit)",
 }
 
 

@@ -38,6 +38,7 @@ REASON_ORDER: tuple[int, ...] = (
     Reason.LOW_MODULATION,
     Reason.UNWRAP,
     Reason.BORDER,
+    Reason.OUTLIER,
 )
 
 # RGBA, 0-255. Distinguishable for the common colour-vision deficiencies
@@ -48,6 +49,7 @@ REASON_COLOURS: dict[int, tuple[int, int, int, int]] = {
     Reason.LOW_MODULATION: (0, 114, 178, 255),
     Reason.UNWRAP: (204, 121, 167, 255),
     Reason.BORDER: (230, 159, 0, 255),
+    Reason.OUTLIER: (240, 228, 66, 255),
 }
 VALID_COLOUR: tuple[int, int, int, int] = (0, 158, 115, 255)
 

@@ -221,7 +221,7 @@ def _fold_errors(samples: SampleStack, rig: Rig, luts: list, held, stage_sigma_m
     for k in held:
         z = float(samples.z[k])
         sx, sy = samples.absolute(k)
-        ok = np.isfinite(sx) & np.isfinite(sy)
+        ok = np.isfinite(sx) & np.isfinite(sy) & (samples.reasons[k] == 0)  # outliers flagged by a robust fit
         evs = [lut.evaluate(z) if lut is not None else None for lut in luts]
         common = ok.copy()
         for i, ev in enumerate(evs):

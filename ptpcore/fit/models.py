@@ -23,7 +23,7 @@ LUT_MODELS = ("auto", "poly", "pchip", "linear", "smooth")
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
               progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
-              level_bias: bool = True, footprint: bool = True) -> Lut:
+              level_bias: bool = True, footprint: bool = True, robust: bool = False) -> Lut:
     """Fit a LUT of any kind to decoded samples.
 
     Parameters
@@ -47,6 +47,10 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         ``smooth``: move samples from the footprint centroid to the centre ray
         (:func:`ptpcore.fit.smooth.footprint_bias`).
 
+    robust : bool
+        Leave out the samples far outside their pixel's curve first (:func:`ptpcore.fit.robust.fit_robust`;
+        ``n_rejected`` and ``provenance["robust"]`` on the LUT).
+
     Returns
     -------
     Lut
@@ -56,6 +60,11 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
     if model not in LUT_MODELS:
         raise ValueError(f"model must be one of {', '.join(LUT_MODELS)}, got {model!r}")
     toml = rig_to_toml(rig)
+    if robust:  # screen the samples for outliers, then this same fit without them
+        from ptpcore.fit.robust import fit_robust
+
+        return fit_robust(samples, rig, model, degree, positions, stage_sigma_mm=stage_sigma_mm, progress=progress,
+                          level_bias=level_bias, footprint=footprint)[0]
     if model == "auto":
         from ptpcore.fit.choice import fit_auto
 
