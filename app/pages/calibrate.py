@@ -14,8 +14,10 @@ from ptpcore.fit.glass import (add_tolerances_to_sigma, correct_samples, correct
 from ptpcore.fit.stage_pose import refine_and_correct
 from ptpcore.fit.choice import ModelChoice
 from ptpcore.evaluate import pixel_series, reason_text
+from ptpcore.evaluate.residuals import residual_field
 
 from ..widgets.maps import HeatmapPanel, axis_label
+from ..widgets.residuals import ResidualPanel
 from ..worker import Job
 from .base import StudioPage
 
@@ -178,9 +180,12 @@ class CalibratePage(StudioPage):
         pl.addWidget(self.plot_r, 1)
         grid.addWidget(px_box, 1, 1)
         grid.setRowStretch(1, 1)
+        self.residuals = ResidualPanel()
+        grid.addWidget(self.residuals, 2, 0, 1, 2)
 
         self.maps: dict = {}
         self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
+        self.residual_field = None
         self.series = None
         self.selected: tuple[int, int] | None = None
         self._outcome = None
@@ -317,6 +322,8 @@ class CalibratePage(StudioPage):
         self.selected = None
         if lut is None:
             self._clear()
+            self.residual_field = None
+            self.residuals.set_field(None)
             self.update_complete()
             return
         self.maps = quality_maps(lut)
@@ -341,6 +348,10 @@ class CalibratePage(StudioPage):
             text += f" {line[0].upper()}{line[1:]}."
         self.stats.setText(text)
         self._show_choice(choice_of(lut))
+        s = self.model.session
+        self.residual_field = (residual_field(lut, s.samples, s.lut_positions)
+                               if s.samples is not None and s.samples.shape == lut.shape else None)
+        self.residuals.set_field(self.residual_field)
         # Start with the valid pixel nearest the sensor's centre.
         if v.any():
             rows, cols = np.nonzero(v)

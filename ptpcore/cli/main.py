@@ -82,6 +82,11 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         bar.close()
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
+    if session.samples is not None:
+        from ptpcore.evaluate.residuals import residual_field
+
+        field = residual_field(session.lut, session.samples, session.positions)
+        print("\n".join("  " + line for line in field.lines()))
     return 0
 
 

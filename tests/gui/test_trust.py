@@ -77,3 +77,38 @@ def test_export_page_diffs_against_a_reference_lut(wizard, qtbot, tmp_path):
     # A new LUT forgets the comparison.
     wizard.model.set_lut(lut, wizard.model.session.lut_positions)
     assert panel.result is None
+
+
+def test_calibrate_shows_residual_arrows_and_export_writes_them(wizard, qtbot, tmp_path):
+    from ptpcore.evaluate.residuals import residual_field
+    from ptp_studio.pages.export import N_RESIDUAL_PNGS
+    from ptp_studio.widgets.residuals import arrow_segments
+
+    cal = _acquire(wizard, qtbot)
+    cal.configure("poly", 2, "half")
+    assert run_job(qtbot, cal.fit()) == "finished"
+    s = wizard.model.session
+    want = residual_field(s.lut, s.samples, s.lut_positions)
+    panel = cal.residuals
+    k_all = s.samples.z.size
+    assert panel.position.count() == k_all
+    # worst first, and the held-out positions (odd ones) marked
+    assert [panel.position.itemData(i) for i in range(k_all)] == want.worst_positions.tolist()
+    assert any("held out" in panel.position.itemText(i) for i in range(k_all))
+    x, y, _scale = arrow_segments(want, int(want.worst_positions[0]))
+    shown_x, shown_y = panel.arrows.getData()
+    np.testing.assert_allclose(shown_x, x)
+    np.testing.assert_allclose(shown_y, y)
+    assert "worst positions" in panel.worst.text() and "worst pixels" in panel.worst.text()
+    panel.position.setCurrentIndex(k_all - 1)
+    x, _y, _scale = arrow_segments(want, int(want.worst_positions[-1]))
+    np.testing.assert_allclose(panel.arrows.getData()[0], x)
+
+    wizard.go_to("export")
+    ex = wizard.page_by_key["export"]
+    ex.set_folder(tmp_path / "out")
+    assert run_job(qtbot, ex.export()) == "finished"
+    names = {f.name for f in ex.files}
+    for k in want.worst_positions[:N_RESIDUAL_PNGS]:
+        assert f"residuals_position_{k + 1}.png" in names
+        assert (tmp_path / "out" / f"residuals_position_{k + 1}.png").read_bytes()[:4] == b"\x89PNG"
