@@ -64,3 +64,26 @@ def test_repeat_source_maps_positions_after_the_sweep():
     assert rep.rig.stage.z_mm == (src.rig.stage.z_mm[0],) and rep.frames(0) == src.rig.stage.n_positions
     with pytest.raises(ValueError):
         RepeatSource(type("S", (), {"rig": scaled_preset("mild", 80)[0]})())
+
+
+def test_calibrate_reports_the_drift_of_a_repeated_position(tmp_path, capsys):
+    """A ptp-dataset/2 folder whose first position was captured again after the sweep (here: the same
+    images, so no drift at all): the summary and /provenance drift say so."""
+    import shutil
+
+    from ptpcore.cli import main
+    from ptpcore.io import load_lut
+
+    data = tmp_path / "data"
+    assert main(["simulate", str(data), "--preset", "mild", "--width", "80", "--positions", "5", "-q"]) == 0
+    text = (data / "rig.toml").read_text()
+    text = text.replace('format = "ptp-dataset/1"', 'format = "ptp-dataset/2"')
+    text = text.replace("[stage]\n", "[stage]\nrepeat_z_mm = [0.0]\n")
+    (data / "rig.toml").write_text(text)
+    shutil.copytree(data / "z000", data / "z005")
+    out = tmp_path / "a.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(out), "--model", "poly", "--degree", "1", "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "drift at z = 0 mm (position 1 again): RMS 0.000" in said and "DRIFT WARNING" not in said
+    d = json.loads(load_lut(out).provenance["drift"])
+    assert d["repeats"][0]["position"] == 0 and d["repeats"][0]["rms_um"] == 0 and not d["warnings"]

@@ -80,14 +80,32 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         run_session(session, session_path, progress=bar, validate=validate)
     finally:
         bar.close()
+    drift = _sweep_drift(session)
+    if drift is not None:
+        session.lut.provenance["drift"] = drift.to_json()
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
+    if drift is not None:
+        print("\n".join("  " + line for line in drift.lines()))
     if session.samples is not None:
         from ptpcore.evaluate.residuals import residual_field
 
         field = residual_field(session.lut, session.samples, session.positions)
         print("\n".join("  " + line for line in field.lines()))
     return 0
+
+
+def _sweep_drift(session):
+    """The drift of a dataset's ``[stage] repeat_z_mm`` positions (decoded now), or None without them."""
+    rig = session.rig
+    if not rig.stage.repeat_z_mm or not session.dataset or session.samples is None:
+        return None
+    from ptpcore.fit.drift import RepeatSource, sweep_drift
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.run.pipeline import collect_samples
+
+    repeats = collect_samples(RepeatSource(DatasetSource(session.dataset)), options=session.options)
+    return sweep_drift(session.samples, repeats, rig, stage_sigma_mm=session.stage_sigma_um * 1e-3)
 
 
 def _lut_summary(lut, path) -> str:
