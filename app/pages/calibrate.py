@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox,
@@ -21,7 +23,7 @@ from ..widgets.residuals import ResidualPanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "quality_maps", "choice_of"]
+__all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text"]
 
 MODELS = {"auto": "Auto: the most accurate of polynomial degree 1-3 and smooth at held-out positions",
           "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
@@ -56,6 +58,22 @@ def choice_of(lut) -> ModelChoice | None:
         return ModelChoice.from_json(text)
     except (ValueError, KeyError, TypeError, StopIteration):
         return None
+
+
+def robust_text(lut) -> str:
+    """What the robust fit left out (``/provenance`` ``robust``), suspect positions named; empty without it."""
+    text = lut.provenance.get("robust") if lut.provenance else None
+    if not text:
+        return ""
+    try:
+        d = json.loads(text)
+    except ValueError:
+        return ""
+    out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
+    for k in d.get("suspect_positions", []):
+        out += (f" <b>SUSPECT position {k + 1}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
+                " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
+    return out
 
 
 class CalibratePage(StudioPage):
@@ -285,7 +303,8 @@ class CalibratePage(StudioPage):
                 fixed, est = refine_and_correct(fixed, rig)
             self._corrected_cache = (samples, rig, fixed)
             lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
-                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"], robust=True)
+                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"],
+                            robust=True)
             lut.provenance["corrections"] = corrections_json(fixed)
             add_tolerances_to_sigma(lut, applied)
             if est is not None:
@@ -346,6 +365,7 @@ class CalibratePage(StudioPage):
         for line in describe_corrections(self._corrected(self.model.session.samples, self.model.session.rig)
                                          .corrections if self.model.session.samples is not None else {}):
             text += f" {line[0].upper()}{line[1:]}."
+        text += robust_text(lut)
         self.stats.setText(text)
         self._show_choice(choice_of(lut))
         s = self.model.session

@@ -34,6 +34,7 @@ def test_calibrate_defaults_to_auto_and_shows_the_choice(wizard, qtbot):
         if not c.note:
             assert float(cal.choice_table.item(i, 1).text()) == round(c.held_out_rms_um, 3)
     assert "chosen by held-out positions" in cal.stats.text()
+    assert "Robust fit: " in cal.stats.text() and "SUSPECT" not in cal.stats.text()  # the default is robust
     # A fixed model hides the table again.
     cal.configure("poly", 2, "all")
     assert run_job(qtbot, cal.fit()) == "finished"
