@@ -20,7 +20,7 @@ from ptpcore.io.lutfile import load_lut
 
 from ..worker import Job
 from .jobpanel import JobPanel
-from .maps import HeatmapPanel
+from .maps import HeatmapPanel, axis_label
 
 __all__ = ["LutDiffPanel", "verdict_text"]
 
@@ -80,8 +80,8 @@ class LutDiffPanel(QGroupBox):
         grid.addWidget(self.heatmap, 2, 0)
         self.hist = pg.PlotWidget()
         self.hist.setTitle("Per-pixel difference (RMS over heights, X and Y)")
-        self.hist.setLabel("bottom", "difference", units="µm")
-        self.hist.setLabel("left", "pixels")
+        axis_label(self.hist, "bottom", "difference", "µm")
+        axis_label(self.hist, "left", "pixels")
         self.bars = pg.BarGraphItem(x=[], height=[], width=1.0, brush="#2b6cb0")
         self.hist.addItem(self.bars)
         self.tol_line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#c0392b", width=2, style=pg.QtCore.Qt.DashLine))

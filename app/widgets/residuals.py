@@ -13,6 +13,8 @@ from PySide6.QtWidgets import QComboBox, QGroupBox, QHBoxLayout, QLabel, QVBoxLa
 
 from ptpcore.evaluate.residuals import ResidualField
 
+from .maps import axis_label
+
 __all__ = ["ResidualPanel", "arrow_segments"]
 
 
@@ -53,8 +55,8 @@ class ResidualPanel(QGroupBox):
         self.plot = pg.PlotWidget()
         self.plot.invertY(True)
         self.plot.setAspectLocked(True)
-        self.plot.setLabel("bottom", "column", units="px")
-        self.plot.setLabel("left", "row", units="px")
+        axis_label(self.plot, "bottom", "column", "px")
+        axis_label(self.plot, "left", "row", "px")
         self.arrows = self.plot.plot(pen=pg.mkPen("#0072b2", width=1.5), connect="pairs")
         self.bases = self.plot.plot(pen=None, symbol="o", symbolSize=3, symbolBrush="#0072b2", symbolPen=None)
         lay.addWidget(self.plot, 1)
