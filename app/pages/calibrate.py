@@ -25,7 +25,7 @@ from .base import StudioPage
 
 __all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text"]
 
-MODELS = {"auto": "Auto: the most accurate of polynomial degree 1-3 and smooth at held-out positions",
+MODELS = {"auto": "Auto: best at held-out positions",
           "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
           "linear": "Linear interpolation of the table",
           "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
@@ -91,6 +91,8 @@ class CalibratePage(StudioPage):
         ctl = QGroupBox("Model")
         cl = QGridLayout(ctl)
         self.model_combo = QComboBox()
+        self.model_combo.setToolTip("Auto: polynomial degrees 1-3 and smooth, each fitted without some positions and"
+                                    " judged at them; the most accurate is chosen (a simpler one within 5 %)")
         for k, label in MODELS.items():
             self.model_combo.addItem(label, k)
         self.model_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)

@@ -48,6 +48,8 @@ class ResidualPanel(QGroupBox):
         lay = QVBoxLayout(self)
         row = QHBoxLayout()
         self.position = QComboBox()
+        self.position.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.position.setMinimumContentsLength(24)  # long items must not widen the page
         self.position.setToolTip("Positions by their residual RMS, largest first; held-out positions are marked")
         row.addWidget(QLabel("position"))
         row.addWidget(self.position, 1)
