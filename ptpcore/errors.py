@@ -36,3 +36,22 @@ class DeviceError(PtpError):
 
 class CaptureError(PtpError):
     """A live capture cannot start or go on (folder, plan or exposure problem)."""
+
+
+class OutputError(PtpError):
+    """An output path cannot or must not be written (checked before the work starts).
+
+    The message names the path and the reason (missing or read-only folder, a
+    file of the input dataset, an existing file of another kind, an existing
+    result replaced without ``--force``).
+    """
+
+
+class DiskFullError(PtpError, OSError):
+    """The disk filled while a file was written; nothing half-written is left.
+
+    The message names the file and the space it needs.
+    """
+
+    def __str__(self) -> str:
+        return self.strerror or super().__str__()

@@ -14,6 +14,7 @@ and reads a LUT, so scanners and tools can use it without the fitting code.
 from __future__ import annotations
 
 import datetime as _dt
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from ptpcore import __version__
-from ptpcore.atomic import atomic_path
+from ptpcore.atomic import write_bytes_atomic
 from ptpcore.errors import FileFormatError
 from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
@@ -372,10 +373,33 @@ def save_lut(lut: Lut, path) -> None:
 
     A process killed during the write leaves the previous file (if any) intact.
     """
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            _lut_root_attrs(f)
-            _write_lut_group(f, lut)
+    def fill(f) -> None:
+        _lut_root_attrs(f)
+        _write_lut_group(f, lut)
+
+    write_hdf5_atomic(path, fill)
+
+
+def write_hdf5_atomic(path, fill) -> None:
+    """Build an HDF5 file in memory with ``fill(h5py.File)``, then write its bytes atomically.
+
+    HDF5 writing straight to a disk that fills leaves the library in a state
+    that prints tracebacks from finalizers and can crash the interpreter at
+    exit; built in memory, the file reaches the disk as one plain write, so a
+    full disk is one :class:`~ptpcore.errors.DiskFullError` naming the file and
+    its size, and the temporary file is removed.
+
+    Parameters
+    ----------
+    path : path
+        The file to write.
+    fill : callable
+        Called with the open, empty ``h5py.File``.
+    """
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        fill(f)
+    write_bytes_atomic(path, buf.getbuffer())
 
 
 def _str_attr(value) -> str | None:

@@ -64,9 +64,8 @@ import h5py
 import numpy as np
 
 from ptpcore import __version__
-from ptpcore.atomic import atomic_path
 from ptpcore.errors import ConfigError, DatasetError, FileFormatError
-from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_group, _str_attr,
+from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_group, _str_attr, write_hdf5_atomic,
     _write_lut_group, check_format, open_hdf5)
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
@@ -360,52 +359,54 @@ def save_session(session: Session, path) -> None:
         The session is inconsistent (shapes differ from the rig).
     """
     _check_session(session)
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = SESSION_FORMAT
-            f.attrs["software"] = f"ptpcore {__version__}"
-            f.attrs["created"] = session.created
-            f.attrs["saved"] = _now()
-            f.attrs["stage"] = session.stage
-            f.create_group("rig").attrs["toml"] = rig_to_toml(session.rig)
-            f.create_group("fringes").attrs.update(_fringe_attrs(session.rig))
-            c = f.create_group("calibration")
-            c.attrs.update({"dataset": session.dataset or "", "model": session.model,
-                            "degree": int(session.degree), "out": session.out or "",
-                            "stage_sigma_um": float(session.stage_sigma_um),
-                            "level_bias": int(bool(session.level_bias)),
-                            "footprint": int(bool(session.footprint)),
-                            "refine_stage": int(bool(session.refine_stage)),
-                            "min_modulation": float(session.options.min_modulation),
-                            "border_margin_px": int(session.options.border_margin_px)})
-            if session.positions is not None:
-                c["positions"] = np.asarray(session.positions, np.int64)
-            if session.sim_settings:
-                f.create_group("sim").attrs["settings"] = session.sim_settings
-            s = session.samples
-            if s is not None:
-                g = f.create_group("samples")
-                g["z"] = np.asarray(s.z, np.float64)
-                g.create_dataset("x", data=np.asarray(s.x, np.float32), **_OPTS)
-                g.create_dataset("y", data=np.asarray(s.y, np.float32), **_OPTS)
-                g.create_dataset("x_ref", data=np.asarray(s.x_ref, np.float64), **_OPTS)
-                g.create_dataset("y_ref", data=np.asarray(s.y_ref, np.float64), **_OPTS)
-                g.create_dataset("reasons", data=np.asarray(s.reasons, np.uint8), **_OPTS)
-                for name in ("modulation", "background"):
-                    arr = getattr(s, name)
-                    if arr is not None:
-                        g.create_dataset(name, data=np.asarray(arr, np.float32), **_OPTS)
-                noise = getattr(s, "noise", None)
-                if noise is not None:
-                    g.attrs.update({"noise_read_var": float(noise.read_var), "noise_gain": float(noise.gain)})
-            if session.lut is not None:
-                g = f.create_group("lut")
-                _lut_root_attrs(g)
-                _write_lut_group(g, session.lut)
-            if session.comparison is not None:
-                text = (session.comparison if isinstance(session.comparison, str)
-                        else json.dumps(session.comparison, default=_json_default))
-                f.create_group("comparison").attrs["json"] = text
+
+    def fill(f) -> None:
+        f.attrs["format"] = SESSION_FORMAT
+        f.attrs["software"] = f"ptpcore {__version__}"
+        f.attrs["created"] = session.created
+        f.attrs["saved"] = _now()
+        f.attrs["stage"] = session.stage
+        f.create_group("rig").attrs["toml"] = rig_to_toml(session.rig)
+        f.create_group("fringes").attrs.update(_fringe_attrs(session.rig))
+        c = f.create_group("calibration")
+        c.attrs.update({"dataset": session.dataset or "", "model": session.model,
+                        "degree": int(session.degree), "out": session.out or "",
+                        "stage_sigma_um": float(session.stage_sigma_um),
+                        "level_bias": int(bool(session.level_bias)),
+                        "footprint": int(bool(session.footprint)),
+                        "refine_stage": int(bool(session.refine_stage)),
+                        "min_modulation": float(session.options.min_modulation),
+                        "border_margin_px": int(session.options.border_margin_px)})
+        if session.positions is not None:
+            c["positions"] = np.asarray(session.positions, np.int64)
+        if session.sim_settings:
+            f.create_group("sim").attrs["settings"] = session.sim_settings
+        s = session.samples
+        if s is not None:
+            g = f.create_group("samples")
+            g["z"] = np.asarray(s.z, np.float64)
+            g.create_dataset("x", data=np.asarray(s.x, np.float32), **_OPTS)
+            g.create_dataset("y", data=np.asarray(s.y, np.float32), **_OPTS)
+            g.create_dataset("x_ref", data=np.asarray(s.x_ref, np.float64), **_OPTS)
+            g.create_dataset("y_ref", data=np.asarray(s.y_ref, np.float64), **_OPTS)
+            g.create_dataset("reasons", data=np.asarray(s.reasons, np.uint8), **_OPTS)
+            for name in ("modulation", "background"):
+                arr = getattr(s, name)
+                if arr is not None:
+                    g.create_dataset(name, data=np.asarray(arr, np.float32), **_OPTS)
+            noise = getattr(s, "noise", None)
+            if noise is not None:
+                g.attrs.update({"noise_read_var": float(noise.read_var), "noise_gain": float(noise.gain)})
+        if session.lut is not None:
+            g = f.create_group("lut")
+            _lut_root_attrs(g)
+            _write_lut_group(g, session.lut)
+        if session.comparison is not None:
+            text = (session.comparison if isinstance(session.comparison, str)
+                    else json.dumps(session.comparison, default=_json_default))
+            f.create_group("comparison").attrs["json"] = text
+
+    write_hdf5_atomic(path, fill)
 
 
 def _json_default(obj):
