@@ -55,3 +55,10 @@ class DiskFullError(PtpError, OSError):
 
     def __str__(self) -> str:
         return self.strerror or super().__str__()
+
+
+class DataWarning(UserWarning):
+    """The data look wrong though they can be processed (a stuck stage, MSB-aligned samples).
+
+    The message names the positions or the file and what to check.
+    """

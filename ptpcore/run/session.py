@@ -275,6 +275,9 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     DatasetError
         The dataset is gone, unusable, or its ``rig.toml`` no longer matches
         the session's.
+    ConfigError
+        The decoded samples contradict the stage readings' sense (``z_mm``
+        listed in reverse); positions that look stuck are a ``DataWarning``.
     """
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.run.pipeline import collect_samples
@@ -294,8 +297,10 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
                                    " (the dataset changed since the session started)")
             if validate:
                 source.validate()
-        session.samples = collect_samples(source, options=session.options, positions=session.positions,
-                                          progress=sub(0.0, 0.9))
+        samples = collect_samples(source, options=session.options, positions=session.positions,
+                                  progress=sub(0.0, 0.9))
+        _check_decoded(samples, session)
+        session.samples = samples
         if path is not None:
             save_session(session, path)
     if stop_after == "samples":
@@ -320,6 +325,14 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     if progress:
         progress(1.0, "session complete")
     return session
+
+
+def _check_decoded(samples: SampleStack, session: Session) -> None:
+    """The readings' sense and stuck positions (:func:`ptpcore.run.sanity.check_samples`)."""
+    from ptpcore.run.sanity import check_samples
+
+    where = str(Path(session.dataset) / "rig.toml") if session.dataset else "rig.toml"
+    check_samples(samples, positions=session.positions, source=where)
 
 
 # --------------------------------------------------------------------------- writing
