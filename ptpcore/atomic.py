@@ -22,7 +22,19 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
-from ptpcore.errors import DiskFullError
+
+class DiskFullError(OSError):
+    """The disk filled while a file was written; nothing half-written is left.
+
+    The message (one line) names the file and the space it needs. An
+    ``OSError`` (``errno.ENOSPC``), defined here because this module sits
+    beside :mod:`ptpcore.errors` in the layers, not above it; the CLI and the
+    GUI show it as one line like every user-facing error.
+    """
+
+    def __str__(self) -> str:
+        return self.strerror or super().__str__()
+
 
 _LIVE: set[Path] = set()
 _LIVE_LOCK = threading.Lock()

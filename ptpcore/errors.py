@@ -47,16 +47,6 @@ class OutputError(PtpError):
     """
 
 
-class DiskFullError(PtpError, OSError):
-    """The disk filled while a file was written; nothing half-written is left.
-
-    The message names the file and the space it needs.
-    """
-
-    def __str__(self) -> str:
-        return self.strerror or super().__str__()
-
-
 class DataWarning(UserWarning):
     """The data look wrong though they can be processed (a stuck stage, MSB-aligned samples).
 

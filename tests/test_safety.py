@@ -21,10 +21,10 @@ import pytest
 import tomli_w
 import tomllib
 
-from ptpcore.atomic import atomic_path, live_temporaries, remove_temporaries
+from ptpcore.atomic import DiskFullError, atomic_path, live_temporaries, remove_temporaries
 from ptpcore.cli import main
 from ptpcore.cli.safety import Terminated
-from ptpcore.errors import ConfigError, DataWarning, DiskFullError, OutputError
+from ptpcore.errors import ConfigError, DataWarning, OutputError
 from ptpcore.io import DatasetSource, SimulatedSource, load_lut
 from ptpcore.io.dataset import read_image
 from ptpcore.io.fastio import SpillStore

@@ -198,6 +198,16 @@ class _DatasetReader:
         self.pool.shutdown(wait=True)
 
 
+def _check_alignment(source, positions) -> None:
+    """Warn when a dataset's 16-bit samples look MSB-aligned (:func:`ptpcore.io.dataset.check_bit_alignment`)."""
+    if not _is_dataset(source) or not positions:
+        return
+    from ptpcore.io.dataset import check_bit_alignment
+
+    d, _j, t, n, big_n = next(iter(source.rig.fringes.frames()))
+    check_bit_alignment(source.path(positions[0], d, t, n, big_n), source.rig)
+
+
 def _is_dataset(source) -> bool:
     from ptpcore.io.dataset import DatasetSource
 
@@ -327,11 +337,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         raise ValueError("calibration needs fringes in both directions x and y")
     k_total = rig.stage.n_positions
     todo = list(range(k_total)) if positions is None else list(positions)
-    if _is_dataset(source) and todo:
-        from ptpcore.io.dataset import check_bit_alignment
-
-        d, _j, t, n, big_n = next(iter(rig.fringes.frames()))
-        check_bit_alignment(source.path(todo[0], d, t, n, big_n), rig)
+    _check_alignment(source, todo)
     shape = rig.camera.shape
     z_all = np.asarray(rig.stage.z_mm, dtype=float)
     if spill is None:
