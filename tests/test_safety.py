@@ -30,7 +30,7 @@ from ptpcore.io.dataset import read_image
 from ptpcore.io.fastio import SpillStore
 from ptpcore.io.lutfile import Lut, save_lut
 from ptpcore.io.outputs import check_output_file
-from ptpcore.rig import Camera, load_rig
+from ptpcore.rig import Camera, load_rig, save_rig
 from ptpcore.run import check_samples, collect_samples
 from ptpcore.simulate import VirtualRig, scaled_preset
 from ptpcore.simulate.virtual_rig import preset, simulate_dataset
@@ -351,16 +351,11 @@ def test_duplicated_images_warn_in_the_cli(dataset, tmp_path, capfd):
     assert "ptp: warning: positions 1 (z = 10 mm) and 2 (z = 20 mm)" in err and "stuck" in err
 
 
-@dataclasses.dataclass(frozen=True)
-class _ShiftedCamera(Camera):
-    bit_shift: int = 4  # until rig.toml ptp-dataset/2 parses [camera] bit_shift
-
-
-def test_msb_aligned_16_bit_images(tmp_path):
+def test_msb_aligned_16_bit_images(tmp_path, capfd):
+    """12-bit samples stored as value << 4: warned without bit_shift, read exactly with it."""
     rig, settings = _small_rig(bit_depth=12)
     ds = simulate_dataset(tmp_path / "ds", rig, settings, seed=5)
-    source = DatasetSource(ds)
-    plain = collect_samples(source)
+    plain = collect_samples(DatasetSource(ds))
     files = sorted(ds.rglob("*.png"))
     originals = {p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in files}
     for p, img in originals.items():
@@ -368,11 +363,12 @@ def test_msb_aligned_16_bit_images(tmp_path):
         cv2.imwrite(str(p), (img << 4).astype(np.uint16))
     with pytest.warns(DataWarning, match="bit_shift = 4"):
         collect_samples(DatasetSource(ds))
+    assert main(["calibrate", str(ds), "--out", str(tmp_path / "c.lut.h5"), "--degree", "1", "-q"]) in (0, 2)
+    assert "ptp: warning:" in capfd.readouterr().err
+    save_rig(dataclasses.replace(rig, camera=dataclasses.replace(rig.camera, bit_shift=4)), ds / "rig.toml")
     shifted = DatasetSource(ds)
-    c = rig.camera
-    shifted.rig = dataclasses.replace(shifted.rig, camera=_ShiftedCamera(c.width, c.height, c.bit_depth))
-    p0 = files[0]
-    np.testing.assert_array_equal(read_image(p0, shifted.rig), originals[p0])
+    assert shifted.rig.camera.bit_shift == 4
+    np.testing.assert_array_equal(read_image(files[0], shifted.rig), originals[files[0]])
     with warnings.catch_warnings():
         warnings.simplefilter("error", DataWarning)
         again = collect_samples(shifted)

@@ -35,10 +35,10 @@ class Terminated(KeyboardInterrupt):
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line (``ptp CMD: error: ...``) and exit 2."""
+    """An argument parser whose errors are one line (``ptp: error: ...``, as every error) and exit 2."""
 
     def error(self, message: str):  # noqa: D102 - argparse's hook
-        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(EXIT_BAD_INPUT, f"ptp: error: {message} (see `{self.prog} --help`)\n")
 
 
 def _int(text: str) -> int:
