@@ -230,6 +230,22 @@ def test_disk_full_monkeypatched_lut_session_and_spill(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_big_hdf5_files_go_straight_to_disk_after_a_space_check(tmp_path, monkeypatch):
+    """Above IN_MEMORY_MAX (a large sensor's session) the file is not built in memory: the disk's room
+    for the uncompressed size is checked first."""
+    import ptpcore.io.lutfile as lutfile
+
+    monkeypatch.setattr(lutfile, "IN_MEMORY_MAX", 0)
+    lut = _random_lut(30, 40)
+    save_lut(lut, tmp_path / "a.lut.h5")
+    np.testing.assert_array_equal(load_lut(tmp_path / "a.lut.h5").x, lut.x)
+    real = shutil.disk_usage
+    monkeypatch.setattr(lutfile.shutil, "disk_usage", lambda p: real(p)._replace(free=1000))
+    with pytest.raises(DiskFullError, match="b.lut.h5"):
+        save_lut(lut, tmp_path / "b.lut.h5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.lut.h5"]
+
+
 @pytest.fixture
 def tiny_fs(tmp_path):
     """A 1 MB tmpfs (root only); skipped with the reason when mounting is not permitted."""

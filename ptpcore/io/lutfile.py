@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import io
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from ptpcore import __version__
-from ptpcore.atomic import write_bytes_atomic
+from ptpcore.atomic import atomic_path, disk_full_error, write_bytes_atomic
 from ptpcore.errors import FileFormatError
 from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
@@ -377,17 +378,25 @@ def save_lut(lut: Lut, path) -> None:
         _lut_root_attrs(f)
         _write_lut_group(f, lut)
 
-    write_hdf5_atomic(path, fill)
+    write_hdf5_atomic(path, fill, _nbytes(lut.x, lut.y, lut.valid, lut.n_positions, lut.rms_x, lut.rms_y,
+                                          lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y))
 
 
-def write_hdf5_atomic(path, fill) -> None:
-    """Build an HDF5 file in memory with ``fill(h5py.File)``, then write its bytes atomically.
+IN_MEMORY_MAX = 512 * 2 ** 20
+"""HDF5 files estimated larger than this (bytes, uncompressed) are written straight to disk."""
+
+
+def write_hdf5_atomic(path, fill, size_hint: int | None = None) -> None:
+    """Write an HDF5 file atomically, so that a full disk is one clean error.
 
     HDF5 writing straight to a disk that fills leaves the library in a state
     that prints tracebacks from finalizers and can crash the interpreter at
-    exit; built in memory, the file reaches the disk as one plain write, so a
-    full disk is one :class:`~ptpcore.errors.DiskFullError` naming the file and
-    its size, and the temporary file is removed.
+    exit. Up to :data:`IN_MEMORY_MAX` the file is built in memory and reaches
+    the disk as one plain write: a full disk is one
+    :class:`~ptpcore.atomic.DiskFullError` naming the file and its size, the
+    temporary file removed. A bigger file (a session of a large sensor) is
+    written to disk directly, after checking that the disk has room for its
+    uncompressed size (refused up front otherwise: the same error).
 
     Parameters
     ----------
@@ -395,11 +404,27 @@ def write_hdf5_atomic(path, fill) -> None:
         The file to write.
     fill : callable
         Called with the open, empty ``h5py.File``.
+    size_hint : int, optional
+        The data's uncompressed size in bytes (default: small).
     """
+    if size_hint is not None and size_hint > IN_MEMORY_MAX:
+        need = int(size_hint) + 2 ** 20
+        folder = Path(path).parent
+        if shutil.disk_usage(folder if str(folder) else ".").free < need:
+            raise disk_full_error(path, need)
+        with atomic_path(path, need_bytes=need) as tmp:
+            with h5py.File(tmp, "w") as f:
+                fill(f)
+        return
     buf = io.BytesIO()
     with h5py.File(buf, "w") as f:
         fill(f)
     write_bytes_atomic(path, buf.getbuffer())
+
+
+def _nbytes(*arrays) -> int:
+    """Total bytes of the arrays given (None skipped): a file's uncompressed size."""
+    return sum(int(a.nbytes) for a in arrays if a is not None)
 
 
 def _str_attr(value) -> str | None:

@@ -65,8 +65,8 @@ import numpy as np
 
 from ptpcore import __version__
 from ptpcore.errors import ConfigError, DatasetError, FileFormatError
-from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_group, _str_attr, write_hdf5_atomic,
-    _write_lut_group, check_format, open_hdf5)
+from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read_lut_group, _str_attr,
+    _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
 from ptpcore.fit.models import LUT_MODELS, fit_model
@@ -419,7 +419,11 @@ def save_session(session: Session, path) -> None:
                     else json.dumps(session.comparison, default=_json_default))
             f.create_group("comparison").attrs["json"] = text
 
-    write_hdf5_atomic(path, fill)
+    s = session.samples
+    size = 0 if s is None else _nbytes(s.x, s.y, s.x_ref, s.y_ref, s.reasons, s.modulation, s.background)
+    if session.lut is not None:
+        size += _nbytes(session.lut.x, session.lut.y)
+    write_hdf5_atomic(path, fill, size)
 
 
 def _json_default(obj):
