@@ -3,29 +3,141 @@
 A process killed at any moment leaves either the old file or the new one,
 never a half-written one (``os.replace`` is atomic on POSIX and Windows when
 source and target are on the same file system, hence the same folder).
+
+Every temporary path in use is registered (:func:`live_temporaries`), so a
+signal handler or a last ``finally`` can remove them (:func:`remove_temporaries`)
+even when the exception that stopped the write never reached the writer. A
+disk that fills during a write raises :class:`~ptpcore.errors.DiskFullError`
+naming the file and the space it needs, the temporary file removed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import shutil
 import tempfile
+import threading
 from pathlib import Path
 from typing import Iterator
 
 
+class DiskFullError(OSError):
+    """The disk filled while a file was written; nothing half-written is left.
+
+    The message (one line) names the file and the space it needs. An
+    ``OSError`` (``errno.ENOSPC``), defined here because this module sits
+    beside :mod:`ptpcore.errors` in the layers, not above it; the CLI and the
+    GUI show it as one line like every user-facing error.
+    """
+
+    def __str__(self) -> str:
+        return self.strerror or super().__str__()
+
+
+_LIVE: set[Path] = set()
+_LIVE_LOCK = threading.Lock()
+_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
+
+
+def register_temporary(path: str | os.PathLike) -> None:
+    """Register a temporary file to be removed by :func:`remove_temporaries`."""
+    with _LIVE_LOCK:
+        _LIVE.add(Path(path))
+
+
+def forget_temporary(path: str | os.PathLike) -> None:
+    """The temporary file was renamed or removed by its owner: forget it."""
+    with _LIVE_LOCK:
+        _LIVE.discard(Path(path))
+
+
+def live_temporaries() -> list[Path]:
+    """Temporary files being written right now (registered, not yet renamed or removed)."""
+    with _LIVE_LOCK:
+        return sorted(_LIVE)
+
+
+def remove_temporaries() -> list[Path]:
+    """Remove every registered temporary file (after a signal or a failure); return those removed."""
+    with _LIVE_LOCK:
+        paths = sorted(_LIVE)
+        _LIVE.clear()
+    removed = []
+    for p in paths:
+        with contextlib.suppress(OSError):
+            p.unlink()
+            removed.append(p)
+    return removed
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is an out-of-space error (ENOSPC, EDQUOT, EFBIG; h5py's wrapped ones too)."""
+    if isinstance(exc, DiskFullError):
+        return True
+    if isinstance(exc, OSError) and exc.errno in _FULL:
+        return True
+    text = str(exc)
+    return "No space left on device" in text or "errno = 28," in text
+
+
+def disk_full_error(target: str | os.PathLike, need_bytes: int | None = None, hint: str = "") -> DiskFullError:
+    """The one-line :class:`DiskFullError` for ``target`` (the space needed and the space free).
+
+    Parameters
+    ----------
+    target : path
+        The file that did not fit.
+    need_bytes : int, optional
+        Its size.
+    hint : str, optional
+        What the file is and what to do, appended in parentheses.
+    """
+    target = Path(target)
+    folder = target.parent if not target.is_dir() else target
+    try:
+        free = f", {_mb(shutil.disk_usage(folder).free)} free in {folder}"
+    except OSError:
+        free = ""
+    need = f"it needs {_mb(need_bytes)}" if need_bytes else "it needs more space"
+    hint = f" ({hint})" if hint else ""
+    return DiskFullError(errno.ENOSPC, f"{target}: disk full while writing ({need}{free});"
+                                       f" nothing was left half-written{hint}")
+
+
+def _mb(n: int | None) -> str:
+    return f"{(n or 0) / 1e6:.1f} MB"
+
+
 @contextlib.contextmanager
-def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(target: str | os.PathLike, need_bytes: int | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success rename it over ``target``.
 
-    On any exception (including :class:`KeyboardInterrupt` and cancellation)
-    the temporary file is removed and ``target`` is left untouched.
+    Parameters
+    ----------
+    target : path
+        The file to write.
+    need_bytes : int, optional
+        The file's size, if known: named by the disk-full message.
+
+    Raises
+    ------
+    DiskFullError
+        The disk filled (the temporary file is removed).
+
+    Notes
+    -----
+    On any exception (including :class:`KeyboardInterrupt`, a SIGTERM turned
+    into one, and cancellation) the temporary file is removed and ``target``
+    is left untouched.
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    register_temporary(tmp_path)
     try:
         yield tmp_path
         with open(tmp_path, "rb+") as fh:
@@ -34,10 +146,14 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             os.chmod(tmp_path, _file_mode(target))
         os.replace(tmp_path, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp_path.unlink()
+        if is_disk_full(exc) and not isinstance(exc, DiskFullError):
+            raise disk_full_error(target, need_bytes) from None
         raise
+    finally:
+        forget_temporary(tmp_path)
 
 
 def _read_umask() -> int:
@@ -65,5 +181,5 @@ def write_text_atomic(target: str | os.PathLike, text: str) -> None:
 
 def write_bytes_atomic(target: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``target`` atomically."""
-    with atomic_path(target) as tmp:
+    with atomic_path(target, need_bytes=len(data)) as tmp:
         tmp.write_bytes(data)

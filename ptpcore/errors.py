@@ -36,3 +36,19 @@ class DeviceError(PtpError):
 
 class CaptureError(PtpError):
     """A live capture cannot start or go on (folder, plan or exposure problem)."""
+
+
+class OutputError(PtpError):
+    """An output path cannot or must not be written (checked before the work starts).
+
+    The message names the path and the reason (missing or read-only folder, a
+    file of the input dataset, an existing file of another kind, an existing
+    result replaced without ``--force``).
+    """
+
+
+class DataWarning(UserWarning):
+    """The data look wrong though they can be processed (a stuck stage, MSB-aligned samples).
+
+    The message names the positions or the file and what to check.
+    """

@@ -528,12 +528,12 @@ def test_cli_compare(tmp_path, capsys):
     assert "not smoothed" in d["notes"][0] and d["folds"][0]["smooth_scale_px"] == 0
     assert "PTP smooth" in text
     assert main(["compare", str(data), "--out", str(out), "--points", "300", "--degree", "1", "--no-smooth",
-                 "-q"]) == 0
+                 "--force", "-q"]) == 0
     d = json.loads(out.read_text())
     assert d["config"]["methods"] == ["ptp", "3dstc"] and "smooth" not in d["references"]["truth"]
     (data / "truth.h5").unlink()
     assert main(["compare", str(data), "--out", str(out), "--points", "300", "--split", "loo", "--model", "poly",
-                 "--degree", "2", "--rational", "-q"]) == 0
+                 "--degree", "2", "--rational", "--force", "-q"]) == 0
     d = json.loads(out.read_text())
     assert set(d["references"]) == {"measured"} and d["config"]["split"] == "loo"
     # leave one out: 4 calibration positions per fold, a smooth LUT of degree 1 per fold

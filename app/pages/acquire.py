@@ -9,7 +9,7 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
                                QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
 
 from ptpcore.io import DatasetSource
-from ptpcore.run import collect_samples
+from ptpcore.run import check_samples, collect_samples
 from ptpcore.simulate import simulate_dataset
 from ptpcore.evaluate import REASON_ORDER
 from ptpcore.decode import REASON_NAMES
@@ -68,6 +68,7 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
         samples = collect_samples(TappedSource(src, ctx),
                                   progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
                                   on_position=on_position)
+        check_samples(samples)  # z_mm's sense (ConfigError), stuck positions (DataWarning; list returned)
         ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
         truth = session_truth(kind, rig, settings, seed, folder if kind == "folder" else write_folder)
         return samples, truth

@@ -134,11 +134,12 @@ class CalibratePage(StudioPage):
         # Two rows: the choices, then the fit and its progress (one row is wider than a laptop screen).
         row1 = QHBoxLayout()
         for w in (self.model_combo, self.degree, self.positions_combo, self.stage_sigma, self.level_bias,
-                  self.footprint, self.refine_stage):
+                  self.footprint):
             row1.addWidget(w)
         row1.addStretch(1)
         row2 = QHBoxLayout()
         row2.addWidget(self.fit_button)
+        row2.addWidget(self.refine_stage)
         row2.addWidget(self.make_job_panel(), 1)
         cl.addLayout(row1, 0, 0)
         cl.addLayout(row2, 1, 0)

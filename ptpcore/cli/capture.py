@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from ptpcore.cli.progress import progress_bar
+from ptpcore.cli.safety import existing_file, nonneg_float, positive_float, positive_int, seed
 
 __all__ = ["add_parser", "cmd_capture", "prompt_reading"]
 
@@ -57,6 +58,9 @@ def cmd_capture(args) -> int:
     from ptpcore.rig.rigfile import load_rig
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, preset, save_truth, scaled_preset
 
+    from ptpcore.io.outputs import check_output_folder
+
+    check_output_folder(args.out, resume=True)  # writable; the dataset checks are capture()'s own
     config = load_capture_config(args.config) if args.config else None
     camera_kind = args.camera or (config.camera.kind if config else "sim")
     stage_kind = args.stage or (config.stage.kind if config else "sim")
@@ -127,17 +131,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--camera", choices=["sim", "opencv", "genicam"],
                    help="camera (default: the config's, else sim; only sim works from the command line)")
     p.add_argument("--stage", choices=["sim", "manual", "serial"], help="stage (default: the config's, else sim)")
-    p.add_argument("--config", metavar="capture.toml", help="devices and the serial stage's protocol")
+    p.add_argument("--config", metavar="capture.toml", type=existing_file, help="devices and the serial stage's protocol")
     p.add_argument("--port", help="serial port (overrides stage.serial.port)")
-    p.add_argument("--rig", metavar="rig.toml", help="the rig to capture (default: the preset's)")
+    p.add_argument("--rig", metavar="rig.toml", type=existing_file, help="the rig to capture (default: the preset's)")
     p.add_argument("--preset", default="realistic", choices=list(PRESETS),
                    help="simulated rig and camera (default realistic)")
-    p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    p.add_argument("--width", type=int, help="camera width, same field of view (as ptp simulate)")
-    p.add_argument("--height", type=int, help="camera height (default keeps the aspect ratio)")
-    p.add_argument("--positions", type=int, help="number of stage positions (as ptp simulate)")
-    p.add_argument("--exposure-us", type=float, metavar="US", help="camera exposure in µs")
-    p.add_argument("--settle-ms", type=float, metavar="MS", help="wait after each pattern change (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="simulator seed (default 0)")
+    p.add_argument("--width", type=positive_int, help="camera width, same field of view (as ptp simulate)")
+    p.add_argument("--height", type=positive_int, help="camera height (default keeps the aspect ratio)")
+    p.add_argument("--positions", type=positive_int, help="number of stage positions (as ptp simulate)")
+    p.add_argument("--exposure-us", type=positive_float, metavar="US", help="camera exposure in µs")
+    p.add_argument("--settle-ms", type=nonneg_float, metavar="MS", help="wait after each pattern change (default 0)")
     p.add_argument("--ignore-exposure", action="store_true", help="capture even if the exposure check fails")
     p.add_argument("--no-check", action="store_true", help="skip the exposure check")
     p.add_argument("--resume", action="store_true", help="continue the partial capture in --out")

@@ -6,7 +6,7 @@ code 2 and one line naming the culprit, never a traceback.
 
 from __future__ import annotations
 
-import argparse
+import shutil
 import sys
 import tempfile
 import warnings
@@ -15,10 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from ptpcore import __version__
+from ptpcore.atomic import remove_temporaries
 from ptpcore.cli.progress import progress_bar
-from ptpcore.errors import Cancelled, PtpError
-
-EXIT_BAD_INPUT = 2
+from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLineParser, Terminated,
+                                existing_dir, existing_file, positive_int, quiet_broken_pipe,
+                                seed, signals_as_interrupts)
+from ptpcore.errors import Cancelled, OutputError, PtpError
+from ptpcore.io.outputs import check_output_file, check_output_folder
 
 
 # --------------------------------------------------------------------------- commands
@@ -26,6 +29,7 @@ EXIT_BAD_INPUT = 2
 def cmd_simulate(args) -> int:
     from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
 
+    check_output_folder(args.out_dir, force=args.force)
     rig, settings = preset(args.preset)
     if args.width or args.height or args.positions:
         # Same field of view and lens with another sensor size (see scaled_preset).
@@ -46,9 +50,7 @@ def cmd_simulate(args) -> int:
 def cmd_calibrate(args) -> int:
     from ptpcore.run.session import new_session, save_session
 
-    if args.session and Path(args.session).exists():
-        raise FileExistsError(f"{args.session}: session file exists; continue it with `ptp resume"
-                              f" {args.session}` or choose another name")
+    _check_calibrate_outputs(args)
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
@@ -59,13 +61,30 @@ def cmd_calibrate(args) -> int:
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
 
 
+def _check_calibrate_outputs(args) -> None:
+    """``--out`` and ``--session`` checked before anything is decoded."""
+    if args.session and Path(args.session).resolve() == Path(args.out).resolve():
+        raise OutputError(f"{args.out}: --out and --session name the same file")
+    if args.session and Path(args.session).exists() and not args.force:
+        raise OutputError(f"{args.session}: session file exists; continue it with `ptp resume"
+                          f" {args.session}`, choose another name, or add --force to replace it")
+    check_output_file(args.out, "lut", force=args.force, inputs=[args.dataset_dir])
+    if args.session:
+        check_output_file(args.session, "session", force=args.force, inputs=[args.dataset_dir])
+
+
 def cmd_resume(args) -> int:
     from ptpcore.run.session import load_session
 
     session = load_session(args.session_file)
     out = args.out or session.out
     if not out:
-        raise ValueError(f"{args.session_file}: the session names no LUT file; give --out FILE.lut.h5")
+        raise OutputError(f"{args.session_file}: the session names no LUT file; give --out FILE.lut.h5")
+    if Path(out).resolve() == Path(args.session_file).resolve():
+        raise OutputError(f"{out}: is the session file; give --out another name")
+    # The LUT the session names was checked (or --force given) when the calibration started.
+    check_output_file(out, "lut", force=args.force or not args.out,
+                      inputs=[session.dataset] if session.dataset else [])
     print(f"{args.session_file}: resuming after stage '{session.stage}'")
     return _finish_session(args, session, args.session_file, Path(out), validate=True)
 
@@ -218,6 +237,7 @@ def cmd_apply(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
         raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
+    check_output_file(out, "points", force=args.force, inputs=[args.lut_file])
     lut = load_lut(args.lut_file)
     z, z_text = _height_argument(args.z, lut.shape)
     cloud = lut.points(z, extrapolate=args.extrapolate)
@@ -275,7 +295,20 @@ def cmd_diff(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    if args.out:
+        check_output_folder(args.out, force=args.force)
+    workdir = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ptp-demo-"))
+    try:
+        return _demo(args, workdir)
+    finally:
+        if not args.out:  # the simulated images of a temporary folder (169 MB for realistic) go
+            shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _demo(args, workdir: Path) -> int:
+    """Simulate into ``workdir``, calibrate on every second position, report the others."""
     from ptpcore.evaluate.accuracy import held_out_accuracy
+    from ptpcore.fit.glass import correct_samples
     from ptpcore.fit.sigma import predicted_poly_sigma, sample_sigma
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.fit.perpixel import fit_lut
@@ -284,7 +317,6 @@ def cmd_demo(args) -> int:
     from ptpcore.simulate.virtual_rig import load_truth, preset, simulate_dataset
 
     rig, settings = preset(args.preset)
-    workdir = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ptp-demo-"))
     bar = progress_bar(args)
     try:
         print(f"simulating the '{args.preset}' rig into {workdir} ...", flush=True)
@@ -349,6 +381,7 @@ def cmd_compare(args) -> int:
     from ptpcore.run.pipeline import collect_samples
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
 
+    check_output_file(args.out, "report", force=args.force, inputs=[args.dataset_dir])
     source = DatasetSource(args.dataset_dir)
     truth = None
     truth_path = Path(args.dataset_dir) / TRUTH_FILE
@@ -393,30 +426,51 @@ def _add_diff_parser(sub) -> None:
     df.set_defaults(func=cmd_diff)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from ptpcore.io.lutfile import MODELS
-    from ptpcore.fit.models import LUT_MODELS
-    from ptpcore.simulate.virtual_rig import PRESETS
 
-    p = argparse.ArgumentParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
+_FORCE = "replace an existing file of the same kind (never a file of the input dataset)"
+
+
+def build_parser() -> OneLineParser:
+    """The ``ptp`` parser: every value checked by its type (one-line errors, exit 2)."""
+    p = OneLineParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
     p.add_argument("--version", action="version", version=f"ptp {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulate(sub)
+    _add_calibrate(sub)
+    _add_resume_inspect(sub)
+    _add_compare(sub)
+    _add_diff_parser(sub)
+    _add_demo(sub)
+    from ptpcore.cli.capture import add_parser as add_capture_parser
+
+    add_capture_parser(sub)  # ptp capture (ptpcore/cli/capture.py)
+    return p
+
+
+def _add_simulate(sub) -> None:
+    from ptpcore.simulate.virtual_rig import PRESETS
 
     s = sub.add_parser("simulate", help="render a ptp-dataset/1 folder with the virtual rig",
                        description="Render a ptp-dataset/1 folder (rig.toml, images, truth.h5) with the virtual rig.")
     s.add_argument("out_dir", metavar="OUT_DIR")
     s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--width", type=int, help="camera width in pixels, same field of view (default: the preset's)")
-    s.add_argument("--height", type=int, help="camera height in pixels (default: keeps the aspect ratio)")
-    s.add_argument("--positions", type=int, help="number of stage positions (default: the preset's)")
+    s.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
+    s.add_argument("--width", type=positive_int, help="camera width in pixels, same field of view"
+                                                      " (default: the preset's)")
+    s.add_argument("--height", type=positive_int, help="camera height in pixels (default: keeps the aspect ratio)")
+    s.add_argument("--positions", type=positive_int, help="number of stage positions (default: the preset's)")
     s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
+    s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 
+
+def _add_calibrate(sub) -> None:
+    from ptpcore.fit.models import LUT_MODELS
+
     c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
                        description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
-    c.add_argument("dataset_dir", metavar="DATASET_DIR")
+    c.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
     c.add_argument("--out", required=True, metavar="FILE.lut.h5")
     c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
                    help="auto: the most accurate of poly degrees 1-3 and smooth at held-out positions (the"
@@ -442,19 +496,23 @@ def build_parser() -> argparse.ArgumentParser:
                         " left out and counted, a position rejected at most pixels is named suspect and left out)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
+    c.add_argument("--force", action="store_true", help=_FORCE)
     c.add_argument("-q", "--quiet", action="store_true")
     c.set_defaults(func=cmd_calibrate)
 
+
+def _add_resume_inspect(sub) -> None:
     r = sub.add_parser("resume", help="continue a calibration session from its last completed stage",
                        description="Continue a ptp-session file from its last completed stage (decoding,"
                                    " LUT fit), saving it after each stage, then write the LUT file.")
-    r.add_argument("session_file", metavar="FILE.ptps.h5")
+    r.add_argument("session_file", metavar="FILE.ptps.h5", type=existing_file)
     r.add_argument("--out", metavar="FILE.lut.h5", help="LUT file to write (default: the one the session names)")
+    r.add_argument("--force", action="store_true", help=_FORCE)
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_resume)
 
     i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
-    i.add_argument("lut_file", metavar="FILE.lut.h5")
+    i.add_argument("lut_file", metavar="FILE.lut.h5", type=existing_file)
     i.set_defaults(func=cmd_inspect)
 
     a = sub.add_parser("apply", help="height map + LUT -> point cloud (PLY, .npy or .h5)",
@@ -462,25 +520,28 @@ def build_parser() -> argparse.ArgumentParser:
                                    " TIFF or .npy, (H, W), mm, NaN = no measurement) into a point cloud through a"
                                    " ptp-lut/1 file. Pixels invalid in the LUT or outside their own calibrated"
                                    " z range are left out and counted.")
-    a.add_argument("lut_file", metavar="FILE.lut.h5")
+    a.add_argument("lut_file", metavar="FILE.lut.h5", type=existing_file)
     a.add_argument("--z", required=True, metavar="Z", help="height in mm for every pixel, or a height-map file")
     a.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
                    help="binary little-endian PLY, a structured .npy array, or ptp-points/1 HDF5")
     a.add_argument("--extrapolate", action="store_true",
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
+    a.add_argument("--force", action="store_true", help="replace an existing point cloud")
     a.set_defaults(func=cmd_apply)
 
-    _add_diff_parser(sub)
+def _add_compare(sub) -> None:
+    from ptpcore.io.lutfile import MODELS
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
                         description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"
                                     " pinhole + Brown from feature points) on some positions, judge them at the others"
                                     " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
                                     " folder (simulated data) adds errors against the exact truth.")
-    cm.add_argument("dataset_dir", metavar="DATASET_DIR")
+    cm.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
     cm.add_argument("--out", required=True, metavar="REPORT.json")
-    cm.add_argument("--seed", type=int, default=0, help="seed of the feature points and point pairs (default 0)")
-    cm.add_argument("--points", type=int, default=2000, metavar="M", help="3DSTC feature points (default 2000)")
+    cm.add_argument("--seed", type=seed, default=0, help="seed of the feature points and point pairs (default 0)")
+    cm.add_argument("--points", type=positive_int, default=2000, metavar="M",
+                    help="3DSTC feature points (default 2000)")
     cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
                     help="hold out every second position (default) or leave one position out")
     cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
@@ -491,24 +552,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="polynomial degree 1-5 (poly only, default 3; also the smooth LUT's upper bound)")
     cm.add_argument("--no-smooth", dest="smooth", action="store_false",
                     help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
+    cm.add_argument("--force", action="store_true", help="replace an existing report")
     cm.add_argument("-q", "--quiet", action="store_true")
     cm.set_defaults(func=cmd_compare)
+
+
+def _add_demo(sub) -> None:
+    from ptpcore.simulate.virtual_rig import PRESETS
 
     d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
                        description="Simulate a rig, calibrate on every second position and report the accuracy"
                                    " at the others against the simulator's exact truth.")
     d.add_argument("--preset", default="realistic", choices=list(PRESETS))
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=seed, default=0)
     d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D")
-    d.add_argument("--out", help="keep the simulated dataset in this folder (default: a temporary folder)")
+    d.add_argument("--out", help="keep the simulated dataset in this folder (default: a temporary folder,"
+                                 " removed at the end)")
+    d.add_argument("--force", action="store_true", help="write into an --out folder that already holds a dataset")
     d.add_argument("--no-compare", dest="compare", action="store_false", help="skip the 3DSTC comparison")
     d.add_argument("-q", "--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
-
-    from ptpcore.cli.capture import add_parser as add_capture_parser
-
-    add_capture_parser(sub)  # ptp capture (ptpcore/cli/capture.py)
-    return p
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -517,22 +580,47 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 
 def main(argv=None) -> int:
+    """Run one ``ptp`` command; return its exit code.
+
+    0 done; 2 bad input or an output that cannot be written (one line on
+    stderr); 130 Ctrl-C; 143 SIGTERM; 141 standard output closed by its
+    reader. Every temporary file is removed on the way out, whatever ended
+    the command.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a bad argument (one line already printed)
+        return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
     warnings.simplefilter("default")
     warnings.showwarning = _show_warning
+    with signals_as_interrupts():
+        try:
+            code = _run(args)
+            sys.stdout.flush()
+            return code
+        except BrokenPipeError:
+            return quiet_broken_pipe()
+        finally:
+            remove_temporaries()
+
+
+def _run(args) -> int:
+    """The command, its failures turned into exit codes and one line each."""
     try:
         return args.func(args)
+    except BrokenPipeError:
+        raise
     except Cancelled:
         print("ptp: cancelled", file=sys.stderr)
-        return 130
+        return EXIT_SIGINT
+    except Terminated:
+        print("ptp: terminated (SIGTERM); temporary files removed", file=sys.stderr)
+        return EXIT_SIGTERM
     except KeyboardInterrupt:
         print("ptp: interrupted", file=sys.stderr)
-        return 130
-    except PtpError as exc:
-        print(f"ptp: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except (ValueError, OSError) as exc:
+        return EXIT_SIGINT
+    except (PtpError, ValueError, OSError) as exc:
         print(f"ptp: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

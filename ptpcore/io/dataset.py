@@ -326,12 +326,13 @@ def _decode(path: Path, rig: Rig) -> tuple[np.ndarray, bool]:
 def read_image(path: Path, rig: Rig) -> np.ndarray:
     """Read one single-channel image and check it against the rig.
 
-    Colour images are converted to grey with a warning.
+    Colour images are converted to grey with a warning. 16-bit samples are
+    shifted right by ``[camera] bit_shift`` (MSB-aligned samples, FORMATS.md).
 
     Returns
     -------
     (H, W) uint8 or uint16
-        Grey levels, not scaled.
+        Grey levels (counts), otherwise not scaled.
 
     Raises
     ------
@@ -344,7 +345,54 @@ def read_image(path: Path, rig: Rig) -> np.ndarray:
         raise DatasetError(f"{path}: {exc.detail}") from None
     if colour:
         _warn_colour(f"{path}: colour image converted to grey (and any others of this dataset)", rig)
+    shift = bit_shift(rig)
+    if shift and img.dtype == np.uint16:
+        np.right_shift(img, shift, out=img)
     return img
+
+
+def bit_shift(rig: Rig) -> int:
+    """``[camera] bit_shift`` of the rig: how far 16-bit samples are MSB-aligned (0: not)."""
+    return int(getattr(rig.camera, "bit_shift", 0) or 0)
+
+
+def check_bit_alignment(path, rig: Rig, low_bits: int = 4) -> str | None:
+    """Warn when a 16-bit image's low bits are all zero and the rig declares no ``bit_shift``.
+
+    Machine-vision cameras commonly store 12-bit samples MSB-aligned in 16-bit
+    files (value = counts << 4); read as counts they are 16 times too bright and
+    saturate the decoder's checks. Called with one image of the dataset.
+
+    Parameters
+    ----------
+    path : path
+        One image of the dataset (with signal: e.g. the first fringe of position 0).
+    rig : Rig
+    low_bits : int
+        Bits that must all be zero to suspect MSB alignment (4: 12-bit samples).
+
+    Returns
+    -------
+    str or None
+        The warning issued (``DataWarning``), or None.
+    """
+    from ptpcore.errors import DataWarning
+
+    if rig.camera.bit_depth <= 8 or bit_shift(rig):
+        return None
+    try:
+        img, _ = _decode(Path(path), rig)
+    except _Unusable:
+        return None  # reported by the validation with its reason
+    if img.dtype != np.uint16 or not img.any():
+        return None
+    if np.bitwise_or.reduce(img, axis=None) & ((1 << low_bits) - 1):
+        return None
+    msg = (f"{path}: every sample's low {low_bits} bits are zero: samples stored MSB-aligned in 16 bits?"
+           f" If so, add `bit_shift = {16 - rig.camera.bit_depth if rig.camera.bit_depth < 16 else low_bits}`"
+           " under [camera] in rig.toml")
+    warnings.warn(msg, DataWarning, stacklevel=2)
+    return msg
 
 
 # Rigs whose colour images were already reported: one warning per dataset, not one per file.

@@ -21,6 +21,7 @@ reading its images and fits a laptop's memory:
 
 from __future__ import annotations
 
+import errno
 import mmap
 import os
 import struct
@@ -30,6 +31,8 @@ import weakref
 from pathlib import Path
 
 import numpy as np
+
+from ptpcore.atomic import disk_full_error, forget_temporary, is_disk_full, register_temporary
 
 __all__ = ["read_into", "map_frame", "tiff_layout", "SpillStore", "read_block"]
 
@@ -215,6 +218,25 @@ def map_frame(path, shape, dtype) -> np.ndarray | None:
 # --------------------------------------------------------------------------- spill
 
 
+def _reserve(fh, nbytes: int) -> None:
+    """Give the file ``nbytes`` of real disk blocks now (not a sparse file).
+
+    A sparse file on a disk that fills is written through a memory map, and the
+    first page that finds no block kills the process (SIGBUS); reserved up
+    front, a full disk is an ``OSError(ENOSPC)`` before any work.
+    """
+    if nbytes <= 0:
+        return
+    if hasattr(os, "posix_fallocate"):
+        try:
+            os.posix_fallocate(fh.fileno(), 0, nbytes)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                raise
+    fh.truncate(nbytes)  # pragma: no cover - no fallocate (Windows allocates on truncate)
+
+
 class SpillStore:
     """``(K, H, W)`` arrays in one temporary file, written a position at a time.
 
@@ -249,16 +271,25 @@ class SpillStore:
             self.layout[name_] = (dt, offset)
             offset += self.k * self.pixels * dt.itemsize
         self.nbytes = offset
-        self._fh.truncate(offset)
         self._written = set()
         self._fill = dict(fill)
         self._finalizer = weakref.finalize(self, SpillStore._remove, self._fh, self.path)
+        register_temporary(self.path)
+        try:
+            _reserve(self._fh, offset)
+        except OSError as exc:
+            self._finalizer()
+            if is_disk_full(exc):
+                raise disk_full_error(self.path, offset, hint="the decoded samples' spill file; set"
+                                      " PTP_SPILL_DIR to a folder with more space") from None
+            raise
 
     @staticmethod
     def _remove(fh, path: Path) -> None:
         try:
             fh.close()
         finally:
+            forget_temporary(path)
             try:
                 path.unlink()
             except OSError:  # pragma: no cover - still mapped (Windows): the OS temp cleaner takes it

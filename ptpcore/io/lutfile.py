@@ -14,6 +14,8 @@ and reads a LUT, so scanners and tools can use it without the fitting code.
 from __future__ import annotations
 
 import datetime as _dt
+import io
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +24,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from ptpcore import __version__
-from ptpcore.atomic import atomic_path
+from ptpcore.atomic import atomic_path, disk_full_error, write_bytes_atomic
 from ptpcore.errors import FileFormatError
 from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
@@ -380,10 +382,57 @@ def save_lut(lut: Lut, path) -> None:
 
     A process killed during the write leaves the previous file (if any) intact.
     """
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            _lut_root_attrs(f)
-            _write_lut_group(f, lut)
+    def fill(f) -> None:
+        _lut_root_attrs(f)
+        _write_lut_group(f, lut)
+
+    write_hdf5_atomic(path, fill, _nbytes(lut.x, lut.y, lut.valid, lut.n_positions, lut.rms_x, lut.rms_y,
+                                          lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y))
+
+
+IN_MEMORY_MAX = 512 * 2 ** 20
+"""HDF5 files estimated larger than this (bytes, uncompressed) are written straight to disk."""
+
+
+def write_hdf5_atomic(path, fill, size_hint: int | None = None) -> None:
+    """Write an HDF5 file atomically, so that a full disk is one clean error.
+
+    HDF5 writing straight to a disk that fills leaves the library in a state
+    that prints tracebacks from finalizers and can crash the interpreter at
+    exit. Up to :data:`IN_MEMORY_MAX` the file is built in memory and reaches
+    the disk as one plain write: a full disk is one
+    :class:`~ptpcore.atomic.DiskFullError` naming the file and its size, the
+    temporary file removed. A bigger file (a session of a large sensor) is
+    written to disk directly, after checking that the disk has room for its
+    uncompressed size (refused up front otherwise: the same error).
+
+    Parameters
+    ----------
+    path : path
+        The file to write.
+    fill : callable
+        Called with the open, empty ``h5py.File``.
+    size_hint : int, optional
+        The data's uncompressed size in bytes (default: small).
+    """
+    if size_hint is not None and size_hint > IN_MEMORY_MAX:
+        need = int(size_hint) + 2 ** 20
+        folder = Path(path).parent
+        if shutil.disk_usage(folder if str(folder) else ".").free < need:
+            raise disk_full_error(path, need)
+        with atomic_path(path, need_bytes=need) as tmp:
+            with h5py.File(tmp, "w") as f:
+                fill(f)
+        return
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        fill(f)
+    write_bytes_atomic(path, buf.getbuffer())
+
+
+def _nbytes(*arrays) -> int:
+    """Total bytes of the arrays given (None skipped): a file's uncompressed size."""
+    return sum(int(a.nbytes) for a in arrays if a is not None)
 
 
 def _str_attr(value) -> str | None:

@@ -14,6 +14,7 @@ own calibrated range (unless extrapolating), or the LUT has no value there
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -214,7 +215,9 @@ def _write_ply(cloud: PointCloud, tmp: Path, comment: str) -> None:
 
 
 def _write_h5(cloud: PointCloud, tmp: Path, comment: str) -> None:
-    with h5py.File(tmp, "w") as f:
+    """``ptp-points/1`` built in memory, then written as one plain write (a full disk: one error)."""
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
         f.attrs["format"] = POINTS_FORMAT
         f.attrs["units"] = "mm"
         f.attrs["comment"] = comment
@@ -225,6 +228,7 @@ def _write_h5(cloud: PointCloud, tmp: Path, comment: str) -> None:
         for name in rec.dtype.names:
             f.create_dataset(name, data=rec[name], chunks=True if rec.size else None,
                              compression="gzip" if rec.size else None)
+    tmp.write_bytes(buf.getbuffer())
 
 
 def write_point_cloud(cloud: PointCloud, path, comment: str = "") -> Path:

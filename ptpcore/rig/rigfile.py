@@ -841,9 +841,12 @@ def load_rig(path: str | Path) -> Rig:
 
 
 def _read_text(path: Path) -> str:
-    """A UTF-8 configuration file's text; a missing or unreadable file is a ConfigError naming it."""
+    """A UTF-8 configuration file's text; a missing or unreadable file is a ConfigError naming it.
+
+    A leading byte-order mark (as Windows Notepad writes) is dropped.
+    """
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -112,10 +112,11 @@ class _DatasetReader:
     """
 
     def __init__(self, source, positions, depth: int = 3, map_files: bool | None = None):
-        from ptpcore.io.dataset import read_image
+        from ptpcore.io.dataset import bit_shift, read_image
         from ptpcore.io.fastio import map_frame, read_into
 
         self._read_image, self._read_into, self._map_frame = read_image, read_into, map_frame
+        self.shift = bit_shift(source.rig)
         self.map_files = fused_kernels() is not None if map_files is None else bool(map_files)
         self.source = source
         self.rig: Rig = source.rig
@@ -134,12 +135,15 @@ class _DatasetReader:
     def _read_one(self, args) -> np.ndarray:
         """One frame: mapped from its file, or read into ``out`` (returned)."""
         path, out = args
-        if self.map_files:
+        if self.map_files and not self.shift:
             mapped = self._map_frame(path, out.shape, out.dtype)
             if mapped is not None:
                 return mapped
-        if not self._read_into(path, out):
-            out[...] = self._read_image(path, self.rig)
+        if self._read_into(path, out):
+            if self.shift and out.dtype == np.uint16:  # [camera] bit_shift: MSB-aligned samples
+                np.right_shift(out, self.shift, out=out)
+        else:
+            out[...] = self._read_image(path, self.rig)  # shifted there
         return out
 
     def _run(self) -> None:
@@ -192,6 +196,16 @@ class _DatasetReader:
             except queue.Empty:
                 pass
         self.pool.shutdown(wait=True)
+
+
+def _check_alignment(source, positions) -> None:
+    """Warn when a dataset's 16-bit samples look MSB-aligned (:func:`ptpcore.io.dataset.check_bit_alignment`)."""
+    if not _is_dataset(source) or not positions:
+        return
+    from ptpcore.io.dataset import check_bit_alignment
+
+    d, _j, t, n, big_n = next(iter(source.rig.fringes.frames()))
+    check_bit_alignment(source.path(positions[0], d, t, n, big_n), source.rig)
 
 
 def _is_dataset(source) -> bool:
@@ -323,6 +337,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         raise ValueError("calibration needs fringes in both directions x and y")
     k_total = rig.stage.n_positions
     todo = list(range(k_total)) if positions is None else list(positions)
+    _check_alignment(source, todo)
     shape = rig.camera.shape
     z_all = np.asarray(rig.stage.z_mm, dtype=float)
     if spill is None:
@@ -468,6 +483,12 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
     -------
     lut : Lut
     samples : SampleStack
+
+    Raises
+    ------
+    ConfigError
+        The stage readings run the wrong way (:func:`ptpcore.run.sanity.check_samples`;
+        positions that look stuck are a ``DataWarning``).
     """
     def sub(lo, hi):
         if progress is None:
@@ -475,6 +496,10 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
         return lambda f, msg: progress(lo + (hi - lo) * f, msg)
 
     samples = collect_samples(source, options=options, positions=positions, progress=sub(0.0, 0.9), spill=spill)
+    from ptpcore.run.sanity import check_samples
+
+    check_samples(samples, positions=positions,
+                  source=str(source.folder / "rig.toml") if hasattr(source, "folder") else "rig.toml")
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=rig_to_toml(source.rig),
                   progress=sub(0.9, 1.0))
     return lut, samples

@@ -64,10 +64,9 @@ import h5py
 import numpy as np
 
 from ptpcore import __version__
-from ptpcore.atomic import atomic_path
 from ptpcore.errors import ConfigError, DatasetError, FileFormatError
-from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _read_lut_group, _str_attr,
-    _write_lut_group, check_format, open_hdf5)
+from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read_lut_group, _str_attr,
+    _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
 from ptpcore.fit.models import LUT_MODELS, fit_model
@@ -281,6 +280,9 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     DatasetError
         The dataset is gone, unusable, or its ``rig.toml`` no longer matches
         the session's.
+    ConfigError
+        The decoded samples contradict the stage readings' sense (``z_mm``
+        listed in reverse); positions that look stuck are a ``DataWarning``.
     """
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.run.pipeline import collect_samples
@@ -300,8 +302,10 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
                                    " (the dataset changed since the session started)")
             if validate:
                 source.validate()
-        session.samples = collect_samples(source, options=session.options, positions=session.positions,
-                                          progress=sub(0.0, 0.9))
+        samples = collect_samples(source, options=session.options, positions=session.positions,
+                                  progress=sub(0.0, 0.9))
+        _check_decoded(samples, session)
+        session.samples = samples
         if path is not None:
             save_session(session, path)
     if stop_after == "samples":
@@ -326,6 +330,14 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     if progress:
         progress(1.0, "session complete")
     return session
+
+
+def _check_decoded(samples: SampleStack, session: Session) -> None:
+    """The readings' sense and stuck positions (:func:`ptpcore.run.sanity.check_samples`)."""
+    from ptpcore.run.sanity import check_samples
+
+    where = str(Path(session.dataset) / "rig.toml") if session.dataset else "rig.toml"
+    check_samples(samples, positions=session.positions, source=where)
 
 
 # --------------------------------------------------------------------------- writing
@@ -365,53 +377,59 @@ def save_session(session: Session, path) -> None:
         The session is inconsistent (shapes differ from the rig).
     """
     _check_session(session)
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = SESSION_FORMAT
-            f.attrs["software"] = f"ptpcore {__version__}"
-            f.attrs["created"] = session.created
-            f.attrs["saved"] = _now()
-            f.attrs["stage"] = session.stage
-            f.create_group("rig").attrs["toml"] = rig_to_toml(session.rig)
-            f.create_group("fringes").attrs.update(_fringe_attrs(session.rig))
-            c = f.create_group("calibration")
-            c.attrs.update({"dataset": session.dataset or "", "model": session.model,
-                            "degree": int(session.degree), "out": session.out or "",
-                            "stage_sigma_um": float(session.stage_sigma_um),
-                            "level_bias": int(bool(session.level_bias)),
-                            "footprint": int(bool(session.footprint)),
-                            "refine_stage": int(bool(session.refine_stage)),
-                            "robust": int(bool(session.robust)),
-                            "min_modulation": float(session.options.min_modulation),
-                            "border_margin_px": int(session.options.border_margin_px)})
-            if session.positions is not None:
-                c["positions"] = np.asarray(session.positions, np.int64)
-            if session.sim_settings:
-                f.create_group("sim").attrs["settings"] = session.sim_settings
-            s = session.samples
-            if s is not None:
-                g = f.create_group("samples")
-                g["z"] = np.asarray(s.z, np.float64)
-                g.create_dataset("x", data=np.asarray(s.x, np.float32), **_OPTS)
-                g.create_dataset("y", data=np.asarray(s.y, np.float32), **_OPTS)
-                g.create_dataset("x_ref", data=np.asarray(s.x_ref, np.float64), **_OPTS)
-                g.create_dataset("y_ref", data=np.asarray(s.y_ref, np.float64), **_OPTS)
-                g.create_dataset("reasons", data=np.asarray(s.reasons, np.uint8), **_OPTS)
-                for name in ("modulation", "background"):
-                    arr = getattr(s, name)
-                    if arr is not None:
-                        g.create_dataset(name, data=np.asarray(arr, np.float32), **_OPTS)
-                noise = getattr(s, "noise", None)
-                if noise is not None:
-                    g.attrs.update({"noise_read_var": float(noise.read_var), "noise_gain": float(noise.gain)})
-            if session.lut is not None:
-                g = f.create_group("lut")
-                _lut_root_attrs(g)
-                _write_lut_group(g, session.lut)
-            if session.comparison is not None:
-                text = (session.comparison if isinstance(session.comparison, str)
-                        else json.dumps(session.comparison, default=_json_default))
-                f.create_group("comparison").attrs["json"] = text
+
+    def fill(f) -> None:
+        f.attrs["format"] = SESSION_FORMAT
+        f.attrs["software"] = f"ptpcore {__version__}"
+        f.attrs["created"] = session.created
+        f.attrs["saved"] = _now()
+        f.attrs["stage"] = session.stage
+        f.create_group("rig").attrs["toml"] = rig_to_toml(session.rig)
+        f.create_group("fringes").attrs.update(_fringe_attrs(session.rig))
+        c = f.create_group("calibration")
+        c.attrs.update({"dataset": session.dataset or "", "model": session.model,
+                        "degree": int(session.degree), "out": session.out or "",
+                        "stage_sigma_um": float(session.stage_sigma_um),
+                        "level_bias": int(bool(session.level_bias)),
+                        "footprint": int(bool(session.footprint)),
+                        "refine_stage": int(bool(session.refine_stage)),
+                        "robust": int(bool(session.robust)),
+                        "min_modulation": float(session.options.min_modulation),
+                        "border_margin_px": int(session.options.border_margin_px)})
+        if session.positions is not None:
+            c["positions"] = np.asarray(session.positions, np.int64)
+        if session.sim_settings:
+            f.create_group("sim").attrs["settings"] = session.sim_settings
+        s = session.samples
+        if s is not None:
+            g = f.create_group("samples")
+            g["z"] = np.asarray(s.z, np.float64)
+            g.create_dataset("x", data=np.asarray(s.x, np.float32), **_OPTS)
+            g.create_dataset("y", data=np.asarray(s.y, np.float32), **_OPTS)
+            g.create_dataset("x_ref", data=np.asarray(s.x_ref, np.float64), **_OPTS)
+            g.create_dataset("y_ref", data=np.asarray(s.y_ref, np.float64), **_OPTS)
+            g.create_dataset("reasons", data=np.asarray(s.reasons, np.uint8), **_OPTS)
+            for name in ("modulation", "background"):
+                arr = getattr(s, name)
+                if arr is not None:
+                    g.create_dataset(name, data=np.asarray(arr, np.float32), **_OPTS)
+            noise = getattr(s, "noise", None)
+            if noise is not None:
+                g.attrs.update({"noise_read_var": float(noise.read_var), "noise_gain": float(noise.gain)})
+        if session.lut is not None:
+            g = f.create_group("lut")
+            _lut_root_attrs(g)
+            _write_lut_group(g, session.lut)
+        if session.comparison is not None:
+            text = (session.comparison if isinstance(session.comparison, str)
+                    else json.dumps(session.comparison, default=_json_default))
+            f.create_group("comparison").attrs["json"] = text
+
+    s = session.samples
+    size = 0 if s is None else _nbytes(s.x, s.y, s.x_ref, s.y_ref, s.reasons, s.modulation, s.background)
+    if session.lut is not None:
+        size += _nbytes(session.lut.x, session.lut.y)
+    write_hdf5_atomic(path, fill, size)
 
 
 def _json_default(obj):

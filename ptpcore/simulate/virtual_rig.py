@@ -26,8 +26,9 @@ import cv2
 import h5py
 import numpy as np
 
-from ptpcore.atomic import atomic_path, write_bytes_atomic
+from ptpcore.atomic import write_bytes_atomic
 from ptpcore.errors import ConfigError
+from ptpcore.io.lutfile import write_hdf5_atomic
 from ptpcore.pinhole.lens import undistort_normalised
 from ptpcore.simulate.lcd_physics import LcdPhysics, draw_stage_poses, pose_matrix
 from ptpcore.decode.patterns import fringe_profile, fringe_values
@@ -662,18 +663,20 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
 def save_truth(path, vr: VirtualRig) -> None:
     """Write the ground truth rays and the simulator settings (HDF5, atomic)."""
     truth = vr.truth()
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = "ptp-truth/1"
-            f.attrs["settings"] = _settings_json(vr.settings, vr.seed)
-            for name in ("x0", "y0", "sx", "sy"):
-                f.create_dataset(name, data=getattr(truth, name), compression="gzip", compression_opts=1)
-            f["z_true"] = truth.z_true
-            f["stage_pose"] = truth.stage_pose
-            f["K"] = vr.K
-            f["dist"] = vr.dist
-            f["R_cam_world"] = vr.R
-            f["centre"] = vr.centre
+
+    def fill(f) -> None:
+        f.attrs["format"] = "ptp-truth/1"
+        f.attrs["settings"] = _settings_json(vr.settings, vr.seed)
+        for name in ("x0", "y0", "sx", "sy"):
+            f.create_dataset(name, data=getattr(truth, name), compression="gzip", compression_opts=1)
+        f["z_true"] = truth.z_true
+        f["stage_pose"] = truth.stage_pose
+        f["K"] = vr.K
+        f["dist"] = vr.dist
+        f["R_cam_world"] = vr.R
+        f["centre"] = vr.centre
+
+    write_hdf5_atomic(path, fill)
 
 
 def load_truth(path) -> tuple[GroundTruth, SimSettings, int]:

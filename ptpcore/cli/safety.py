@@ -1,0 +1,153 @@
+"""What every ``ptp`` command shares to end cleanly: argument types, signals, a closed pipe.
+
+- argument types that refuse bad values with one line (:func:`positive_int`,
+  :func:`seed`, :func:`existing_dir`, ...), and a parser whose errors are one
+  line and exit 2 (:class:`OneLineParser`);
+- SIGTERM handled like Ctrl-C (:func:`signals_as_interrupts`): the job stops
+  through the same ``finally`` blocks, every temporary file is removed, exit
+  143 (130 for Ctrl-C);
+- a closed standard output (``ptp inspect F | head -1``) ends quietly
+  (:func:`quiet_broken_pipe`, exit 141 as a shell reports SIGPIPE).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2
+EXIT_SIGINT = 130
+EXIT_SIGPIPE = 141
+EXIT_SIGTERM = 143
+
+__all__ = ["OneLineParser", "Terminated", "positive_int", "nonneg_int", "seed", "positive_float",
+           "nonneg_float", "existing_dir", "existing_file", "signals_as_interrupts", "quiet_broken_pipe",
+           "EXIT_BAD_INPUT", "EXIT_SIGINT", "EXIT_SIGPIPE", "EXIT_SIGTERM"]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: stops the job exactly as Ctrl-C does."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``ptp: error: ...``, as every error) and exit 2."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(EXIT_BAD_INPUT, f"ptp: error: {message} (see `{self.prog} --help`)\n")
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (pixels, positions, points)."""
+    value = _int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    return value
+
+
+def nonneg_int(text: str) -> int:
+    """An integer >= 0."""
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
+def seed(text: str) -> int:
+    """A random seed: an integer 0 .. 2**32 - 1 (what numpy and OpenCV accept everywhere)."""
+    value = _int(text)
+    if not 0 <= value < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"a seed is 0 .. 4294967295, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0, got {text}")
+    return value
+
+
+def nonneg_float(text: str) -> float:
+    """A finite number >= 0."""
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
+def existing_dir(text: str) -> str:
+    """A folder that exists."""
+    p = Path(text)
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder")
+    if not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: is a file, not a folder")
+    return text
+
+
+def existing_file(text: str) -> str:
+    """A file that exists."""
+    p = Path(text)
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: is a folder, not a file")
+    return text
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def signals_as_interrupts():
+    """SIGTERM raises :class:`Terminated` in the main thread while the block runs.
+
+    Ctrl-C (SIGINT) already raises :class:`KeyboardInterrupt`; both then unwind
+    through the writers' ``finally`` blocks, which remove their temporary
+    files. The previous handlers are restored afterwards. Outside the main
+    thread (a GUI worker) nothing is installed.
+    """
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGTERM"):
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def quiet_broken_pipe() -> int:
+    """Standard output was closed by its reader: point it at the null device, return exit 141.
+
+    Python would otherwise report the failed flush at exit as a traceback.
+    """
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    return EXIT_SIGPIPE
