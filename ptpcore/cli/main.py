@@ -214,6 +214,7 @@ def cmd_demo(args) -> int:
 def _demo(args, workdir: Path) -> int:
     """Simulate into ``workdir``, calibrate on every second position, report the others."""
     from ptpcore.evaluate.accuracy import held_out_accuracy
+    from ptpcore.fit.glass import correct_samples
     from ptpcore.fit.sigma import predicted_poly_sigma, sample_sigma
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.fit.perpixel import fit_lut
