@@ -95,7 +95,7 @@ def test_auto_is_within_5_percent_of_the_best_fixed_candidate(name, seed):
     assert auto <= fixed["poly 1"]
 
 
-def test_compare_auto_chooses_the_plain_lut_degree_per_fold():
+def test_compare_auto_chooses_the_plain_lut_degree_per_fold(tmp_path):
     """``ptp compare`` defaults to auto: the plain LUT is the poly degree (1-3) most accurate at positions
     held out of the fold's calibration positions; the degree is in the report and the summary."""
     from ptpcore.cli.main import build_parser
@@ -103,7 +103,7 @@ def test_compare_auto_chooses_the_plain_lut_degree_per_fold():
     from ptpcore.evaluate.protocol import AUTO_PLAIN
     from ptpcore.fit.choice import fit_auto
 
-    assert build_parser().parse_args(["compare", "d", "--out", "r.json"]).model == "auto"
+    assert build_parser().parse_args(["compare", str(tmp_path), "--out", "r.json"]).model == "auto"  # an existing folder
     vr, samples = _rig("rough", 3, positions=13)
     r = compare(samples, vr.rig, model="auto", with_smooth=False, n_points=300, n_pairs=500)
     (fold,) = r.folds
