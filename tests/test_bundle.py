@@ -232,7 +232,7 @@ def test_bundled_wizard_tour(bundle):
     folder, tmp = bundle
     out = tmp / "tour"
     env = _empty_env(tmp / "home-tour")
-    proc = subprocess.Popen([*env, str(folder / "ptp-studio"), "--tour", str(out)],
+    proc = subprocess.Popen([*env, str(folder / "ptp-studio"), "--tour", str(out)], cwd=tmp,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0, first_page, lines = time.monotonic(), None, []
     for line in proc.stdout:  # the tour prints each page's file as it writes it
@@ -260,12 +260,17 @@ def test_bundled_simulate_and_calibrate_run_the_numba_kernels(bundle):
     home = tmp / "home-cli"
     env = _empty_env(home)
     data, lut = tmp / "sim", tmp / "cal.lut.h5"
-    _ok(_run([*env, folder / "ptp", "simulate", data, "--width", 160, "--height", 120, "-q"], what="bundled ptp simulate"),
-        "the bundled ptp simulate")
-    rc = _ok(_run([*env, folder / "ptp", "calibrate", data, "--out", lut, "-q"], what="bundled ptp calibrate"),
-             "the bundled ptp calibrate")
+    # Run from a folder without a ptpcore/ source tree: numba, frozen, caches a kernel beside
+    # ptpcore/_fused.py relative to the working directory when that file exists there.
+    work = tmp / "cli"
+    work.mkdir()
+    _ok(_run([*env, folder / "ptp", "simulate", data, "--width", 160, "--height", 120, "-q"], cwd=work,
+             what="bundled ptp simulate"), "the bundled ptp simulate")
+    rc = _ok(_run([*env, folder / "ptp", "calibrate", data, "--out", lut, "-q"], cwd=work,
+                  what="bundled ptp calibrate"), "the bundled ptp calibrate")
     assert lut.is_file(), _output(rc)
-    r = _ok(_run([*env, folder / "ptp", "inspect", lut], what="bundled ptp inspect"), "the bundled ptp inspect")
+    r = _ok(_run([*env, folder / "ptp", "inspect", lut], cwd=work, what="bundled ptp inspect"),
+            "the bundled ptp inspect")
     assert "ptp-lut/1" in r.stdout and "160x120 px" in r.stdout, _output(r)
     # numba caches each compiled kernel under ~/.cache/numba: the fused kernels ran in the bundle
     # (without numba, or with its import broken, the engine would have run its numpy path).
@@ -275,9 +280,10 @@ def test_bundled_simulate_and_calibrate_run_the_numba_kernels(bundle):
         f"the numba kernels did not run in the bundle (cached: {sorted(kernels)})\n{_output(rc)}"
     # Run again: the kernels load from that cache, the same LUT comes out.
     again = tmp / "again.lut.h5"
-    r2 = _ok(_run([*env, folder / "ptp", "calibrate", data, "--out", again, "-q"], what="bundled ptp calibrate, cached"),
-             "the bundled ptp calibrate (second run)")
-    r3 = _ok(_run([*env, folder / "ptp", "inspect", again], what="bundled ptp inspect"), "the bundled ptp inspect")
+    r2 = _ok(_run([*env, folder / "ptp", "calibrate", data, "--out", again, "-q"], cwd=work,
+                  what="bundled ptp calibrate, cached"), "the bundled ptp calibrate (second run)")
+    r3 = _ok(_run([*env, folder / "ptp", "inspect", again], cwd=work, what="bundled ptp inspect"),
+             "the bundled ptp inspect")
     assert r3.stdout.replace(str(again), str(lut)) == r.stdout.replace(str(again), str(lut)), \
         f"a second calibration of the same data differs:\n{r.stdout}\n{r3.stdout}"
     print(f"bundled calibrate 160x120: {rc.seconds:.1f} s with the kernels compiled, {r2.seconds:.1f} s from the cache")
