@@ -218,7 +218,9 @@ def test_bundle_size_and_contents(bundle):
     modules = set(pkg.open_embedded_archive("PYZ.pyz").toc)
     stray = sorted(m for m in modules if m.split(".")[0] in ("tests", "benchmarks", "conftest"))
     assert not stray, f"modules of the project's tests or benchmarks in the bundle: {stray}"
-    assert "ptpcore._fused" in modules and "numba" in modules  # the kernels are shipped
+    assert [m for m in modules if m.split(".")[-1] == "_fused" and m.startswith("ptpcore.")], \
+        "the numba kernels (ptpcore.decode._fused) are not in the bundle"
+    assert "numba" in modules and "llvmlite" in modules
     # The resources, as ptp_studio.assets looks them up (sys._MEIPASS/resources).
     for p in (ROOT / "resources").rglob("*"):
         if p.is_file() and p.name != "__init__.py" and "__pycache__" not in p.parts:
@@ -261,7 +263,7 @@ def test_bundled_simulate_and_calibrate_run_the_numba_kernels(bundle):
     env = _empty_env(home)
     data, lut = tmp / "sim", tmp / "cal.lut.h5"
     # Run from a folder without a ptpcore/ source tree: numba, frozen, caches a kernel beside
-    # ptpcore/_fused.py relative to the working directory when that file exists there.
+    # ptpcore/decode/_fused.py relative to the working directory when that file exists there.
     work = tmp / "cli"
     work.mkdir()
     _ok(_run([*env, folder / "ptp", "simulate", data, "--width", 160, "--height", 120, "-q"], cwd=work,
