@@ -5,8 +5,9 @@ not the work tree) in a temporary folder:
 
 - the PyInstaller bundle, then run with an empty environment (``env -i``, PATH=/usr/bin:/bin,
   HOME a fresh folder, offscreen Qt): ``ptp-studio --tour`` (every page, none blank), ``ptp
-  demo``, ``ptp simulate`` + ``ptp calibrate`` + ``ptp inspect`` (the numba kernels compiled in
-  the bundle: their cache appears under HOME), its size and that no test or benchmark is inside;
+  demo``, ``ptp simulate`` + ``ptp calibrate`` + ``ptp inspect`` + ``ptp apply`` (the numba
+  kernels compiled in the bundle: their cache appears under HOME), every subcommand's ``--help``,
+  its size and that no test or benchmark is inside;
 - the wheel (``pip wheel . --no-deps``, no setuptools warning), installed without ``-e`` in a
   fresh venv (``--system-site-packages`` for numpy, Qt, ...; ptpcore and ptp_studio from the
   wheel), then ``ptp demo`` and ``ptp-studio --tour``.
@@ -260,7 +261,7 @@ def test_bundled_demo(bundle):
 
 
 @pytest.mark.slow
-def test_bundled_simulate_and_calibrate_run_the_numba_kernels(bundle):
+def test_bundled_cli_simulate_calibrate_apply_with_the_numba_kernels(bundle):
     folder, tmp = bundle
     home = tmp / "home-cli"
     env = _empty_env(home)
@@ -277,6 +278,17 @@ def test_bundled_simulate_and_calibrate_run_the_numba_kernels(bundle):
     r = _ok(_run([*env, folder / "ptp", "inspect", lut], cwd=work, what="bundled ptp inspect"),
             "the bundled ptp inspect")
     assert "ptp-lut/1" in r.stdout and "160x120 px" in r.stdout, _output(r)
+    cloud = tmp / "cloud.ply"
+    ra = _ok(_run([*env, folder / "ptp", "apply", lut, "--z", 20, "--out", cloud], cwd=work, what="bundled ptp apply"),
+             "the bundled ptp apply")
+    assert cloud.is_file() and cloud.read_bytes()[:4] == b"ply\n", _output(ra)
+    # Every subcommand answers --help (its parser and the modules it imports are bundled).
+    rh = _ok(_run([*env, folder / "ptp", "--help"], cwd=work, what="bundled ptp --help"), "the bundled ptp --help")
+    commands = re.findall(r"^    (\w+)\s", rh.stdout, flags=re.M)
+    assert {"simulate", "calibrate", "demo", "apply", "capture"} <= set(commands), rh.stdout
+    for command in commands:
+        _ok(_run([*env, folder / "ptp", command, "--help"], cwd=work, what=f"bundled ptp {command} --help"),
+            f"the bundled ptp {command} --help")
     # numba caches each compiled kernel under ~/.cache/numba: the fused kernels ran in the bundle
     # (without numba, or with its import broken, the engine would have run its numpy path).
     cached = sorted(p.name for p in (home / ".cache" / "numba").rglob("_fused.*.nbi"))
