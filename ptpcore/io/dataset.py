@@ -510,9 +510,13 @@ def validate_dataset(folder, rig: Rig | None = None, *, full: bool = False, work
         rig = load_rig(toml_path)
     if check_design:
         check_calibration_design(rig, str(toml_path))
-    names = [rig.image_name(k, d, t, n, big_n)
+    names = [rig.image_name(k, d, t, n, big_n, j)
              for k in range(rig.stage.n_positions)
-             for d, _j, t, n, big_n in rig.fringes.frames()]
+             for d, j, t, n, big_n in rig.fringes.frames()]
+    names += [rig.gray_name(k, d, b, inv) for k in range(rig.stage.n_positions)
+              for d, b, inv in rig.fringes.gray_frames()]
+    names += [n for k in range(rig.stage.n_positions) for n in (rig.reference_name(k, "white"),
+                                                              rig.reference_name(k, "black")) if n]
     dupes = [n for n, c in Counter(names).items() if c > 1]
     if dupes:
         raise ConfigError(f"{toml_path}: key 'images.template' gives several images the same name"
@@ -588,8 +592,24 @@ class DatasetSource:
         self.rig = load_rig(self.folder / "rig.toml")
         self.workers = workers
 
-    def path(self, k: int, direction: str, period: int, step: int, n_steps: int) -> Path:
-        return self.folder / self.rig.image_name(k, direction, period, step, n_steps)
+    def path(self, k: int, direction: str, period, step: int, n_steps: int, level: int | None = None) -> Path:
+        return self.folder / self.rig.image_name(k, direction, period, step, n_steps, level)
+
+    def gray_frames(self, k: int) -> dict:
+        """``{(dir, bit, inverse): image}``: the Gray-code frames of position ``k``."""
+        specs = list(self.rig.fringes.gray_frames())
+        paths = [self.folder / self.rig.gray_name(k, d, b, inv) for d, b, inv in specs]
+        with ThreadPoolExecutor(self.workers) as pool:
+            return dict(zip(specs, pool.map(lambda p: read_image(p, self.rig), paths)))
+
+    def reference_frames(self, k: int) -> dict:
+        """``{"white": image, "black": image}`` of position ``k`` (empty without them)."""
+        out = {}
+        for which in ("white", "black"):
+            name = self.rig.reference_name(k, which)
+            if name is not None:
+                out[which] = read_image(self.folder / name, self.rig)
+        return out
 
     def validate(self, **kwargs) -> DatasetReport:
         """:func:`validate_dataset` of this folder with this source's rig."""
@@ -597,7 +617,7 @@ class DatasetSource:
 
     def frames(self, k: int):
         specs = list(self.rig.fringes.frames())
-        paths = [self.path(k, d, t, n, big_n) for d, _j, t, n, big_n in specs]
+        paths = [self.path(k, d, t, n, big_n, j) for d, j, t, n, big_n in specs]
         with ThreadPoolExecutor(self.workers) as pool:
             for spec, img in zip(specs, pool.map(lambda p: read_image(p, self.rig), paths)):
                 yield spec, img
