@@ -291,7 +291,7 @@ def test_colour_images_pass_with_one_warning(case):
     for p in sorted(ds.rglob("z000/y_*.png")):
         grey = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         p.write_bytes(_png(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)))
-    with pytest.warns(UserWarning, match="20 colour images will be converted to grey") as rec:
+    with pytest.warns(UserWarning, match="20 colour images will be decoded from their BT.601 luminance") as rec:
         report = validate_dataset(ds)
     assert len(rec) == 1 and len(report.colour) == 20
 
@@ -304,7 +304,7 @@ def test_colour_dataset_calibrates_with_one_warning_line(case, capfd):
     capfd.readouterr()
     assert main(["calibrate", str(ds), "--out", str(out / "c.lut.h5"), "--degree", "1", "-q"]) == 0
     err = capfd.readouterr().err.splitlines()
-    assert err == [f"ptp: warning: {ds}: 24 colour images will be converted to grey (e.g. z000/x_T32_n00.png)"]
+    assert err == [f"ptp: warning: {ds}: 24 colour images will be decoded from their BT.601 luminance (e.g. z000/x_T32_n00.png)"]
 
 
 def test_extra_files_are_ignored(case):

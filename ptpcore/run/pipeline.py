@@ -125,8 +125,11 @@ class _DatasetReader:
         self.sets = _set_order(self.rig)
         n_max = max(n for *_, n in self.sets)
         self.free: queue.Queue = queue.Queue()
+        self.dtype = np.dtype(np.float32) if getattr(source, "colour", False) else np.dtype(_frame_dtype(self.rig))
+        if self.dtype == np.float32:
+            self.map_files = False
         for _ in range(depth):
-            self.free.put(np.empty((n_max, *self.rig.camera.shape), _frame_dtype(self.rig)))
+            self.free.put(np.empty((n_max, *self.rig.camera.shape), self.dtype))
         self.out: queue.Queue = queue.Queue()
         self.stop = threading.Event()
         self.pool = ThreadPoolExecutor(tile_workers(), thread_name_prefix="ptp-read")
@@ -140,11 +143,14 @@ class _DatasetReader:
             mapped = self._map_frame(path, out.shape, out.dtype)
             if mapped is not None:
                 return mapped
-        if self._read_into(path, out):
+        if out.dtype != np.float32 and self._read_into(path, out):
             if self.shift and out.dtype == np.uint16:  # [camera] bit_shift: MSB-aligned samples
                 np.right_shift(out, self.shift, out=out)
         else:
-            out[...] = self._read_image(path, self.rig)  # shifted there
+            img = self._read_image(path, self.rig)  # shifted there
+            if img.dtype.kind == "f" and out.dtype.kind != "f":
+                img = np.rint(img)  # a colour image among grey ones (DatasetSource.colour looks at position 0)
+            out[...] = img
         return out
 
     def _run(self) -> None:
