@@ -26,6 +26,17 @@ MIN_NEIGHBOURS = 8
 ROWS_PER_CHUNK = 64
 
 
+def _nanmedian0(stack: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(stack, axis=0)`` by one sort (NaN sort last): many times faster."""
+    s = np.sort(stack, axis=0)
+    n = np.count_nonzero(~np.isnan(stack), axis=0)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(s, (n // 2)[None], axis=0)[0] if s.shape[0] else lo
+    out = 0.5 * (lo + hi)
+    out[n == 0] = np.nan
+    return out
+
+
 def _offsets(radius: int, step: int) -> list[tuple[int, int]]:
     r = range(-radius, radius + 1, step)
     return [(dr, dc) for dr in r for dc in r if (dr, dc) != (0, 0)]
@@ -69,12 +80,12 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
             r1 = min(h, r0 + ROWS_PER_CHUNK)
             sl = [(r0 + pad + dr, r1 + pad + dr, pad + dc, pad + dc + w) for dr, dc in offs]
             centre = (r0 + pad, r1 + pad, pad, pad + w)
-            g_c = np.nanmedian(np.stack([gcp[a:b, e:f] for a, b, e, f in sl + [centre]]), axis=0)
-            g_r = np.nanmedian(np.stack([grp[a:b, e:f] for a, b, e, f in sl + [centre]]), axis=0)
+            g_c = _nanmedian0(np.stack([gcp[a:b, e:f] for a, b, e, f in sl + [centre]]))
+            g_r = _nanmedian0(np.stack([grp[a:b, e:f] for a, b, e, f in sl + [centre]]))
             carried = np.stack([cp[a:b, e:f] - g_c * dc - g_r * dr
                                 for (a, b, e, f), (dr, dc) in zip(sl, offs)])
             n = np.count_nonzero(np.isfinite(carried), axis=0)
-            pred = np.nanmedian(carried, axis=0)
+            pred = _nanmedian0(carried)
             res = c[r0:r1] - pred
             res[n < MIN_NEIGHBOURS] = np.nan
             resid[r0:r1] = res
