@@ -9,10 +9,9 @@ images. The phase then gives the absolute coarse phase
 ``Phi_0 = phi_0 + 2 pi m``, corrected by one cycle where the code's edge and
 the phase's jump disagree (blur puts them a pixel apart).
 
-A pixel fails ("Gray-code failure") when a bit is undecidable away from its
-cycle's edges (its margin from the threshold below a quarter of the fringe
-modulation there, where no edge excuses it) or when the phase falls outside its
-Gray cell by more than the unwrapping tolerance.
+A pixel fails ("Gray-code failure") when a bit is undecidable (its margin
+from the threshold below a quarter of the fringe modulation) other than the
+bit that flips at the cell edge the pixel sits on.
 """
 
 from __future__ import annotations
@@ -44,8 +43,8 @@ def gray_to_index(bits) -> np.ndarray:
     return index
 
 
-def gray_index(frames, inverses=None, *, white=None, black=None, background=None,
-               modulation=None) -> tuple[np.ndarray, np.ndarray]:
+def gray_index(frames, inverses=None, *, white=None, black=None, background=None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Decode the cycle index ``m`` of every pixel.
 
     Parameters
@@ -58,15 +57,13 @@ def gray_index(frames, inverses=None, *, white=None, black=None, background=None
         All-on and all-off frames: threshold ``(white + black) / 2``.
     background : (H, W) array, optional
         Threshold when neither is given: the phase-shifted images' mean ``A``.
-    modulation : (H, W) array, optional
-        Fringe modulation ``B``: a bit is undecidable where its margin from the
-        threshold is below :data:`UNDECIDED_FRACTION` of it. Without it no bit is.
 
     Returns
     -------
     index : (H, W) int32
-    undecided : (B, H, W) bool
-        Per bit, whether it was too close to its threshold to tell.
+    contrast : (B, H, W) float32
+        Per bit, the distance of the image from its threshold (grey levels; with
+        inverses half their difference): how clearly the bit was decided.
     """
     n = len(frames)
     if n == 0:
@@ -80,8 +77,7 @@ def gray_index(frames, inverses=None, *, white=None, black=None, background=None
         else:
             raise ValueError("Gray code needs inverse frames, white and black frames, or the background")
     bits = np.empty((n, *shape), bool)
-    undecided = np.zeros((n, *shape), bool)
-    margin = None if modulation is None else UNDECIDED_FRACTION * np.asarray(modulation, np.float32)
+    contrast = np.empty((n, *shape), np.float32)
     for b in range(n):
         img = np.asarray(frames[b], np.float32)
         if inverses is not None:
@@ -89,14 +85,40 @@ def gray_index(frames, inverses=None, *, white=None, black=None, background=None
         else:
             diff = img - thr
         bits[b] = diff > 0
-        if margin is not None:
-            undecided[b] = ~(np.abs(diff) >= margin)
-    return gray_to_index(bits), undecided
+        contrast[b] = np.abs(diff)
+    return gray_to_index(bits), contrast
 
 
-def absolute_coarse_phase(phase0, index, undecided=None, tolerance: float = 0.25
+def _edge_bit(m: np.ndarray, n_bits: int) -> np.ndarray:
+    """Bit (0 = most significant) that flips between cells ``m`` and ``m + 1``; -1 where ``m + 1``
+    does not exist (or ``m < 0``)."""
+    m = np.asarray(m, np.int64)
+    flip = (m ^ (m >> 1)) ^ ((m + 1) ^ ((m + 1) >> 1))
+    pos = np.zeros(m.shape, np.int64)
+    f = flip.copy()
+    for _ in range(n_bits):
+        more = f > 1
+        pos += more
+        f = np.where(more, f >> 1, f)
+    bit = n_bits - 1 - pos
+    return np.where((m >= 0) & (m + 1 < (1 << n_bits)), bit, -1)
+
+
+def _contrast_of(contrast: np.ndarray, bit: np.ndarray) -> np.ndarray:
+    """``contrast[bit]`` per pixel; +inf where ``bit`` is -1."""
+    got = np.take_along_axis(contrast, np.maximum(bit, 0)[None], axis=0)[0].astype(np.float64)
+    return np.where(bit >= 0, got, np.inf)
+
+
+def absolute_coarse_phase(phase0, index, contrast=None, modulation=None, tolerance: float = 0.25
                           ) -> tuple[np.ndarray, np.ndarray]:
     """``Phi_0 = phi_0 + 2 pi m``, corrected by the phase at the cells' edges.
+
+    Near a cell's edge (the phase within ``tolerance`` of its jump) blur leaves
+    the bit that flips there undecided, and the code may name the neighbouring
+    cell. The phase says which edge the pixel is at; of the two cells that edge
+    could belong to, the one whose edge bit is the weakly decided one is taken
+    (the other's edge bit must then be at most half as clear as the code's own).
 
     Parameters
     ----------
@@ -104,30 +126,40 @@ def absolute_coarse_phase(phase0, index, undecided=None, tolerance: float = 0.25
         Wrapped phase of the coarsest level (radians, any 2 pi range).
     index : (H, W) int
         Gray-code cycle index m.
-    undecided : (B, H, W) bool, optional
-        From :func:`gray_index`.
+    contrast : (B, H, W) array, optional
+        From :func:`gray_index`; without it no correction and no failure test.
+    modulation : (H, W) array, optional
+        Fringe modulation B: a bit is undecided where its contrast is below
+        :data:`UNDECIDED_FRACTION` of it.
     tolerance : float
-        Cycles the phase may lie outside its Gray cell.
+        Cycles: how near the phase jump the edge rule applies.
 
     Returns
     -------
     Phi0 : (H, W) float64
         Absolute coarse phase.
     failed : (H, W) bool
-        Gray-code failure: an undecided bit away from the cell's edges, or the
-        phase more than ``tolerance`` cycles outside its Gray cell.
+        Gray-code failure: a bit undecided other than the edge bit of a pixel at
+        its cell's edge.
     """
     two_pi = 2.0 * np.pi
     frac = np.mod(np.asarray(phase0, np.float64), two_pi) / two_pi  # position inside a cycle, [0, 1)
-    m = np.asarray(index, np.float64)
-    # The cycle nearest the Gray cell's centre m + 1/2 that holds this phase.
-    cycle = np.rint(m + 0.5 - frac)
-    coord = cycle + frac  # in cycles of T_0
-    outside = np.maximum(m - coord, coord - (m + 1.0))  # < 0 inside the Gray cell
-    failed = ~(outside <= tolerance)
-    if undecided is not None and undecided.shape[0]:
-        # An undecided bit is normal at a cell edge, where the code flips: only
-        # away from every edge (by the tolerance) is it a failure.
-        near_edge = (frac < tolerance) | (frac > 1.0 - tolerance)
-        failed |= undecided.any(axis=0) & ~near_edge
-    return coord * two_pi, failed
+    m = np.asarray(index, np.int64)
+    failed = np.zeros(m.shape, bool)
+    if contrast is None:
+        return (m + frac) * two_pi, failed
+    n_bits = contrast.shape[0]
+    low_bit = _edge_bit(m - 1, n_bits)  # edge between m - 1 and m
+    up_bit = _edge_bit(m, n_bits)  # edge between m and m + 1
+    c_low, c_up = _contrast_of(contrast, low_bit), _contrast_of(contrast, up_bit)
+    start = frac < tolerance  # just after a phase jump: at the lower edge of the true cell
+    end = frac > 1.0 - tolerance  # just before one: at its upper edge
+    up = start & (c_up < 0.5 * c_low)  # the code has not switched yet: the cell above
+    down = end & (c_low < 0.5 * c_up)  # the code switched early: the cell below
+    cell = m + up - down
+    if modulation is not None:
+        undecided = contrast < UNDECIDED_FRACTION * np.asarray(modulation, np.float32)[None]
+        allowed = np.where(start, np.where(up, up_bit, low_bit), np.where(end, np.where(down, low_bit, up_bit), -1))
+        b = np.arange(n_bits).reshape(-1, *([1] * m.ndim))
+        failed = np.any(undecided & (b != allowed[None]), axis=0)
+    return (cell + frac) * two_pi, failed

@@ -115,7 +115,7 @@ def _score(raw: list[np.ndarray], periods, sign: int, origins: np.ndarray, shift
            tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """For each candidate origin: the fraction of pixels whose phases (``raw``: the plain N-step
     phases, per level) unwrap without disagreement onto the LCD under ``(sign, origin)``, and
-    the mean absolute unwrapping residual (radians) over those pixels."""
+    the median absolute unwrapping residual (radians) over those pixels."""
     two_pi = 2 * np.pi
     o = np.asarray(origins, np.float64)[:, None]
     phases = [np.mod(sign * r[None, :] - o, two_pi) for r in raw]
@@ -131,9 +131,10 @@ def _score(raw: list[np.ndarray], periods, sign: int, origins: np.ndarray, shift
     coord = un * periods[-1] / two_pi - shift
     ok &= (coord >= -0.5) & (coord <= extent - 0.5)
     frac = ok.mean(axis=1)
-    with np.errstate(invalid="ignore"):
-        mean_resid = np.where(ok, resid, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
-    return frac, mean_resid
+    r = np.sort(np.where(ok, resid, np.inf), axis=1)
+    n = ok.sum(axis=1)
+    median = np.where(n > 0, r[np.arange(r.shape[0]), np.maximum(n - 1, 0) // 2], np.inf)
+    return frac, median
 
 
 def convention_check(rig: Rig, pos: DecodedPosition, options: DecodeOptions = DecodeOptions(),
@@ -170,27 +171,33 @@ def convention_check(rig: Rig, pos: DecodedPosition, options: DecodeOptions = De
         extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
         shift = f.carrier(d) * pos.z_mm
         tol = options.unwrap_tolerance
-        configured = float(_score(raw, periods, s0, np.array([o0]), shift, extent, tol)[0][0])
-        best = (configured, s0, o0)
+        conf_score, conf_resid = _score(raw, periods, s0, np.array([o0]), shift, extent, tol)
+        configured = float(conf_score[0])
         grid = np.radians(np.arange(360.0))
+        cands = []
         for sign in (s0, -s0):
             scores, resid = _score(raw, periods, sign, grid, shift, extent, tol)
             top = scores.max()
-            if top <= best[0] + 1e-12:
-                continue
             # Of the origins that decode as many pixels (a whole arc does, within the
             # tolerance), the one with the smallest unwrapping residuals; snapped to 15
             # degrees when close.
-            cand = np.flatnonzero(scores >= top - 0.01)
-            o = float(grid[cand[np.argmin(resid[cand])]])
+            near = np.flatnonzero(scores >= top - 0.01)
+            o = float(grid[near[np.argmin(resid[near])]])
             fine = o + np.radians(np.linspace(-1.0, 1.0, 41))
             fs, fr = _score(raw, periods, sign, fine, shift, extent, tol)
-            o = float(fine[np.argmin(np.where(fs >= top - 0.01, fr, np.inf))])
+            i = int(np.argmin(np.where(fs >= top - 0.01, fr, np.inf)))
+            o, r = float(fine[i]), float(fr[i])
             snap = math.radians(15.0) * round(math.degrees(o) / 15.0)
-            if abs(math.remainder(o - snap, 2 * math.pi)) < math.radians(3.0):
-                o = snap
-            best = (top, sign, o)
-        sc, sign, o = best
+            round_ = abs(math.remainder(o - snap, 2 * math.pi)) < math.radians(3.0)
+            cands.append((float(top), sign, snap if round_ else o, r, round_))
+        # A clearly higher score wins. Between nearly equal ones (a mirrored map can decode
+        # as consistently as the true one, e.g. when the periods are the screen over
+        # n - 0.1 cycles), the round origin (real generators use 0, pi, 2 pi / 3, ...),
+        # then the smaller unwrapping residuals.
+        top = max(c[0] for c in cands)
+        pick = min((c for c in cands if c[0] >= top - 0.01), key=lambda c: (not c[4], c[3]))
+        best = (pick[0], pick[1], pick[2], pick[3])
+        sc, sign, o, _r = best
         if sc >= 0.5 and sc >= configured + 0.2:
             settings = []
             if sign != s0:

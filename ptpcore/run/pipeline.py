@@ -326,10 +326,10 @@ def _gray_unwrap(rig: Rig, k: int, source, levels: dict, options: DecodeOptions)
         imgs = [frames[(d, b, False)] for b in bits]
         inv = [frames[(d, b, True)] for b in bits] if f.gray_inverse else None
         bg = coarse.background if coarse.background is not None else levels[d][-1].background
-        index, undecided = gray_index(imgs, inv, white=refs.get("white"), black=refs.get("black"),
-                                      background=bg, modulation=coarse.modulation)
+        index, contrast = gray_index(imgs, inv, white=refs.get("white"), black=refs.get("black"), background=bg)
         # The code counts cycles of u + s: the carrier moves it with the fringes.
-        phi0, failed = absolute_coarse_phase(coarse.phase, index, undecided, options.unwrap_tolerance)
+        phi0, failed = absolute_coarse_phase(coarse.phase, index, contrast, coarse.modulation,
+                                             options.unwrap_tolerance)
         out[d] = (phi0, failed)
     return out
 
