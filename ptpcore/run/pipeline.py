@@ -518,6 +518,9 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                 else:  # on its own thread (in order), off the decoding's path
                     noise_jobs.append(writer.submit(noise.add, *args))
             fallback.extend(_neighbourhood_noise_dn(rig, pos))
+            for d, (t, n) in pos.info.get("noise_levels", {}).items():
+                if float(t) != float(rig.fringes.periods(d)[-1]):
+                    noise.source = f"residual of period {float(t):g} px (N = {n})"
             if on_position:
                 on_position(pos)
     finally:
