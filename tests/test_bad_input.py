@@ -67,7 +67,8 @@ def _run_bad(capfd, ds: Path, out: Path, *culprits: str) -> str:
     lut = out / "calib.lut.h5"
     before = lut.read_bytes()
     capfd.readouterr()
-    code = main(["calibrate", str(ds), "--out", str(lut), "--session", str(out / "s.ptps.h5"), "--force", "-q"])
+    code = main(["calibrate", str(ds), "--out", str(lut), "--session", str(out / "s.ptps.h5"), "--force",
+                 "--degree", "1", "-q"])
     captured = capfd.readouterr()
     err = captured.err
     assert code == 2, err
@@ -339,7 +340,8 @@ def test_subprocess_end_to_end_no_traceback(case):
     (ds / FIRST).write_bytes(b"")
     before = (out / "calib.lut.h5").read_bytes()
     proc = subprocess.run([sys.executable, "-m", "ptpcore.cli", "calibrate", str(ds), "--out",
-                           str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"), "--force"],
+                           str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"), "--force",
+                           "--degree", "1"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and FIRST in proc.stderr and "Traceback" not in proc.stderr
@@ -349,7 +351,7 @@ def test_subprocess_end_to_end_no_traceback(case):
 
 def test_rig_toml_in_session_matches_dataset(case):
     ds, _ = case
-    s = new_session(ds)
+    s = new_session(ds, degree=1)
     assert rig_to_toml(s.rig) == (ds / "rig.toml").read_text()
 
 
@@ -377,7 +379,7 @@ def test_corrupt_pixels_found_while_decoding_still_give_one_line(case, capfd):
     before = (out / "calib.lut.h5").read_bytes()
     capfd.readouterr()
     code = main(["calibrate", str(ds), "--out", str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"),
-                 "--force", "-q"])
+                 "--force", "--degree", "1", "-q"])
     err = capfd.readouterr().err
     assert code == 2 and err.count("\n") == 1 and last in err and "corrupt PNG" in err, err
     assert (out / "calib.lut.h5").read_bytes() == before

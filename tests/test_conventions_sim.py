@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from ptpcore.cli import main
-from ptpcore.dataset import DatasetSource, SimulatedSource
+from ptpcore.io.dataset import DatasetSource, SimulatedSource
 from ptpcore.decode.harmonics import harmonic_noise_samples
-from ptpcore.patterns import design_check
-from ptpcore.phase import Reason
-from ptpcore.pipeline import collect_samples, decode_position
+from ptpcore.decode.patterns import design_check
+from ptpcore.decode.phase import Reason
+from ptpcore.run.pipeline import collect_samples, decode_position
 from ptpcore.rig import load_rig, rig_to_toml, save_rig
 from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset
 
@@ -67,7 +67,7 @@ def test_wrong_convention_in_rig_toml_names_the_setting(tmp_path, capfd):
 def test_two_positions_and_the_default_model_are_refused_before_decoding(tmp_path, capfd, monkeypatch):
     rig, settings = scaled_preset("realistic", 160, positions=2)
     ds = simulate_dataset(tmp_path / "ds", rig, settings, seed=1)
-    import ptpcore.pipeline as pipeline
+    import ptpcore.run.pipeline as pipeline
 
     def no_decoding(*a, **k):
         raise AssertionError("decoded")

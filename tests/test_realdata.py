@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from ptpcore.cli import main
-from ptpcore.dataset import DatasetSource
+from ptpcore.io.dataset import DatasetSource
 from ptpcore.io.decodedfile import load_decoded
-from ptpcore.phase import REASON_KEYS
+from ptpcore.decode.phase import REASON_KEYS
 from ptpcore.rig import load_rig
 
 DATA = Path(__file__).parent / "data"

@@ -2,7 +2,7 @@
 
 One or more positions, one or both directions; no heights are needed and the
 z readings are never judged. Each position is decoded with the calibration's
-own decoder (:func:`ptpcore.pipeline.decode_position`); the reasons are
+own decoder (:func:`ptpcore.run.pipeline.decode_position`); the reasons are
 classified per direction (the ``ptp-decoded/1`` file keeps them apart).
 Never silent (:mod:`ptpcore.run.diagnose`): positions keeping too few pixels
 are reported with their dominant reason, a wrong phase convention is named,
