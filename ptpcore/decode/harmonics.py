@@ -30,7 +30,7 @@ def noise_bins(n_steps: int) -> list[int]:
     return list(range(2, (n_steps + 1) // 2))
 
 
-def harmonic_noise_samples(frames, stride: int = 1) -> dict | None:
+def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | None:
     """Noise variance samples, free of harmonics, on a sub-grid of pixel pairs.
 
     Parameters
@@ -39,7 +39,12 @@ def harmonic_noise_samples(frames, stride: int = 1) -> dict | None:
         One N-step set, frame n shown with phase shift ``2 pi n / N`` (the sign
         convention does not matter here).
     stride : int
-        Rows and columns of the sub-grid (pixel ``(r, c)`` is paired with ``(r, c + 1)``).
+        Rows and columns of the sub-grid.
+    axis : {1, 0}
+        Pair pixel ``(r, c)`` with ``(r, c + 1)`` (1) or ``(r + 1, c)`` (0): pair along the
+        pattern's coding direction (x: 1, y: 0), where neighbours see different phases. Across
+        it they see nearly the same level, and a noise-free camera's rounding errors are then
+        the same at both and cancel in their difference.
 
     Returns
     -------
@@ -52,6 +57,8 @@ def harmonic_noise_samples(frames, stride: int = 1) -> dict | None:
     """
     n = len(frames)
     bins = noise_bins(n)
+    if axis == 0:
+        frames = [np.asarray(f).T for f in frames]
     h, w = np.shape(frames[0])
     if not bins or w < 2:
         return None
@@ -77,6 +84,11 @@ def harmonic_noise_samples(frames, stride: int = 1) -> dict | None:
         harm = np.maximum(harm, (2.0 / n) * np.abs(x[hh][:, p]))
     var = acc / (2.0 * n * len(bins))
     bg = stack.mean(axis=0)
-    return {"background": (0.5 * (bg[:, p] + bg[:, q])).ravel(), "var": var.ravel(),
-            "dof": 2 * len(bins), "harmonic": harm.ravel(), "modulation": ((2.0 / n) * amp1[:, p]).ravel(),
-            "rows": rows, "cols": cols}
+    out = {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": var, "harmonic": harm,
+           "modulation": (2.0 / n) * amp1[:, p]}
+    if axis == 0:  # back to (rows, cols) of the image
+        out = {k: v.T for k, v in out.items()}
+        rows, cols = cols, rows
+    out = {k: v.ravel() for k, v in out.items()}
+    out.update(dof=2 * len(bins), rows=rows, cols=cols)
+    return out

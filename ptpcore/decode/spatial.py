@@ -7,7 +7,8 @@ their neighbours while their modulation may still pass.
 
 The fit is robust: the local gradient is the median of the central differences
 in the window, and the prediction the median of the neighbours carried to the
-centre along it. Neighbours are taken on a sparse grid (every second pixel out
+centre along it; the median of the neighbours' own residuals (what the local
+plane misses of a curved map) is then taken off. Neighbours are taken on a sparse grid (every second pixel out
 to ``radius``), so a defect a few pixels across cannot take over the median.
 """
 
@@ -90,7 +91,16 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
             res[n < MIN_NEIGHBOURS] = np.nan
             resid[r0:r1] = res
             count[r0:r1] = n
-    return resid, count
+        # What a plane leaves of a curved map is smooth too: take the neighbours' residuals
+        # (their median) off, so only what stands out from its surroundings remains.
+        rp = np.pad(resid, pad, constant_values=np.nan)
+        out = np.full((h, w), np.nan)
+        for r0 in range(0, h, ROWS_PER_CHUNK):
+            r1 = min(h, r0 + ROWS_PER_CHUNK)
+            around = _nanmedian0(np.stack([rp[r0 + pad + dr:r1 + pad + dr, pad + dc:pad + dc + w]
+                                           for dr, dc in offs]))
+            out[r0:r1] = resid[r0:r1] - np.where(np.isfinite(around), around, 0.0)
+    return out, count
 
 
 def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0, **kwargs

@@ -260,7 +260,7 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
             # Harmonic-free noise: the finest level, else the level with most steps.
             best = noise_parts.get(d)
             if best is None or (j == last or steps[j] > best[1]) and best[0] != last:
-                part = harmonic_noise_samples(stack, stride)
+                part = harmonic_noise_samples(stack, stride, 1 if d == "x" else 0)
                 if part is not None:
                     noise_parts[d] = (j, steps[j], part)
         wrapped[(d, j)] = wp
@@ -374,8 +374,11 @@ def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, re
             model = acc.model()
             if model is not None:
                 n_fine = f.steps_of(d)[-1]
+                # The camera's noise and the display's rounding to integer levels (uniform, 1/12
+                # of a level squared; a level is B / amplitude camera DN).
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    sigma = (np.sqrt(2.0 / n_fine) * model.sigma_dn(fine.background) / fine.modulation
+                    var_dn = model.sigma_dn(fine.background) ** 2 + (fine.modulation / f.amplitude) ** 2 / 12.0
+                    sigma = (np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / fine.modulation
                              * f.periods(d)[-1] / (2 * np.pi))
                 t, n = levels[d]
                 source = "residual" if float(t) == float(f.periods(d)[-1]) else f"residual of period {t:g} px (N = {n})"
