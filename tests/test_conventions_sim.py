@@ -62,6 +62,10 @@ def test_wrong_convention_in_rig_toml_names_the_setting(tmp_path, capfd):
         assert main(["decode", str(ds), "--out", out, "--positions", "1", "-q"]) == 2
         err = capfd.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ptp: error:") and fix in err[0] and other not in err[0], err
+        # calibrate says the same, before its long decode
+        assert main(["calibrate", str(ds), "--out", str(tmp_path / "c.lut.h5"), "--degree", "1", "-q"]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and fix in err[0] and not (tmp_path / "c.lut.h5").exists(), err
 
 
 def test_two_positions_and_the_default_model_are_refused_before_decoding(tmp_path, capfd, monkeypatch):

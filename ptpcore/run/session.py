@@ -299,6 +299,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
                                    " (the dataset changed since the session started)")
             if validate:
                 source.validate()
+            _check_conventions(source, session)
         samples = collect_samples(source, options=session.options, positions=session.positions,
                                   progress=sub(0.0, 0.9))
         from ptpcore.run.diagnose import check_valid_fractions
@@ -338,6 +339,23 @@ def _check_decoded(samples: SampleStack, session: Session) -> None:
 
     where = str(Path(session.dataset) / "rig.toml") if session.dataset else "rig.toml"
     check_samples(samples, positions=session.positions, source=where)
+
+
+def _check_conventions(source, session: Session) -> None:
+    """Before the long decode: one position decoded and checked for a wrong ``phase_origin_rad``
+    or ``shift_sign`` (:func:`ptpcore.run.diagnose.convention_check`), named if found."""
+    from ptpcore.run.diagnose import convention_check
+    from ptpcore.run.pipeline import decode_position
+
+    rig = source.rig
+    if rig.fringes.unwrap != "periods":
+        return
+    positions = session.positions or range(rig.stage.n_positions)
+    k = list(positions)[len(positions) // 2]
+    findings = convention_check(rig, decode_position(source, k, session.options), session.options)
+    if findings:
+        where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
+        raise DatasetError("; ".join(fd.message(where) for fd in findings))
 
 
 # --------------------------------------------------------------------------- writing
