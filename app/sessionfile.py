@@ -40,7 +40,7 @@ __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_e
 STEP_PAGES = {"decode": "acquire", "fit": "calibrate", "compare": "compare", None: "export"}
 
 
-def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3, stage_sigma_um: float = 0.0,
+def to_engine(s: Session, *, out=None, model: str = "auto", degree: int = 3, stage_sigma_um: float = 0.0,
               level_bias: bool = True, footprint: bool = True) -> engine.Session:
     """The wizard's session as an engine session (for :func:`ptpcore.run.session.save_session`).
 
@@ -51,6 +51,8 @@ def to_engine(s: Session, *, out=None, model: str = "poly", degree: int = 3, sta
     lut = s.lut
     if lut is not None:
         model, degree = lut_model(lut), int(lut.degree or 3)
+        if lut.extra_attrs.get("chosen_by"):  # an auto LUT: reopened, the page offers auto again
+            model = "auto"
     sim = json.dumps({"seed": s.seed, **asdict(s.sim_settings)}) if s.source_kind == "simulated" else None
     comparison = s.compare.to_json_dict() if s.compare is not None else s.saved_comparison
     if out is not None:

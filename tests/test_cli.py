@@ -41,9 +41,12 @@ def test_calibrate_smooth_and_inspect(tmp_path, capsys):
     assert "predicted sigma X" in text and "predicted sigma Y" in text
     # a plain poly LUT gets its sigma maps too
     plain = tmp_path / "plain.lut.h5"
-    assert main(["calibrate", str(data), "--out", str(plain), "--degree", "1", "-q"]) == 0
+    assert main(["calibrate", str(data), "--out", str(plain), "--model", "poly", "--degree", "1", "-q"]) == 0
     assert load_lut(plain).sigma_x is not None and "method" not in load_lut(plain).extra_attrs
-    assert "predicted sigma X" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "predicted sigma X" in text
+    # the robust fit's report and the residual diagnostics, worst first
+    assert "robust fit" in text and "worst positions (residual RMS): " in text and "worst pixels" in text
     # the stage's reading error enters the sigma maps only; the corrections move the coefficients
     staged = tmp_path / "staged.lut.h5"
     assert main(["calibrate", str(data), "--out", str(staged), "--model", "smooth", "--degree", "1",

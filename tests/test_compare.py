@@ -532,8 +532,8 @@ def test_cli_compare(tmp_path, capsys):
     d = json.loads(out.read_text())
     assert d["config"]["methods"] == ["ptp", "3dstc"] and "smooth" not in d["references"]["truth"]
     (data / "truth.h5").unlink()
-    assert main(["compare", str(data), "--out", str(out), "--points", "300", "--split", "loo", "--degree", "2",
-                 "--rational", "--force", "-q"]) == 0
+    assert main(["compare", str(data), "--out", str(out), "--points", "300", "--split", "loo", "--model", "poly",
+                 "--degree", "2", "--rational", "--force", "-q"]) == 0
     d = json.loads(out.read_text())
     assert set(d["references"]) == {"measured"} and d["config"]["split"] == "loo"
     # leave one out: 4 calibration positions per fold, a smooth LUT of degree 1 per fold

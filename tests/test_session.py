@@ -131,9 +131,11 @@ def test_stage_sigma_and_level_bias_round_trip_and_reach_the_sigma_maps(dataset,
     run_session(s, tmp_path / "s.ptps.h5")
     back = load_session(tmp_path / "s.ptps.h5")
     assert back.stage_sigma_um == 0.5 and back.level_bias is False and back.footprint is True
-    off = new_session(dataset, model="smooth", degree=1, footprint=False)
+    assert back.robust is True and "robust" in s.lut.provenance  # the robust fit is the default
+    off = new_session(dataset, model="smooth", degree=1, footprint=False, robust=False)
     save_session(off, tmp_path / "off.ptps.h5")
     assert load_session(tmp_path / "off.ptps.h5").footprint is False
+    assert load_session(tmp_path / "off.ptps.h5").robust is False
     m = s.lut.valid
     # The stage term adds (dX/dz * 0.5 um)^2 * leverage: nothing where the ray is vertical.
     assert np.all(s.lut.sigma_x[m] >= plain.lut.sigma_x[m]) and np.mean(s.lut.sigma_x[m] > plain.lut.sigma_x[m]) > 0.9
@@ -147,14 +149,14 @@ def test_stage_sigma_and_level_bias_round_trip_and_reach_the_sigma_maps(dataset,
 def test_cli_saves_each_stage_and_resume_continues(dataset, complete, tmp_path, capsys):
     """Direct run, resume from 'new', resume from 'samples' without the images: same LUT."""
     direct = tmp_path / "direct.lut.h5"
-    assert main(["calibrate", str(dataset), "--out", str(direct), "--degree", "2",
+    assert main(["calibrate", str(dataset), "--out", str(direct), "--model", "poly", "--degree", "2",
                  "--session", str(tmp_path / "d.ptps.h5"), "-q"]) == 0
     assert load_session(tmp_path / "d.ptps.h5").stage == "lut"
     reference = load_lut(direct)
     _same_lut(reference, complete[0].lut)
 
     # Interrupted before decoding: resume decodes and fits.
-    s0 = new_session(dataset, degree=2, out=str(tmp_path / "from_new.lut.h5"))
+    s0 = new_session(dataset, model="poly", degree=2, out=str(tmp_path / "from_new.lut.h5"))
     save_session(s0, tmp_path / "new.ptps.h5")
     assert main(["resume", str(tmp_path / "new.ptps.h5"), "-q"]) == 0
     assert "resuming after stage 'new'" in capsys.readouterr().out
@@ -164,7 +166,7 @@ def test_cli_saves_each_stage_and_resume_continues(dataset, complete, tmp_path, 
     # Interrupted after decoding: resume only fits; the images are not needed any more.
     copy = tmp_path / "ds_copy"
     shutil.copytree(dataset, copy)
-    s1 = new_session(copy, degree=2)
+    s1 = new_session(copy, model="poly", degree=2)
     run_session(s1, tmp_path / "samples.ptps.h5", stop_after="samples")
     shutil.rmtree(copy)
     assert main(["resume", str(tmp_path / "samples.ptps.h5"), "--out", str(tmp_path / "r.lut.h5"), "-q"]) == 0

@@ -2,27 +2,35 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox,
-                               QHBoxLayout, QLabel, QPushButton, QSpinBox, QVBoxLayout)
+                               QHBoxLayout, QLabel, QPushButton, QSpinBox, QTableWidget, QTableWidgetItem,
+                               QVBoxLayout)
 
 from ptpcore.fit import describe_lut, fit_model
 from ptpcore.fit.glass import (add_tolerances_to_sigma, correct_samples, corrected_samples, corrections_json,
     describe_corrections)
 from ptpcore.fit.stage_pose import refine_and_correct
+from ptpcore.fit.choice import ModelChoice
 from ptpcore.evaluate import pixel_series, reason_text
+from ptpcore.evaluate.residuals import residual_field
 
 from ..widgets.maps import HeatmapPanel, axis_label
+from ..widgets.residuals import ResidualPanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "quality_maps"]
+__all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text"]
 
-MODELS = {"poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
+MODELS = {"auto": "Auto: best at held-out positions",
+          "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
           "linear": "Linear interpolation of the table",
           "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
 DEGREE_MODELS = ("poly", "smooth")
+CORRECTION_MODELS = ("smooth", "auto")  # the fits that apply the level-bias and footprint corrections
 
 
 def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
@@ -41,6 +49,33 @@ def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
     }
 
 
+def choice_of(lut) -> ModelChoice | None:
+    """The model choice behind an ``auto`` LUT (its ``/provenance`` ``model_choice``), or None."""
+    text = lut.provenance.get("model_choice") if lut is not None and lut.provenance else None
+    if not text:
+        return None
+    try:
+        return ModelChoice.from_json(text)
+    except (ValueError, KeyError, TypeError, StopIteration):
+        return None
+
+
+def robust_text(lut) -> str:
+    """What the robust fit left out (``/provenance`` ``robust``), suspect positions named; empty without it."""
+    text = lut.provenance.get("robust") if lut.provenance else None
+    if not text:
+        return ""
+    try:
+        d = json.loads(text)
+    except ValueError:
+        return ""
+    out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
+    for k in d.get("suspect_positions", []):
+        out += (f" <b>SUSPECT position {k + 1}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
+                " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
+    return out
+
+
 class CalibratePage(StudioPage):
     key = "calibrate"
     heading = "Calibrate"
@@ -56,6 +91,8 @@ class CalibratePage(StudioPage):
         ctl = QGroupBox("Model")
         cl = QGridLayout(ctl)
         self.model_combo = QComboBox()
+        self.model_combo.setToolTip("Auto: polynomial degrees 1-3 and smooth, each fitted without some positions and"
+                                    " judged at them; the most accurate is chosen (a simpler one within 5 %)")
         for k, label in MODELS.items():
             self.model_combo.addItem(label, k)
         self.model_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
@@ -133,6 +170,16 @@ class CalibratePage(StudioPage):
         self.stats = QLabel()
         self.stats.setWordWrap(True)
         ml.addWidget(self.stats)
+        self.choice_table = QTableWidget(0, 4)
+        self.choice_table.setHorizontalHeaderLabels(["candidate", "held-out RMS (µm)", "model error (µm)", "note"])
+        self.choice_table.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.choice_table.verticalHeader().setVisible(False)
+        self.choice_table.horizontalHeader().setStretchLastSection(True)
+        self.choice_table.setToolTip("Auto: every candidate fitted without the held-out positions and judged at them;"
+                                     " the most accurate is chosen, a simpler one within 5 % of it preferred")
+        self.choice_table.setMaximumHeight(150)
+        self.choice_table.setVisible(False)
+        ml.addWidget(self.choice_table)
         grid.addWidget(maps_box, 1, 0)
 
         px_box = QGroupBox("Pixel")
@@ -154,9 +201,12 @@ class CalibratePage(StudioPage):
         pl.addWidget(self.plot_r, 1)
         grid.addWidget(px_box, 1, 1)
         grid.setRowStretch(1, 1)
+        self.residuals = ResidualPanel()
+        grid.addWidget(self.residuals, 2, 0, 1, 2)
 
         self.maps: dict = {}
         self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
+        self.residual_field = None
         self.series = None
         self.selected: tuple[int, int] | None = None
         self._outcome = None
@@ -172,7 +222,7 @@ class CalibratePage(StudioPage):
         kind = self.model_combo.currentData()
         self.degree.setEnabled(kind in DEGREE_MODELS)
         for box in (self.level_bias, self.footprint):  # corrections only the smooth fit applies
-            box.setEnabled(kind == "smooth")
+            box.setEnabled(kind in CORRECTION_MODELS)
 
     def _curve_plot(self, axis: str, layout) -> pg.PlotWidget:
         p = pg.PlotWidget()
@@ -213,7 +263,7 @@ class CalibratePage(StudioPage):
             bars.setOpts(x=[], height=[])
 
     # ---- fitting --------------------------------------------------------------------
-    def configure(self, model: str = "poly", degree: int = 3, positions: str = "all",
+    def configure(self, model: str = "auto", degree: int = 3, positions: str = "all",
                   stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True,
                   fitted: bool = False) -> None:
         """Set the model controls (the tour, an opened session file and tests use it).
@@ -256,14 +306,15 @@ class CalibratePage(StudioPage):
                 fixed, est = refine_and_correct(fixed, rig)
             self._corrected_cache = (samples, rig, fixed)
             lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
-                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"])
+                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"],
+                            robust=True)
             lut.provenance["corrections"] = corrections_json(fixed)
             add_tolerances_to_sigma(lut, applied)
             if est is not None:
                 lut.stage_pose, lut.stage_pose_sigma = est.pose, est.sigma
             return lut
 
-        job = Job(work, f"fitting the {model} LUT")
+        job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self._fitted(lut, positions, fit))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
@@ -293,6 +344,8 @@ class CalibratePage(StudioPage):
         self.selected = None
         if lut is None:
             self._clear()
+            self.residual_field = None
+            self.residuals.set_field(None)
             self.update_complete()
             return
         self.maps = quality_maps(lut)
@@ -315,7 +368,13 @@ class CalibratePage(StudioPage):
         for line in describe_corrections(self._corrected(self.model.session.samples, self.model.session.rig)
                                          .corrections if self.model.session.samples is not None else {}):
             text += f" {line[0].upper()}{line[1:]}."
+        text += robust_text(lut)
         self.stats.setText(text)
+        self._show_choice(choice_of(lut))
+        s = self.model.session
+        self.residual_field = (residual_field(lut, s.samples, s.lut_positions)
+                               if s.samples is not None and s.samples.shape == lut.shape else None)
+        self.residuals.set_field(self.residual_field)
         # Start with the valid pixel nearest the sensor's centre.
         if v.any():
             rows, cols = np.nonzero(v)
@@ -323,6 +382,26 @@ class CalibratePage(StudioPage):
             i = int(np.argmin((rows - h / 2) ** 2 + (cols - w / 2) ** 2))
             self.select_pixel(int(rows[i]), int(cols[i]))
         self.update_complete()
+
+    def _show_choice(self, choice: ModelChoice | None) -> None:
+        """Fill the table of candidates behind an ``auto`` LUT (hidden for a fixed model)."""
+        self.choice_table.setVisible(choice is not None)
+        if choice is None:
+            self.choice_table.setRowCount(0)
+            return
+        self.choice_table.setRowCount(len(choice.candidates))
+        for i, c in enumerate(choice.candidates):
+            cells = [c.name + ("  ← chosen" if i == choice.chosen else ""),
+                     "-" if c.note else f"{c.held_out_rms_um:.3f}", "-" if c.note else f"{c.model_error_um:.3f}",
+                     c.note]
+            for j, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                if i == choice.chosen:
+                    f = item.font()
+                    f.setBold(True)
+                    item.setFont(f)
+                self.choice_table.setItem(i, j, item)
+        self.choice_table.resizeColumnsToContents()
 
     # ---- maps ---------------------------------------------------------------------------
     def show_map(self, key: str) -> None:

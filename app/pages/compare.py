@@ -190,7 +190,7 @@ class ComparePage(StudioPage):
         n_cal = min(len(f[0]) for f in split_positions(s.rig.stage.n_positions, split)) \
             if s.rig.stage.n_positions >= 3 else 0
         want = args["smooth_degree"]
-        if args["with_smooth"] and n_cal and n_cal < want + 2:
+        if args["with_smooth"] and want is not None and n_cal and n_cal < want + 2:
             args["smooth_degree"] = smooth_degree_for(want, n_cal)
             self.settings_note = (f" Calibrate's degree {want} needs {want + 2} calibration positions per fold,"
                                   f" this split has {n_cal}: the smooth LUT here has degree {args['smooth_degree']}.")
@@ -207,7 +207,9 @@ class ComparePage(StudioPage):
         """compare()'s model keywords from the Calibrate page's LUT (its model, degree and corrections)."""
         fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
         kind, degree = fit.get("model", "poly"), int(fit.get("degree", 3))
-        return {"model": "poly" if kind == "smooth" else kind, "degree": degree, "smooth_degree": degree,
+        # auto: the plain LUT's degree is chosen per fold (poly 1-3), the smooth LUT keeps its default degree
+        return {"model": "poly" if kind == "smooth" else kind, "degree": degree,
+                "smooth_degree": None if kind == "auto" else degree,
                 "level_bias": bool(fit.get("level_bias", True)), "footprint": bool(fit.get("footprint", True))}
 
     def _result_changed(self) -> None:

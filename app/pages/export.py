@@ -7,11 +7,13 @@ import datetime as _dt
 import json
 from pathlib import Path
 
+import numpy as np
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
                                QPushButton, QVBoxLayout)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
+from ptpcore.evaluate.residuals import residual_png
 from ptpcore.io import save_lut
 from ptpcore.fit import describe_lut
 from ptpcore.rig import rig_to_toml
@@ -19,6 +21,7 @@ from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
 from ..widgets.confirm import confirm
+from ..widgets.lutdiff import LutDiffPanel
 from ..widgets.pointcloud import PointCloudPanel
 from ..worker import Job
 from .base import StudioPage
@@ -28,6 +31,7 @@ __all__ = ["ExportPage", "LUT_NAME", "REPORT_NAME", "SESSION_NAME", "quality_png
 LUT_NAME = "calibration.lut.h5"
 REPORT_NAME = "comparison.json"
 SESSION_NAME = "session.ptps.h5"
+N_RESIDUAL_PNGS = 3
 
 
 def quality_png(key: str) -> str:
@@ -68,7 +72,7 @@ class ExportPage(StudioPage):
     heading = "Export"
     subheading = ("Write what this session produced: the LUT a scanner loads (ptp-lut/1), the comparison "
                   "report (JSON plus PNG plots) and the session itself, to resume later; try the LUT on a "
-                  "height map and save the point cloud.")
+                  "height map and save the point cloud; check it against a reference LUT.")
 
     sessionWritten = Signal(object)
 
@@ -92,7 +96,8 @@ class ExportPage(StudioPage):
         self.do_lut.setChecked(True)
         self.do_lut.setEnabled(False)  # the product of the session: always written
         self.do_report = QCheckBox(f"Comparison report  {REPORT_NAME}  plus PNG plots")
-        self.do_quality = QCheckBox("LUT quality heatmaps  lut_quality_<map>.png  (one per map)")
+        self.do_quality = QCheckBox("LUT quality heatmaps  lut_quality_<map>.png  (one per map; residual arrows"
+                                    f" of the {N_RESIDUAL_PNGS} worst positions  residuals_position_K.png)")
         self.do_quality.setToolTip("One PNG per map of the Calibrate page, named after it: lut_quality_rms_x.png,"
                                    " lut_quality_loo_x.png, … and lut_quality_sigma_x.png when the LUT has"
                                    " predicted uncertainty maps.")
@@ -126,11 +131,16 @@ class ExportPage(StudioPage):
                                            lambda: Path(self.folder.text().strip() or "."))
         grid.addWidget(self.cloud_panel, 3, 0, 1, 2)
         grid.setRowStretch(3, 1)
+        # Trusting the LUT: its difference to a reference LUT (a second sweep, last month's).
+        self.diff_panel = LutDiffPanel(lambda: self.model.session.lut)
+        grid.addWidget(self.diff_panel, 4, 0, 1, 2)
+        grid.setRowStretch(4, 1)
         self.files: list[Path] = []
         self._outcome = None
         self.export_button.clicked.connect(self.export)
         model.lutChanged.connect(self._reset)
         model.lutChanged.connect(self.cloud_panel.reset)
+        model.lutChanged.connect(self.diff_panel.reset)
         model.compareChanged.connect(self.on_enter)
 
     def _browse(self) -> None:
@@ -186,13 +196,19 @@ class ExportPage(StudioPage):
         if self.do_quality.isChecked() and self.calibrate_page is not None and self.calibrate_page.maps:
             for key in self.calibrate_page.maps:  # every tab, each named after its map
                 images[out / quality_png(key)] = _map_image(self.calibrate_page.maps, key)
+        residuals = None  # the worst positions' residual arrows, drawn by the engine in the worker
+        if self.do_quality.isChecked() and self.calibrate_page is not None:
+            residuals = self.calibrate_page.residual_field
+        worst = [] if residuals is None else [int(k) for k in residuals.worst_positions[:N_RESIDUAL_PNGS]
+                                              if np.isfinite(residuals.rms_um[k])]
         report = None
         if self.do_report.isChecked():  # an opened session's comparison: its report, without plots
             report = result.to_json_dict() if result is not None else s.saved_comparison
         session_obj = to_engine(s, out=out / LUT_NAME) if self.do_session.isChecked() else None
         write_rig = self.do_rig.isChecked()
         targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
-                   *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else [])]
+                   *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else []),
+                   *(out / f"residuals_position_{k + 1}.png" for k in worst)]
         # Files this session wrote itself (an earlier export, its autosaved session file) are replaced
         # without asking; anything else already there is another session's.
         own = {Path(p) for p in s.exports.values()}
@@ -206,7 +222,7 @@ class ExportPage(StudioPage):
 
         def run(ctx):
             written = []
-            steps = 1 + len(images) + (report is not None) + (session_obj is not None) + write_rig
+            steps = 1 + len(images) + len(worst) + (report is not None) + (session_obj is not None) + write_rig
             done = 0
 
             def step(msg):
@@ -225,6 +241,11 @@ class ExportPage(StudioPage):
             for path, image in images.items():
                 step(f"writing {path.name}")
                 _save_png(image, path)
+                written.append(path)
+            for k in worst:
+                path = out / f"residuals_position_{k + 1}.png"
+                step(f"writing {path.name}")
+                residual_png(residuals, k, path)
                 written.append(path)
             if write_rig:
                 step("writing rig.toml")

@@ -54,7 +54,8 @@ def cmd_calibrate(args) -> int:
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
-                          footprint=not args.no_footprint, refine_stage=args.refine_stage)
+                          footprint=not args.no_footprint, refine_stage=args.refine_stage,
+                          robust=not args.no_robust)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -98,9 +99,32 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         run_session(session, session_path, progress=bar, validate=validate)
     finally:
         bar.close()
+    drift = _sweep_drift(session)
+    if drift is not None:
+        session.lut.provenance["drift"] = drift.to_json()
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
+    if drift is not None:
+        print("\n".join("  " + line for line in drift.lines()))
+    if session.samples is not None:
+        from ptpcore.evaluate.residuals import residual_field
+
+        field = residual_field(session.lut, session.samples, session.positions)
+        print("\n".join("  " + line for line in field.lines()))
     return 0
+
+
+def _sweep_drift(session):
+    """The drift of a dataset's ``[stage] repeat_z_mm`` positions (decoded now), or None without them."""
+    rig = session.rig
+    if not rig.stage.repeat_z_mm or not session.dataset or session.samples is None:
+        return None
+    from ptpcore.fit.drift import RepeatSource, sweep_drift
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.run.pipeline import collect_samples
+
+    repeats = collect_samples(RepeatSource(DatasetSource(session.dataset)), options=session.options)
+    return sweep_drift(session.samples, repeats, rig, stage_sigma_mm=session.stage_sigma_um * 1e-3)
 
 
 def _lut_summary(lut, path) -> str:
@@ -153,6 +177,8 @@ def _lut_summary(lut, path) -> str:
         lines.append("  stage pose refined  per position (um, urad; up to a common offset, scale and linear trend):")
         sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
+    lines += _choice_lines(lut)
+    lines += _robust_lines(lut)
     return "\n".join(lines)
 
 
@@ -199,6 +225,46 @@ def _parse_positions(text: str, k_total: int) -> list[int]:
     return out
 
 
+def _choice_lines(lut) -> list[str]:
+    """The model-choice table of an ``auto`` LUT (``/provenance`` ``model_choice``), indented."""
+    from ptpcore.fit.choice import ModelChoice
+
+    text = lut.provenance.get("model_choice") if lut.provenance else None
+    if not text:
+        return []
+    try:
+        choice = ModelChoice.from_json(text)
+    except (ValueError, KeyError, TypeError, StopIteration):
+        return ["  model choice        (unreadable /provenance model_choice)"]
+    held = ", ".join(" ".join(str(k + 1) for k in h) for h in choice.held_out)
+    lines = [f"  model chosen by its error at held-out positions ({held}; {choice.rule}):"]
+    lines += ["    " + row for row in choice.table()]
+    if np.isfinite(choice.noise_rms_um):
+        lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} um RMS;"
+                     " model error = held-out RMS with it taken out)")
+    return lines
+
+
+def _robust_lines(lut) -> list[str]:
+    """What the robust fit left out (``/provenance`` ``robust``), suspect positions first."""
+    import json
+
+    text = lut.provenance.get("robust") if lut.provenance else None
+    if not text:
+        return []
+    try:
+        d = json.loads(text)
+    except ValueError:
+        return ["  robust fit          (unreadable /provenance robust)"]
+    lines = [f"  SUSPECT position    {k + 1}: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its samples"
+             " far from the curve of the others (wrong images? a stage glitch?); left out everywhere"
+             for k in d.get("suspect_positions", [])]
+    n_pix = int((lut.n_rejected > 0).sum()) if lut.n_rejected is not None else 0
+    lines.append(f"  robust fit          {d.get('n_rejected', 0)} samples left out at {n_pix} pixels (beyond"
+                 f" {d.get('k_sigma', 0):g} x {d.get('noise_scale', 1):.2f} predicted sigma)")
+    return lines
+
+
 def cmd_inspect(args) -> int:
     from ptpcore.io.lutfile import load_lut
 
@@ -241,6 +307,34 @@ def _height_argument(text: str, shape) -> tuple[object, str]:
     if not np.isfinite(z):
         raise ValueError(f"--z {text}: the height must be a finite number of mm")
     return z, f"z = {z:g} mm"
+
+
+def cmd_diff(args) -> int:
+    """``ptp diff A B``: exit 0 consistent, 1 differ (2 on bad input, from :func:`main`)."""
+    import json
+
+    from ptpcore.atomic import atomic_path
+    from ptpcore.evaluate.diff import diff_luts, diff_png
+    from ptpcore.io.lutfile import load_lut
+
+    a, b = load_lut(args.lut_a), load_lut(args.lut_b)
+    r = diff_luts(a, b, tolerance_sigma=args.tolerance_sigma, tolerance_um=args.tolerance_um,
+                  max_fraction=args.max_fraction)
+    print(f"{args.lut_a} vs {args.lut_b}: {r.n_pixels} common pixels, z {r.z[0]:g} .. {r.z[-1]:g} mm"
+          f" ({r.z.size} heights)")
+    print(f"  difference          RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm")
+    if np.isfinite(r.predicted_rms_um):
+        print(f"  predicted (sigma)   RMS {r.predicted_rms_um:.3f} µm; observed / predicted {r.ratio:.2f}")
+    tol = f"{r.tolerance_sigma:g} sigma" + (f", at least {r.tolerance_um:g} µm" if r.tolerance_um else "")
+    print(f"  beyond tolerance    {100 * r.fraction_beyond:.2f} % of the pixels ({tol}; limit"
+          f" {100 * r.max_fraction:g} %)")
+    print(f"  verdict             {'consistent' if r.consistent else 'DIFFER'}")
+    if args.json:
+        with atomic_path(args.json) as tmp:
+            Path(tmp).write_text(json.dumps({"a": str(args.lut_a), "b": str(args.lut_b), **r.summary()}, indent=1))
+    if args.png:
+        diff_png(r, args.png)
+    return 0 if r.consistent else 1
 
 
 def cmd_demo(args) -> int:
@@ -356,6 +450,26 @@ def cmd_compare(args) -> int:
 
 # --------------------------------------------------------------------------- parser
 
+def _add_diff_parser(sub) -> None:
+    """The ``ptp diff`` subcommand."""
+    df = sub.add_parser("diff", help="are two LUTs of one camera consistent within their predicted noise?",
+                        description="Per-pixel difference of two ptp-lut/1 files over the pixels and heights"
+                                    " both cover, against the difference their sigma maps predict. Exit 0:"
+                                    " consistent; 1: they differ; 2: bad input.")
+    df.add_argument("lut_a", metavar="A.lut.h5")
+    df.add_argument("lut_b", metavar="B.lut.h5")
+    df.add_argument("--json", metavar="FILE", help="write the numbers and the verdict as JSON")
+    df.add_argument("--png", metavar="FILE", help="write the difference map (in units of the tolerance) as PNG")
+    df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
+                    help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
+    df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
+                    help="absolute floor of the tolerance in um (needed for LUTs without sigma maps)")
+    df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
+                    help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
+    df.set_defaults(func=cmd_diff)
+
+
+
 _FORCE = "replace an existing file of the same kind (never a file of the input dataset)"
 
 
@@ -368,6 +482,7 @@ def build_parser() -> OneLineParser:
     _add_calibrate(sub)
     _add_resume_inspect(sub)
     _add_compare(sub)
+    _add_diff_parser(sub)
     _add_demo(sub)
     from ptpcore.cli.capture import add_parser as add_capture_parser
 
@@ -400,11 +515,13 @@ def _add_calibrate(sub) -> None:
                        description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
     c.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
     c.add_argument("--out", required=True, metavar="FILE.lut.h5")
-    c.add_argument("--model", default="poly", choices=list(LUT_MODELS),
-                   help="poly: per-pixel polynomial; pchip, linear: interpolated tables; smooth: per-pixel"
-                        " polynomial regularised across neighbouring pixels (default poly)")
+    c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
+                   help="auto: the most accurate of poly degrees 1-3 and smooth at held-out positions (the"
+                        " summary shows the table); poly: per-pixel polynomial; pchip, linear: interpolated"
+                        " tables; smooth: per-pixel polynomial regularised across neighbouring pixels"
+                        " (default auto)")
     c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                   help="polynomial degree 1-5 (poly and smooth, default 3)")
+                   help="polynomial degree 1-5 (poly and smooth, default 3; auto chooses its own)")
     c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
                    help="1-sigma error of the stage readings in um (its specification); part of the LUT's"
                         " predicted sigma maps (default 0)")
@@ -417,6 +534,9 @@ def _add_calibrate(sub) -> None:
                    help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
                         " straightness of the rays, up to a common offset, scale and linear trend, and correct"
                         " the samples before fitting (METHOD.md section 8)")
+    c.add_argument("--no-robust", action="store_true",
+                   help="keep every sample (default: samples beyond 5 predicted sigmas of their pixel's curve are"
+                        " left out and counted, a position rejected at most pixels is named suspect and left out)")
     c.add_argument("--session", metavar="FILE.ptps.h5",
                    help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("--force", action="store_true", help=_FORCE)
@@ -480,9 +600,11 @@ def _add_compare(sub) -> None:
     cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
                     help="hold out every second position (default) or leave one position out")
     cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
-    cm.add_argument("--model", default="poly", choices=list(MODELS), help="plain PTP LUT model (default poly)")
+    cm.add_argument("--model", default="auto", choices=["auto", *MODELS],
+                    help="plain PTP LUT model; auto: poly of the degree 1-3 most accurate at positions held out of"
+                         " each calibration (default auto)")
     cm.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                    help="polynomial degree 1-5 (poly only, default 3)")
+                    help="polynomial degree 1-5 (poly only, default 3; also the smooth LUT's upper bound)")
     cm.add_argument("--no-smooth", dest="smooth", action="store_false",
                     help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
     cm.add_argument("--force", action="store_true", help="replace an existing report")

@@ -57,6 +57,10 @@ class Reason:
     BLACK_CLIPPED = 32
     GRAY_CODE = 64
     SPATIAL = 128
+    # The robust fit (ptpcore.fit.robust) flags a sample far from its pixel's curve along z with the
+    # spatial bit: both say "inconsistent with its neighbours beyond k predicted sigma", and the
+    # uint8 reasons have no ninth bit. /quality/n_rejected counts the robust fit's own.
+    OUTLIER = SPATIAL
 
 
 REASON_NAMES = {
@@ -67,7 +71,7 @@ REASON_NAMES = {
     Reason.BORDER: "near the LCD border",
     Reason.BLACK_CLIPPED: "clipped at black",
     Reason.GRAY_CODE: "Gray-code failure",
-    Reason.SPATIAL: "departs from its neighbourhood",
+    Reason.SPATIAL: "departs from its neighbours (in the image; or along z: robust fit)",
 }
 
 REASON_KEYS = {

@@ -55,11 +55,15 @@ from ptpcore.evaluate.report import (METHODS, PAIR_KINDS, SPLITS, CompareResult,
 from ptpcore.evaluate.statistics import (DistanceErrors, _curve, _draw_pairs, _verdict, coordinate_stats,
     error_stats)
 from ptpcore.fit import fit_lut, fit_smooth_lut
+from ptpcore.fit.choice import fit_auto
 from ptpcore.io import MODELS, SampleStack
 from ptpcore.pinhole import fit_pinhole
 from ptpcore.rig import Rig
 
-__all__ = ["split_positions", "draw_features", "smooth_degree_for", "compare"]
+__all__ = ["split_positions", "draw_features", "smooth_degree_for", "compare", "AUTO_PLAIN"]
+
+AUTO_PLAIN = (("poly", 1), ("poly", 2), ("poly", 3))
+"""The plain PTP LUT's candidates for ``model="auto"`` (the smooth LUT is its own method)."""
 
 Progress = Callable[[float, str], None]
 
@@ -184,7 +188,10 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
     rational : bool
         Fit the rational distortion ``k4..k6`` too.
     model, degree
-        The plain PTP LUT (:func:`ptpcore.fit.fit_lut`).
+        The plain PTP LUT (:func:`ptpcore.fit.fit_lut`); ``model="auto"``: poly of the
+        degree (1 to 3, :data:`AUTO_PLAIN`) most accurate at held-out positions among each
+        fold's calibration positions (:func:`ptpcore.fit.choice.fit_auto`; the chosen degree
+        is in ``Fold.lut_degree``).
     with_smooth : bool
         Also compare the smooth LUT (:func:`ptpcore.fit.smooth.fit_smooth_lut`).
         It is left out, with a note in :attr:`CompareResult.notes`, when the
@@ -268,8 +275,8 @@ def _check_compare_inputs(samples, rig: Rig, truth, model: str, seed: int, n_poi
     h, w = samples.shape
     if rig.camera.shape != (h, w):
         raise ValueError(f"rig camera is {rig.camera.width}x{rig.camera.height} px but the samples are {w}x{h}")
-    if model not in MODELS:
-        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if model not in MODELS + ("auto",):
+        raise ValueError(f"model must be one of {MODELS + ('auto',)}, got {model!r}")
     if int(seed) < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
     if int(n_points) < 20:
@@ -327,7 +334,11 @@ def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_p
         warnings.simplefilter("always")
         pin = fit_pinhole(feats.points_world, feats.pixels, rational=rational)
     report(0.1, "PTP: fitting the LUT")
-    lut = fit_lut(samples, model, degree, positions=cal)
+    if model == "auto":  # the plain LUT chosen among poly 1-3 on this fold's positions (smooth has its column)
+        lut, choice = fit_auto(samples, rig, list(map(int, cal)), candidates=AUTO_PLAIN)
+        degree = choice.degree
+    else:
+        lut = fit_lut(samples, model, degree, positions=cal)
     if not lut.valid.any():
         need = f"poly degree {degree} needs {degree + 2}" if model == "poly" else f"{model} needs 2"
         raise ValueError(f"no pixel with a usable LUT when calibrating on positions {list(map(int, cal))}"
@@ -344,6 +355,8 @@ def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_p
                              f" {list(map(int, cal))}")
         fold.smooth_valid_fraction = float(smooth.valid.mean())
         fold.smooth_scale_px = float(info.scale_px)
+    if model == "auto":
+        fold.lut_degree = int(degree)
     return fold, lut, smooth
 
 

@@ -110,6 +110,8 @@ class Fold:
     smooth_scale_px : float or None
         The smooth LUT's smoothing scale chosen by cross-validation (camera
         px; 0: not smoothed).
+    lut_degree : int or None
+        The plain LUT's degree when it was chosen (``model="auto"``), else None.
     """
 
     calibration: np.ndarray
@@ -120,6 +122,7 @@ class Fold:
     warnings: list = field(default_factory=list)
     smooth_valid_fraction: float | None = None
     smooth_scale_px: float | None = None
+    lut_degree: int | None = None
 
 
 @dataclass
@@ -289,7 +292,7 @@ class CompareResult:
                        "lut_valid_fraction": f.lut_valid_fraction, "pinhole": _pinhole_json(f.pinhole),
                        "warnings": list(f.warnings),
                        "smooth_valid_fraction": _jsonable(f.smooth_valid_fraction),
-                       "smooth_scale_px": _jsonable(f.smooth_scale_px)}
+                       "smooth_scale_px": _jsonable(f.smooth_scale_px), "lut_degree": f.lut_degree}
                       for f in self.folds],
             "coverage": {k: v.tolist() for k, v in self.coverage.__dict__.items() if v is not None},
             "pairs": {k: {"n": len(p), "edges_mm": _jsonable(p.edges_mm)} for k, p in self.pairs.items()},
@@ -332,6 +335,10 @@ def format_summary(result: CompareResult) -> str:
     fit = result.pinhole
     nd = 8 if result.rational else 5
     lut = f"poly degree {result.lut_degree}" if result.lut_model == "poly" else result.lut_model
+    if result.lut_model == "auto":
+        chosen = ", ".join(str(f.lut_degree) for f in result.folds)
+        lut = (f"auto: poly degree {chosen} (the most accurate of degrees 1-3 at positions held out of the"
+               f" calibration positions{', per fold' if len(result.folds) > 1 else ''})")
     f0 = result.folds[0]
     if result.split == "alternate":
         split = (f"calibrated on {len(f0.calibration)} positions, judged at the {len(result.held_positions)} "

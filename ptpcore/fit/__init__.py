@@ -14,6 +14,7 @@ from .sigma import sample_sigma, predicted_poly_sigma
 from .smooth import (sample_sigma_from_noise, fit_smooth_lut, SmoothInfo, poly_sigma_maps,
     local_linear_smooth, global_pinhole)
 from .models import LUT_MODELS, fit_model, lut_model, describe_lut
+from .choice import ModelChoice, fit_auto
 
 __all__ = [
     "fit_lut",
@@ -29,4 +30,6 @@ __all__ = [
     "fit_model",
     "lut_model",
     "describe_lut",
+    "ModelChoice",
+    "fit_auto",
 ]

@@ -1,6 +1,7 @@
 """One entry point for every LUT kind the product offers.
 
-``poly``, ``pchip`` and ``linear`` are the paper's per-pixel models
+``auto`` (the default) chooses among ``poly`` degrees 1 to 3 and ``smooth`` by
+their error at held-out positions (:mod:`ptpcore.fit.choice`). ``poly``, ``pchip`` and ``linear`` are the paper's per-pixel models
 (:mod:`ptpcore.io.lutfile`); ``smooth`` is the regularised per-pixel model
 (:mod:`ptpcore.fit.smooth`), written as ``poly`` coefficients. Plain ``poly`` LUTs
 also get their predicted sigma maps when the samples carry a noise model.
@@ -17,7 +18,7 @@ from ptpcore.rig.rigfile import Rig, rig_to_toml
 
 __all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut", "positions_needed", "check_positions_for_model"]
 
-LUT_MODELS = ("poly", "pchip", "linear", "smooth")
+LUT_MODELS = ("auto", "poly", "pchip", "linear", "smooth")
 
 
 def positions_needed(model: str, degree: int = 3) -> int:
@@ -45,14 +46,15 @@ def check_positions_for_model(model: str, degree: int, n_positions: int, source:
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
               progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
-              level_bias: bool = True, footprint: bool = True) -> Lut:
+              level_bias: bool = True, footprint: bool = True, robust: bool = False) -> Lut:
     """Fit a LUT of any kind to decoded samples.
 
     Parameters
     ----------
     samples : SampleStack
     rig : Rig
-    model : {"poly", "pchip", "linear", "smooth"}
+    model : {"auto", "poly", "pchip", "linear", "smooth"}
+        ``auto``: :func:`ptpcore.fit.choice.fit_auto` (``degree`` is not used).
     degree : int
         Polynomial degree for ``poly`` and ``smooth`` (1 to 5).
     positions : sequence of int, optional
@@ -68,6 +70,10 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         ``smooth``: move samples from the footprint centroid to the centre ray
         (:func:`ptpcore.fit.smooth.footprint_bias`).
 
+    robust : bool
+        Leave out the samples far outside their pixel's curve first (:func:`ptpcore.fit.robust.fit_robust`;
+        ``n_rejected`` and ``provenance["robust"]`` on the LUT).
+
     Returns
     -------
     Lut
@@ -77,6 +83,16 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
     if model not in LUT_MODELS:
         raise ValueError(f"model must be one of {', '.join(LUT_MODELS)}, got {model!r}")
     toml = rig_to_toml(rig)
+    if robust:  # screen the samples for outliers, then this same fit without them
+        from ptpcore.fit.robust import fit_robust
+
+        return fit_robust(samples, rig, model, degree, positions, stage_sigma_mm=stage_sigma_mm, progress=progress,
+                          level_bias=level_bias, footprint=footprint)[0]
+    if model == "auto":
+        from ptpcore.fit.choice import fit_auto
+
+        return fit_auto(samples, rig, positions, stage_sigma_mm=stage_sigma_mm, level_bias=level_bias,
+                        footprint=footprint, progress=progress)[0]
     if model == "smooth":
         from ptpcore.fit.smooth import fit_smooth_lut
 
@@ -104,7 +120,18 @@ def lut_model(lut: Lut) -> str:
 
 
 def describe_lut(lut: Lut) -> str:
-    """A short description of a LUT's model, e.g. ``"smooth, poly degree 2, smoothing scale 16 px"``."""
+    """A short description of a LUT's model, e.g. ``"smooth, poly degree 2, smoothing scale 16 px"``.
+
+    A LUT whose model was chosen (``/model`` attribute ``chosen_by``) says so at the end.
+    """
+    text = _describe(lut)
+    chosen_by = lut.extra_attrs.get("chosen_by") if lut.extra_attrs else None
+    if isinstance(chosen_by, bytes):
+        chosen_by = chosen_by.decode("utf-8", "replace")
+    return f"{text}, chosen by {chosen_by}" if chosen_by else text
+
+
+def _describe(lut: Lut) -> str:
     model = lut_model(lut)
     if model == "smooth":
         text = f"smooth, poly degree {lut.degree}"

@@ -82,12 +82,17 @@ class Lut:
     sigma_x, sigma_y : (H, W) float32 or None
         Predicted 1-sigma uncertainty (optional).
     rig_toml : str
+    extra_attrs : dict
+        More ``/model`` attributes (``method``, ``chosen_by``, ...).
     provenance : dict of str
         ``/provenance`` attributes: name -> JSON text (``corrections``: what
-        was removed from the samples before fitting, FORMATS.md).
+        was removed from the samples before fitting; ``model_choice``, ``robust``,
+        ``drift``, FORMATS.md).
     stage_pose, stage_pose_sigma : (K, 6) float64 or None
         ``/provenance/stage_pose`` and ``_sigma``: the stage refinement's
         per-position dx, dy, dz (um), pitch, yaw, roll (urad) and 1 sigma.
+    n_rejected : (H, W) uint16 or None
+        Samples a robust fit left out of each pixel (optional ``/quality/n_rejected``).
     """
 
     kind: str
@@ -114,6 +119,7 @@ class Lut:
     provenance: dict = field(default_factory=dict)
     stage_pose: np.ndarray | None = None
     stage_pose_sigma: np.ndarray | None = None
+    n_rejected: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -360,6 +366,8 @@ def _write_lut_group(group, lut: Lut) -> None:
         val = getattr(lut, name)
         if val is not None:
             q.create_dataset(name, data=val.astype(np.float32), **opts)
+    if lut.n_rejected is not None:
+        q.create_dataset("n_rejected", data=np.minimum(lut.n_rejected, 65535).astype(np.uint16), **opts)
     group.create_group("rig").attrs["toml"] = lut.rig_toml
     if lut.provenance or lut.stage_pose is not None:
         prov = group.create_group("provenance")
@@ -582,6 +590,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
     q = {n: rd.array(f"quality/{n}", 2) for n in _QUALITY}
     sig = {n: (rd.array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
            for n in ("sigma_x", "sigma_y")}
+    n_rejected = rd.array("quality/n_rejected", 2, "ui") if "quality/n_rejected" in group else None
     rig_toml = ""
     if "rig" in group:
         rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
@@ -598,6 +607,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
         rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
         sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
         provenance=provenance, stage_pose=poses.get("stage_pose"), stage_pose_sigma=poses.get("stage_pose_sigma"),
+        n_rejected=n_rejected,
     )
     return lut, (h, w)
 
@@ -627,7 +637,7 @@ def _check_lut_shapes(rd: _GroupReader, lut: Lut, camera_shape: tuple[int, int])
             raise rd.fail(f"{rd.name(rel)} has shape {arr.shape}, expected {want}")
     quality = {"n_positions": lut.n_positions, "z_min": lut.pixel_z_min, "z_max": lut.pixel_z_max,
                "rms_x": lut.rms_x, "rms_y": lut.rms_y, "loo_x": lut.loo_x, "loo_y": lut.loo_y,
-               "sigma_x": lut.sigma_x, "sigma_y": lut.sigma_y}
+               "sigma_x": lut.sigma_x, "sigma_y": lut.sigma_y, "n_rejected": lut.n_rejected}
     for n, arr in quality.items():
         if arr is not None and arr.shape != (h, w):
             raise rd.fail(f"{rd.name('quality/' + n)} has shape {arr.shape}, expected {(h, w)}")

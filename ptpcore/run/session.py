@@ -118,6 +118,9 @@ class Session:
     refine_stage : bool
         Estimate each position's pose errors and correct the samples before fitting
         (:mod:`ptpcore.fit.stage_pose`).
+    robust : bool
+        Leave out samples far outside their pixel's curve (:mod:`ptpcore.fit.robust`); stored as
+        ``/calibration`` attribute ``robust`` (0 when absent: files written before it).
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -138,12 +141,13 @@ class Session:
 
     rig: Rig
     dataset: str | None = None
-    model: str = "poly"
+    model: str = "auto"
     degree: int = 3
     stage_sigma_um: float = 0.0
     refine_stage: bool = False
     level_bias: bool = True
     footprint: bool = True
+    robust: bool = True
     options: DecodeOptions = field(default_factory=DecodeOptions)
     positions: tuple[int, ...] | None = None
     out: str | None = None
@@ -183,10 +187,11 @@ def next_step(session: Session) -> str | None:
     return None
 
 
-def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
+def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
                 full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True,
-                footprint: bool = True, refine_stage: bool = False) -> Session:
+                footprint: bool = True, refine_stage: bool = False,
+                robust: bool = True) -> Session:
     """Start a session on a dataset folder, validating it first.
 
     Parameters
@@ -194,7 +199,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
     dataset : path
         A ``ptp-dataset/1`` folder.
     model, degree : see :func:`ptpcore.fit.models.fit_model`
-    stage_sigma_um, level_bias, footprint, refine_stage : see :class:`Session`
+    stage_sigma_um, level_bias, footprint, refine_stage, robust : see :class:`Session`
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
@@ -228,7 +233,7 @@ def new_session(dataset, *, model: str = "poly", degree: int = 3, out=None,
         source.validate(full=full_check)
     return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
                    stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
-                   refine_stage=bool(refine_stage),
+                   refine_stage=bool(refine_stage), robust=bool(robust),
                    options=options, positions=positions, out=None if out is None else str(out),
                    sim_settings=_sim_settings_of(source.folder))
 
@@ -248,7 +253,7 @@ def _sim_settings_of(folder: Path) -> str | None:
 def _check_model(model: str, degree: int) -> None:
     if model not in LUT_MODELS:
         raise ValueError(f"model must be one of {LUT_MODELS}, got {model!r}")
-    if model in ("poly", "smooth") and not 1 <= int(degree) <= 5:
+    if model in ("poly", "smooth", "auto") and not 1 <= int(degree) <= 5:
         raise ValueError(f"{model} degree must be 1 to 5, got {degree}")
 
 
@@ -321,7 +326,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
         session.lut = fit_model(samples, session.rig, session.model, session.degree,
                                 positions=session.positions, progress=sub(0.9, 1.0),
                                 stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias,
-                                footprint=session.footprint)
+                                footprint=session.footprint, robust=session.robust)
         session.lut.provenance["corrections"] = corrections_json(samples)
         add_tolerances_to_sigma(session.lut, applied)
         if est is not None:
@@ -411,6 +416,7 @@ def save_session(session: Session, path) -> None:
                         "level_bias": int(bool(session.level_bias)),
                         "footprint": int(bool(session.footprint)),
                         "refine_stage": int(bool(session.refine_stage)),
+                        "robust": int(bool(session.robust)),
                         "min_modulation": float(session.options.min_modulation),
                         "border_margin_px": int(session.options.border_margin_px)})
         if session.positions is not None:
@@ -609,6 +615,9 @@ def _read_checked(f: h5py.File, where: str) -> Session:
     level_bias = _attr(f, "calibration", "level_bias", where, int, 1)
     footprint = _attr(f, "calibration", "footprint", where, int, 1)
     refine = _attr(f, "calibration", "refine_stage", where, int, 0)
+    robust = _attr(f, "calibration", "robust", where, int, 0)  # files before the robust fit: without it
+    if robust not in (0, 1):
+        raise FileFormatError(f"{where}: /calibration robust {robust} (0 or 1) out of range")
     if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1) or footprint not in (0, 1):
         raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0),"
                               f" level_bias {level_bias} or footprint {footprint} (0 or 1) out of range")
@@ -648,7 +657,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
 
     stage = _str_attr(f.attrs.get("stage"))
     session = Session(rig=rig, dataset=dataset, model=model, degree=degree, stage_sigma_um=stage_sigma_um,
-                      level_bias=bool(level_bias), footprint=bool(footprint), refine_stage=bool(refine), options=DecodeOptions(min_mod, border), positions=positions, out=out,
+                      level_bias=bool(level_bias), footprint=bool(footprint), refine_stage=bool(refine), robust=bool(robust), options=DecodeOptions(min_mod, border), positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
                       created=_str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:

@@ -1,0 +1,136 @@
+"""Trust the LUT: the session's LUT against a reference LUT (``ptp diff`` in the Export page).
+
+The engine does the work (:func:`ptpcore.evaluate.diff.diff_luts`) on a worker
+thread; the panel draws the per-pixel difference as a heatmap (µm) and the
+histogram of the differences with the tolerance marked, and says the verdict.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton
+
+from ptpcore.evaluate.diff import LutDiff, diff_luts
+from ptpcore.io.lutfile import load_lut
+
+from ..worker import Job
+from .jobpanel import JobPanel
+from .maps import HeatmapPanel, axis_label
+
+__all__ = ["LutDiffPanel", "verdict_text"]
+
+
+def verdict_text(r: LutDiff, reference: str) -> str:
+    """The numbers of a :class:`LutDiff` in words (one paragraph, rich text)."""
+    word = "consistent" if r.consistent else "DIFFER"
+    text = (f"<b>{word}</b> with {reference}: {r.n_pixels} common pixels, z {r.z[0]:g} … {r.z[-1]:g} mm."
+            f" Difference RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm.")
+    if np.isfinite(r.predicted_rms_um):
+        text += f" Predicted by the sigma maps {r.predicted_rms_um:.3f} µm (observed / predicted {r.ratio:.2f})."
+    text += (f" {100 * r.fraction_beyond:.2f} % of the pixels beyond {r.tolerance_sigma:g} σ"
+             + (f" (at least {r.tolerance_um:g} µm)" if r.tolerance_um else "")
+             + f"; the LUTs differ above {100 * r.max_fraction:g} %.")
+    return text
+
+
+class LutDiffPanel(QGroupBox):
+    """Pick a reference LUT file; show the difference of the session's LUT to it.
+
+    Parameters
+    ----------
+    lut : callable
+        Returns the current :class:`ptpcore.io.lutfile.Lut` or None.
+
+    Signals
+    -------
+    diffChanged(object)
+        The new :class:`LutDiff` (None when the LUT changes).
+    """
+
+    diffChanged = Signal(object)
+
+    def __init__(self, lut: Callable, parent=None):
+        super().__init__("Trust the LUT: difference to a reference LUT (ptp diff)", parent)
+        self._lut = lut
+        self.result: LutDiff | None = None
+        grid = QGridLayout(self)
+        row = QHBoxLayout()
+        self.reference = QLineEdit()
+        self.reference.setPlaceholderText("reference LUT (.lut.h5): a second sweep, or last month's calibration")
+        browse = QPushButton("Browse…")
+        browse.clicked.connect(self._browse)
+        self.compare_button = QPushButton("Compare")
+        self.compare_button.setToolTip("Per-pixel difference over the pixels and heights both LUTs cover, against"
+                                       " the difference their sigma maps predict")
+        self.compare_button.clicked.connect(self.compare)
+        self.jobs = JobPanel(self)
+        for w in (self.reference, browse, self.compare_button):
+            row.addWidget(w, 1 if w is self.reference else 0)
+        row.addWidget(self.jobs, 1)
+        grid.addLayout(row, 0, 0, 1, 2)
+        self.verdict = QLabel("Pick a reference LUT of the same camera and press Compare.")
+        self.verdict.setWordWrap(True)
+        grid.addWidget(self.verdict, 1, 0, 1, 2)
+        self.heatmap = HeatmapPanel(histogram=False)
+        grid.addWidget(self.heatmap, 2, 0)
+        self.hist = pg.PlotWidget()
+        self.hist.setTitle("Per-pixel difference (RMS over heights, X and Y)")
+        axis_label(self.hist, "bottom", "difference", "µm")
+        axis_label(self.hist, "left", "pixels")
+        self.bars = pg.BarGraphItem(x=[], height=[], width=1.0, brush="#2b6cb0")
+        self.hist.addItem(self.bars)
+        self.tol_line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#c0392b", width=2, style=pg.QtCore.Qt.DashLine))
+        self.tol_line.setVisible(False)
+        self.hist.addItem(self.tol_line)
+        grid.addWidget(self.hist, 2, 1)
+        grid.setRowStretch(2, 1)
+
+    def _browse(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Reference LUT", self.reference.text(),
+                                              "PTP LUT (*.lut.h5 *.h5);;All files (*)")
+        if path:
+            self.reference.setText(path)
+
+    def reset(self) -> None:
+        """Forget the result (the session's LUT changed)."""
+        self.result = None
+        self.bars.setOpts(x=[], height=[], width=1.0)
+        self.tol_line.setVisible(False)
+        self.verdict.setText("Pick a reference LUT of the same camera and press Compare.")
+        self.diffChanged.emit(None)
+
+    def compare(self, reference=None) -> Job | None:
+        """Start the comparison with ``reference`` (default: the path typed in); None if nothing to do."""
+        lut = self._lut()
+        if reference is not None:
+            self.reference.setText(str(reference))
+        path = Path(self.reference.text().strip())
+        if self.jobs.busy or lut is None:
+            return None
+        if not str(path) or not path.is_file():
+            self.jobs.show_error(f"{path}: no such LUT file")
+            return None
+        job = Job(lambda ctx: diff_luts(lut, load_lut(path)), f"comparing with {path.name}")
+        job.finished.connect(lambda r: self.show_result(r, path.name))
+        return self.jobs.run(job)
+
+    def show_result(self, r: LutDiff, reference: str = "the reference") -> None:
+        """Draw the heatmap and the histogram of ``r`` and say the verdict."""
+        self.result = r
+        self.verdict.setText(verdict_text(r, reference))
+        d_um = np.where(r.common, r.diff * 1e3, np.nan).astype(np.float32)
+        self.heatmap.set_map(d_um, title="|difference| per pixel (RMS over heights, X and Y)", unit="µm",
+                             cmap="inferno")
+        counts, edges = r.histogram()
+        width = float(edges[1] - edges[0]) if edges.size > 1 else 1.0
+        self.bars.setOpts(x=0.5 * (edges[:-1] + edges[1:]), height=counts, width=width)
+        tol = np.fmax(r.tolerance_sigma * r.predicted, r.tolerance_um * 1e-3)[r.common]
+        if np.isfinite(tol).any():
+            self.tol_line.setValue(float(np.nanmedian(tol)) * 1e3)
+            self.tol_line.setVisible(True)
+        self.diffChanged.emit(r)

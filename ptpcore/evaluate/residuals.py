@@ -1,0 +1,184 @@
+"""Residual diagnostics: per position, the field of (sample - LUT) as arrows, and its RMS.
+
+A magnitude map hides direction: a position whose residuals all point one way (a
+stage that moved sideways, a tilted plate) or swirl about the centre (a rotation)
+shows a pattern as arrows that a random scatter of noise does not. The field is
+the mean residual over square blocks of pixels (one arrow per block); the lists
+put the worst positions and the worst pixels first. Arrays only: the GUI draws
+them; :func:`residual_png` draws one position with OpenCV for the export.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ptpcore.io.lutfile import Lut
+from ptpcore.io.samples import SampleStack
+
+__all__ = ["ResidualField", "residual_field", "residual_png"]
+
+
+@dataclass
+class ResidualField:
+    """Residuals of a LUT against its samples.
+
+    Attributes
+    ----------
+    z : (K,) float64, mm
+        Stage readings of the positions.
+    used : (K,) bool
+        Positions the LUT was fitted on (the others are held out).
+    rms_um : (K,) float64, µm
+        Per position, RMS over valid pixels of the residual length ``|(dX, dY)|``.
+    n_pixels : (K,) int64
+        Pixels with a residual at each position.
+    rows, cols : (Gy,), (Gx,) float64, px
+        Block centres.
+    dx, dy : (K, Gy, Gx) float64, mm
+        Mean residual (sample - LUT) per block; NaN for blocks without a sample.
+    pixel_rms_um : (H, W) float64, µm
+        Per pixel, RMS over positions of the residual length (NaN without residuals).
+    worst_positions : (K,) int64
+        Positions by ``rms_um``, largest first.
+    worst_pixels : (N, 2) int64
+        ``(row, col)`` of the N pixels with the largest ``pixel_rms_um``, largest first.
+    block : int
+        Block side (px).
+    """
+
+    z: np.ndarray
+    used: np.ndarray
+    rms_um: np.ndarray
+    n_pixels: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    pixel_rms_um: np.ndarray
+    worst_positions: np.ndarray
+    worst_pixels: np.ndarray
+    block: int
+
+    def lines(self, n: int = 5) -> list[str]:
+        """The worst positions and pixels in words (positions 1-based, as the summary names them)."""
+        out = ["worst positions (residual RMS): " + ", ".join(
+            f"{k + 1} (z = {self.z[k]:g} mm{'' if self.used[k] else ', held out'}) {self.rms_um[k]:.3f} µm"
+            for k in self.worst_positions[:n] if np.isfinite(self.rms_um[k]))]
+        out.append("worst pixels (RMS over positions): " + ", ".join(
+            f"({r}, {c}) {self.pixel_rms_um[r, c]:.3f} µm" for r, c in self.worst_pixels[:n]))
+        return out
+
+
+def _block_mean(a: np.ndarray, b: int) -> np.ndarray:
+    """(H, W) -> (ceil(H/b), ceil(W/b)) mean of the finite values (NaN for empty blocks)."""
+    h, w = a.shape
+    gy, gx = -(-h // b), -(-w // b)
+    pad = np.full((gy * b, gx * b), np.nan)
+    pad[:h, :w] = a
+    blocks = pad.reshape(gy, b, gx, b)
+    ok = np.isfinite(blocks)
+    n = ok.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, np.where(ok, blocks, 0.0).sum(axis=(1, 3)) / n, np.nan)
+
+
+def residual_field(lut: Lut, samples: SampleStack, positions=None, *, block: int = 16,
+                   n_worst: int = 20) -> ResidualField:
+    """The residuals of ``lut`` at every position of ``samples``.
+
+    Parameters
+    ----------
+    lut : Lut
+    samples : SampleStack
+        Its samples (same camera); all positions are evaluated.
+    positions : sequence of int, optional
+        The positions the LUT was fitted on (default all), for ``used``.
+    block : int
+        Block side in px for the arrows.
+    n_worst : int
+        Pixels listed in ``worst_pixels``.
+
+    Returns
+    -------
+    ResidualField
+
+    Raises
+    ------
+    ValueError
+        Different camera sizes or a block below 1 px.
+    """
+    if lut.shape != samples.shape:
+        raise ValueError(f"the LUT is {lut.shape} px, the samples {samples.shape}")
+    if int(block) < 1:
+        raise ValueError(f"block must be at least 1 px, got {block}")
+    k_all = samples.z.size
+    used = np.zeros(k_all, bool)
+    used[np.arange(k_all) if positions is None else np.asarray(positions, dtype=np.int64)] = True
+    h, w = samples.shape
+    b = int(block)
+    gy, gx = -(-h // b), -(-w // b)
+    dx, dy = np.full((k_all, gy, gx), np.nan), np.full((k_all, gy, gx), np.nan)
+    rms, npx = np.full(k_all, np.nan), np.zeros(k_all, np.int64)
+    sq, cnt = np.zeros((h, w)), np.zeros((h, w))
+    for k in range(k_all):
+        ev = lut.evaluate(float(samples.z[k]))
+        sx, sy = samples.absolute(k)
+        ok = (samples.reasons[k] == 0) & ev.in_range & lut.valid & np.isfinite(sx)
+        rx, ry = np.where(ok, sx - ev.x, np.nan), np.where(ok, sy - ev.y, np.nan)
+        r2 = rx * rx + ry * ry
+        npx[k] = int(ok.sum())
+        if npx[k]:
+            rms[k] = float(np.sqrt(np.mean(r2[ok])) * 1e3)
+            dx[k], dy[k] = _block_mean(rx, b), _block_mean(ry, b)
+        sq += np.where(ok, r2, 0.0)
+        cnt += ok
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pix = np.where(cnt > 0, np.sqrt(sq / cnt) * 1e3, np.nan)
+    flat = np.where(np.isfinite(pix), pix, -1.0).ravel()
+    top = np.argsort(flat)[::-1][:int(n_worst)]
+    top = top[flat[top] >= 0]
+    worst_pos = np.argsort(np.where(np.isfinite(rms), rms, -1.0))[::-1]
+    rows = np.minimum(np.arange(gy) * b + (b - 1) / 2, h - 1)
+    cols = np.minimum(np.arange(gx) * b + (b - 1) / 2, w - 1)
+    return ResidualField(samples.z.astype(float).copy(), used, rms, npx, rows, cols,
+                         dx, dy, pix, worst_pos.astype(np.int64),
+                         np.stack(np.unravel_index(top, (h, w)), axis=1).astype(np.int64), b)
+
+
+def residual_png(field: ResidualField, k: int, path, size_px: int = 800) -> None:
+    """Draw position ``k``'s residual field as arrows (OpenCV) and write it as PNG, atomically.
+
+    The arrows are scaled so the longest is 1.5 blocks long; the scale (µm per block) and the
+    position's RMS are written at the top.
+    """
+    import cv2
+
+    from ptpcore.atomic import atomic_path
+
+    gy, gx = field.dx.shape[1:]
+    f = size_px / max(gx, gy) / field.block
+    h_img, w_img = int(round(gy * field.block * f)) + 40, int(round(gx * field.block * f))
+    img = np.full((h_img, w_img, 3), 255, np.uint8)
+    dx, dy = field.dx[k], field.dy[k]
+    length = np.hypot(dx, dy)
+    longest = float(np.nanmax(length)) if np.isfinite(length).any() else 0.0
+    scale = 1.5 * field.block * f / longest if longest > 0 else 0.0
+    for i in range(gy):
+        for j in range(gx):
+            if not np.isfinite(length[i, j]):
+                continue
+            x0, y0 = field.cols[j] * f, field.rows[i] * f + 40
+            p0 = (int(round(x0)), int(round(y0)))
+            p1 = (int(round(x0 + dx[i, j] * scale)), int(round(y0 + dy[i, j] * scale)))
+            cv2.arrowedLine(img, p0, p1, (178, 114, 0), 1, cv2.LINE_AA, tipLength=0.3)
+    text = (f"position {k + 1}, z = {field.z[k]:g} mm: residual RMS {field.rms_um[k]:.3f} um;"
+            f" longest arrow {longest * 1e3:.3f} um")
+    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", img)
+        if not ok:
+            raise ValueError(f"{path}: could not encode the PNG")
+        with open(tmp, "wb") as fh:
+            fh.write(buf.tobytes())

@@ -1,0 +1,373 @@
+"""``--model auto``: the LUT model chosen by its error at held-out positions.
+
+Every candidate (:data:`AUTO_CANDIDATES`: plain ``poly`` degrees 1 to 3 and
+``smooth``) is fitted on some of the calibration positions and judged at the
+others (interior positions, so nothing extrapolates), against the samples
+measured there. The chosen model is then refitted on all positions.
+
+What is judged. A held-out sample differs from the candidate's prediction by
+the candidate's own error ``e`` plus the sample's noise ``n`` (independent of
+the fit, which never saw the sample): ``E[d^2] = E[e^2] + E[n^2]``. The noise
+term is the same for every candidate, so the ranking is that of the measured
+RMS ``d``; the model error itself, ``sqrt(max(d^2 - n^2, 0))`` with ``n`` the
+predicted sample noise (:func:`ptpcore.fit.smooth.sample_sigma_from_noise`, plus
+the stage readings' error through each pixel's slope), is what the tie rule
+compares: a simpler candidate whose model error is within :data:`TIE_FRACTION`
+of the best one's is taken (judged on the difference of the measured mean squares,
+in which the noise cancels: ``d_i^2 - d_best^2 <= (1.05^2 - 1) (d_best^2 - n^2)``;
+a noise prediction above the measured ``d_best^2`` leaves no allowance, so a
+wrong noise prediction can cost a tie but never choose a worse model) (with a few thousand held-out samples the RMS itself
+is known to far better than 5 %; what is not known better is how far the
+held-out positions, fitted from half the positions, speak for the full fit).
+
+The candidates are compared over the pixels every one of them covers; a
+candidate covering less than :data:`MIN_COVERAGE` of the best covered pixels
+(e.g. ``poly`` degree 3 with too few positions in a fold) is left out, with a
+note.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ptpcore.io.lutfile import Lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig
+
+__all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "CandidateError", "ModelChoice",
+           "choice_folds", "choose_model", "fit_auto"]
+
+AUTO = "auto"
+AUTO_CANDIDATES: tuple[tuple[str, int], ...] = (("poly", 1), ("poly", 2), ("poly", 3), ("smooth", 2))
+"""``(model, degree)`` in order of simplicity (ties go to the earlier one)."""
+
+TIE_FRACTION = 0.05
+"""A simpler candidate whose model error is within this fraction of the best one's is chosen."""
+
+MIN_COVERAGE = 0.5
+"""Fraction of the best candidate's pixels a candidate must cover to be judged."""
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class CandidateError:
+    """One candidate's error at the held-out positions.
+
+    Attributes
+    ----------
+    model : str
+    degree : int
+    held_out_rms_um : float
+        RMS over X and Y of (prediction - held-out sample), µm; NaN if not judged.
+    model_error_um : float
+        The same with the predicted sample noise taken out (µm); NaN if unknown.
+    coverage : float
+        Fraction of the best covered candidate's held-out samples this one predicts.
+    note : str
+        Why it was not judged (empty if it was).
+    """
+
+    model: str
+    degree: int
+    held_out_rms_um: float
+    model_error_um: float
+    coverage: float
+    note: str = ""
+
+    @property
+    def name(self) -> str:
+        return f"poly degree {self.degree}" if self.model == "poly" else f"{self.model} (degree {self.degree})"
+
+
+@dataclass
+class ModelChoice:
+    """The candidates' held-out errors and the pick.
+
+    Attributes
+    ----------
+    candidates : list of CandidateError
+    chosen : int
+        Index into ``candidates``.
+    held_out : list of list of int
+        Held-out positions of each fold.
+    noise_rms_um : float
+        Predicted RMS noise of the held-out samples (µm), NaN without a noise model.
+    n_samples : int
+        Held-out X and Y values every judged candidate was compared on.
+    rule : str
+    """
+
+    candidates: list
+    chosen: int
+    held_out: list
+    noise_rms_um: float
+    n_samples: int
+    rule: str = field(default=f"lowest held-out error; within {TIE_FRACTION:.0%} of it, the simplest")
+
+    @property
+    def model(self) -> str:
+        return self.candidates[self.chosen].model
+
+    @property
+    def degree(self) -> int:
+        return self.candidates[self.chosen].degree
+
+    def to_json(self) -> str:
+        """The ``/provenance`` attribute ``model_choice`` (FORMATS.md)."""
+        c = self.candidates[self.chosen]
+        return json.dumps({
+            "chosen": {"model": c.model, "degree": c.degree},
+            "rule": self.rule, "held_out_positions": self.held_out,
+            "noise_rms_um": _num(self.noise_rms_um), "n_samples": int(self.n_samples),
+            "candidates": [{"model": k.model, "degree": k.degree, "held_out_rms_um": _num(k.held_out_rms_um),
+                            "model_error_um": _num(k.model_error_um), "coverage": _num(k.coverage),
+                            "note": k.note} for k in self.candidates],
+        })
+
+    @classmethod
+    def from_json(cls, text: str) -> "ModelChoice":
+        """Read back :meth:`to_json` (missing numbers come back as NaN)."""
+        d = json.loads(text)
+        cands = [CandidateError(k["model"], int(k["degree"]), _flt(k.get("held_out_rms_um")),
+                                _flt(k.get("model_error_um")), _flt(k.get("coverage")), k.get("note", ""))
+                 for k in d["candidates"]]
+        pick = d["chosen"]
+        chosen = next(i for i, k in enumerate(cands) if (k.model, k.degree) == (pick["model"], pick["degree"]))
+        return cls(cands, chosen, d.get("held_out_positions", []), _flt(d.get("noise_rms_um")),
+                   int(d.get("n_samples", 0)), d.get("rule", ""))
+
+    def table(self) -> list[str]:
+        """The candidates as text lines (the chosen one marked), for summaries."""
+        lines = [f"{'model':<22} {'held-out RMS':>13} {'model error':>12}"]
+        for i, c in enumerate(self.candidates):
+            mark = "  <- chosen" if i == self.chosen else ""
+            if c.note:
+                lines.append(f"{c.name:<22} {'-':>13} {'-':>12}  ({c.note})")
+            else:
+                lines.append(f"{c.name:<22} {c.held_out_rms_um:>10.3f} um {c.model_error_um:>9.3f} um{mark}")
+        return lines
+
+
+def _num(v):
+    return None if v is None or not np.isfinite(v) else round(float(v), 6)
+
+
+def _flt(v) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def choice_folds(n_positions: int, min_fit: int = 5) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Fit / held-out folds of ``n_positions`` calibration positions for the choice.
+
+    One fold holding out every second interior position (1, 3, ..., as
+    :func:`ptpcore.evaluate.split_positions` does) when at least ``min_fit``
+    positions are left to fit; otherwise leave-one-interior-position-out folds.
+
+    Returns
+    -------
+    list of (fit (Kf,) int64, held (Kh,) int64)
+        Indices into the calibration positions.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 positions.
+    """
+    k = int(n_positions)
+    if k < 3:
+        raise ValueError(f"choosing a model needs at least 3 positions, got {k}")
+    allk = np.arange(k)
+    held = np.arange(1, k - 1, 2)
+    if k - held.size >= min_fit:
+        return [(np.setdiff1d(allk, held), held)]
+    return [(np.setdiff1d(allk, [i]), np.array([i])) for i in range(1, k - 1)]
+
+
+def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level_bias, footprint,
+                   progress=None) -> Lut | None:
+    from ptpcore.fit.models import fit_model
+
+    try:
+        return fit_model(samples, rig, model, degree, positions=positions, progress=progress,
+                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+    except ValueError:
+        return None
+
+
+def _fold_errors(samples: SampleStack, rig: Rig, luts: list, held, stage_sigma_mm: float):
+    """Squared held-out differences of every candidate, over the samples all of them predict.
+
+    Returns
+    -------
+    sums : (C,) float, mm^2
+        Sum over X and Y of (prediction - sample)^2 on the common samples.
+    counts : (C,) int
+        Samples each candidate predicts (for its coverage).
+    n_common : int
+        X and Y values in the common set (2 per sample).
+    noise_sum : float, mm^2
+        Sum of the predicted noise variance over the common set (NaN without a noise model).
+    """
+    from ptpcore.fit.smooth import sample_sigma_from_noise
+
+    sums = np.zeros(len(luts))
+    counts = np.zeros(len(luts), dtype=np.int64)
+    n_common, noise_sum = 0, 0.0
+    for k in held:
+        z = float(samples.z[k])
+        sx, sy = samples.absolute(k)
+        ok = np.isfinite(sx) & np.isfinite(sy) & (samples.reasons[k] == 0)  # outliers flagged by a robust fit
+        evs = [lut.evaluate(z) if lut is not None else None for lut in luts]
+        common = ok.copy()
+        for i, ev in enumerate(evs):
+            if ev is not None:
+                counts[i] += int((ok & ev.in_range).sum())
+                common &= ev.in_range
+        for i, ev in enumerate(evs):
+            if ev is not None:
+                sums[i] += float(np.sum((ev.x[common] - sx[common]) ** 2 + (ev.y[common] - sy[common]) ** 2))
+        n_common += 2 * int(common.sum())
+        noise_sum += _noise_variance_sum(samples, rig, k, common, luts, stage_sigma_mm, sample_sigma_from_noise)
+    return sums, counts, n_common, noise_sum
+
+
+def _noise_variance_sum(samples, rig, k, common, luts, stage_sigma_mm, sigma_fn) -> float:
+    """Sum over X and Y of the predicted noise variance of position ``k``'s samples on ``common`` (mm^2).
+
+    The phase noise of each sample, plus (``stage_sigma_mm``) the stage reading's error, which
+    moves the sample along its pixel's ray: ``dX/dz * dz`` (the slope from the first candidate
+    LUT, by a central difference over 0.1 mm).
+    """
+    if samples.noise is None or samples.modulation is None:
+        return float("nan")
+    s = sigma_fn(samples.subset([k]), rig)[0][common]
+    total = 2.0 * float(np.sum(s * s))
+    ref = next((lut for lut in luts if lut is not None), None)
+    if stage_sigma_mm and ref is not None:
+        z, h = float(samples.z[k]), 0.05
+        hi, lo = ref.evaluate(z + h, extrapolate=True), ref.evaluate(z - h, extrapolate=True)
+        slope2 = ((hi.x - lo.x) / (2 * h)) ** 2 + ((hi.y - lo.y) / (2 * h)) ** 2
+        total += float(np.nansum(slope2[common])) * stage_sigma_mm ** 2
+    return total
+
+
+def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=AUTO_CANDIDATES,
+                 stage_sigma_mm: float = 0.0, level_bias: bool = True, footprint: bool = True,
+                 progress: Progress | None = None) -> ModelChoice:
+    """Judge every candidate at held-out positions (see the module docstring).
+
+    Parameters
+    ----------
+    samples : SampleStack
+    rig : Rig
+    positions : sequence of int, optional
+        The calibration positions (default all); folds are taken among them.
+    candidates : sequence of (model, degree)
+        In order of simplicity.
+    stage_sigma_mm, level_bias, footprint
+        As for :func:`ptpcore.fit.models.fit_model`.
+    progress : callable, optional
+
+    Returns
+    -------
+    ModelChoice
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 positions, or no candidate could be fitted and judged.
+    """
+    pos = np.arange(samples.z.size) if positions is None else np.asarray(positions)
+    folds = choice_folds(pos.size)
+    cands = list(candidates)
+    sums = np.zeros(len(cands))
+    counts = np.zeros(len(cands), dtype=np.int64)
+    fitted = np.ones(len(cands), dtype=bool)
+    notes = ["could not be fitted"] * len(cands)
+    n_common, noise_sum = 0, 0.0
+    steps = len(folds) * len(cands)
+    for fi, (fit_i, held_i) in enumerate(folds):
+        luts = []
+        for ci, (model, degree) in enumerate(cands):
+            if progress:
+                progress((fi * len(cands) + ci) / steps, f"choosing the model: fitting {model} {degree}")
+            lut = _fit_candidate(samples, rig, model, degree, pos[fit_i], stage_sigma_mm, level_bias, footprint) \
+                if fitted[ci] else None
+            fitted[ci] &= lut is not None
+            luts.append(lut if fitted[ci] else None)
+        n_valid = np.array([0 if lut is None else int(lut.valid.sum()) for lut in luts])
+        for ci in np.nonzero(fitted & (n_valid < MIN_COVERAGE * max(n_valid.max(), 1)))[0]:
+            luts[ci] = None  # too few pixels: it would shrink the common set for all
+            fitted[ci] = False
+            notes[ci] = f"fits only {n_valid[ci] / max(n_valid.max(), 1):.0%} of the pixels on {fit_i.size} positions"
+        s, c, n, ns = _fold_errors(samples, rig, luts, pos[held_i], stage_sigma_mm)
+        sums, counts, n_common, noise_sum = sums + s, counts + c, n_common + n, noise_sum + ns
+    return _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, [pos[h].tolist() for _, h in folds])
+
+
+def _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, held) -> ModelChoice:
+    """Apply the coverage and tie rules to the accumulated errors."""
+    best_count = counts[fitted].max() if fitted.any() else 0
+    judged = fitted & (counts >= MIN_COVERAGE * max(best_count, 1))
+    noise_var = noise_sum / n_common if n_common else float("nan")
+    out = []
+    for i, (model, degree) in enumerate(cands):
+        cov = float(counts[i] / best_count) if best_count else 0.0
+        if not fitted[i]:
+            out.append(CandidateError(model, degree, np.nan, np.nan, cov, notes[i]))
+        elif not judged[i] or n_common == 0:
+            out.append(CandidateError(model, degree, np.nan, np.nan, cov, f"covers {cov:.0%} of the pixels"))
+        else:
+            mse = sums[i] / n_common
+            err = np.sqrt(max(mse - noise_var, 0.0)) if np.isfinite(noise_var) else np.sqrt(mse)
+            out.append(CandidateError(model, degree, float(np.sqrt(mse) * 1e3), float(err * 1e3), cov))
+    ok = [i for i, c in enumerate(out) if not c.note]
+    if not ok:
+        raise ValueError("no LUT model could be fitted and judged at held-out positions")
+    best = min(ok, key=lambda i: out[i].held_out_rms_um)
+    mse_best = sums[best] / n_common
+    # Differences of the measured MSE are unbiased for differences of the squared model errors
+    # (the noise cancels); the allowance, 5 % of the best model error, needs the noise taken out.
+    # An overestimated noise leaves no allowance (the best is taken), never a wrong tie.
+    err2_best = max(mse_best - noise_var, 0.0) if np.isfinite(noise_var) else mse_best
+    allowance = ((1 + TIE_FRACTION) ** 2 - 1) * err2_best
+    chosen = next(i for i in ok if sums[i] / n_common - mse_best <= allowance)
+    noise_um = float(np.sqrt(noise_var) * 1e3) if np.isfinite(noise_var) else float("nan")
+    return ModelChoice(out, chosen, held, noise_um, int(n_common))
+
+
+def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: float = 0.0,
+             level_bias: bool = True, footprint: bool = True, progress: Progress | None = None,
+             candidates=AUTO_CANDIDATES) -> tuple[Lut, ModelChoice]:
+    """Choose the model (:func:`choose_model`) and fit it on all ``positions``.
+
+    Returns
+    -------
+    lut : Lut
+        With ``/model`` attribute ``chosen_by = "held-out positions"`` and
+        ``provenance["model_choice"]`` (:meth:`ModelChoice.to_json`).
+    choice : ModelChoice
+        With too few positions to judge any candidate (fewer than 3, or none
+        fitted on the folds), ``poly`` degree 1, its ``rule`` saying why.
+    """
+    from ptpcore.fit.models import fit_model
+
+    def sub(lo, hi):
+        return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
+
+    try:
+        choice = choose_model(samples, rig, positions, candidates=candidates, stage_sigma_mm=stage_sigma_mm,
+                              level_bias=level_bias, footprint=footprint, progress=sub(0.0, 0.7))
+    except ValueError as exc:  # too few positions to hold any out: the simplest model, and why
+        choice = ModelChoice([CandidateError("poly", 1, np.nan, np.nan, np.nan, "not judged")], 0, [],
+                             np.nan, 0, f"poly degree 1 without a choice: {exc}")
+    lut = fit_model(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
+                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+    lut.extra_attrs["chosen_by"] = "held-out positions"
+    lut.provenance["model_choice"] = choice.to_json()
+    return lut, choice

@@ -1,0 +1,314 @@
+"""Robust per-pixel fits: samples far outside their pixel's curve are left out, and counted.
+
+A sample hit by dust, a reflection or a stage glitch at one position lies far from
+the curve its pixel's other samples follow. Every pixel's samples are screened
+before any model is fitted (so the screening serves every model, ``auto`` included):
+
+1. A weighted polynomial of degree :data:`SCREEN_DEGREE` (lower with few positions)
+   is fitted to each pixel's valid samples, weights ``1 / sigma_k^2`` with ``sigma_k``
+   the sample's predicted noise (:func:`ptpcore.fit.smooth.sample_sigma_from_noise`:
+   phase noise, plus the stage readings' error through the pixel's slope).
+2. Each residual is studentized, ``r_k / (sigma_k sqrt(1 - h_kk))`` (``h`` the hat
+   matrix's diagonal), which is N(0, 1) for a sample that follows the curve. The
+   spread actually seen in a block of pixels (median of the larger of the X and Y
+   values / 1.0518, its median under N(0, 1)) scales the threshold when it is above 1:
+   a noise model that is too optimistic does not turn good samples into outliers.
+3. A pixel's worst sample is rejected when it is beyond :data:`K_SIGMA` of that
+   spread; the pixel is refitted and screened again, at most :data:`MAX_PER_PIXEL`
+   times, and never below ``degree + 2`` samples.
+4. A position whose valid samples are rejected at more than :data:`SUSPECT_FRACTION`
+   of the pixels (wrong images, a stage glitch) is named suspect and left out at
+   every pixel.
+
+Without a camera noise model every ``sigma_k`` is 1 and the threshold is K_SIGMA
+times the residuals' robust spread alone. The rejected samples are flagged
+:attr:`ptpcore.decode.phase.Reason.OUTLIER` in a copy of the ``reasons`` array (the
+coordinates are shared, not copied); ``n_rejected`` per pixel goes to the LUT's
+``/quality/n_rejected`` and the report to ``/provenance`` ``robust`` (FORMATS.md).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ptpcore.decode.phase import Reason
+from ptpcore.io.fastio import read_block
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig
+
+__all__ = ["K_SIGMA", "SCREEN_DEGREE", "MAX_PER_PIXEL", "SUSPECT_FRACTION", "RobustReport", "screen_samples",
+           "without_outliers", "fit_robust"]
+
+K_SIGMA = 5.0
+"""A sample beyond this many (scaled) predicted sigmas of its pixel's curve is rejected."""
+
+SCREEN_DEGREE = 3
+"""Degree of the screening polynomial (lowered to ``n_positions - 4`` with few positions)."""
+
+MAX_PER_PIXEL = 3
+"""Samples rejected per pixel at most (before suspect positions)."""
+
+SUSPECT_FRACTION = 0.5
+"""A position rejected at more than this fraction of its valid samples is suspect."""
+
+_MEDIAN_MAX_ABS_N01 = 1.0518
+"""Median of max(|a|, |b|) for independent a, b ~ N(0, 1): (2 Phi(m) - 1)^2 = 1/2."""
+
+_BLOCK = 1 << 15
+
+
+@dataclass
+class RobustReport:
+    """What the screening left out.
+
+    Attributes
+    ----------
+    positions : (Kp,) int64
+        The screened positions (indices into the stack).
+    rejected : (Kp, H, W) bool
+        Samples left out (suspect positions included).
+    n_rejected : (H, W) uint16
+        Samples left out per pixel.
+    fraction : (Kp,) float64
+        Fraction of each position's valid samples rejected as outliers (before suspects are dropped).
+    suspect : list of int
+        Suspect positions (stack indices), left out everywhere.
+    k_sigma : float
+    degree : int
+        Degree of the screening polynomial.
+    noise_scale : float
+        Median over blocks of the residual spread in predicted sigmas (the threshold's factor).
+    noise_model : bool
+        Whether the samples' predicted noise was used.
+    """
+
+    positions: np.ndarray
+    rejected: np.ndarray
+    n_rejected: np.ndarray
+    fraction: np.ndarray
+    suspect: list
+    k_sigma: float
+    degree: int
+    noise_scale: float
+    noise_model: bool
+
+    @property
+    def n_outliers(self) -> int:
+        return int(self.rejected.sum())
+
+    def to_json(self) -> str:
+        """The ``/provenance`` attribute ``robust`` (FORMATS.md)."""
+        return json.dumps({"k_sigma": self.k_sigma, "screen_degree": self.degree,
+                           "noise_scale": round(float(self.noise_scale), 4), "noise_model": self.noise_model,
+                           "n_rejected": self.n_outliers, "suspect_positions": [int(k) for k in self.suspect],
+                           "rejected_fraction": {str(int(k)): round(float(f), 5)
+                                                 for k, f in zip(self.positions, self.fraction)}})
+
+    def lines(self, z=None) -> list[str]:
+        """The report in words, for summaries (``z``: the stage readings, to name positions)."""
+        out = [f"robust fit: {self.n_outliers} samples left out (beyond {self.k_sigma:g} x"
+               f" {self.noise_scale:.2f} predicted sigma), at {int((self.n_rejected > 0).sum())} pixels"]
+        for k in self.suspect:
+            i = int(np.flatnonzero(self.positions == k)[0])
+            where = f" (z = {z[k]:g} mm)" if z is not None else ""
+            out.append(f"SUSPECT position {k + 1}{where}: {100 * self.fraction[i]:.0f} % of its samples are far"
+                       " from the curve of the others (wrong images? a stage glitch?); left out everywhere")
+        return out
+
+
+def _sigma_block(samples: SampleStack, rig: Rig, start: int, stop: int, idx, valid) -> np.ndarray:
+    """(Kp, n) predicted phase-noise sigma (mm) of a block of pixels; 1 without a noise model."""
+    if samples.noise is None or samples.modulation is None or samples.background is None:
+        return np.where(valid, 1.0, np.nan)
+    from ptpcore.fit.smooth import _phase_sigma_mm
+
+    bg = read_block(samples.background, start, stop, idx).astype(float)
+    mod = read_block(samples.modulation, start, stop, idx).astype(float)
+    s = _phase_sigma_mm(samples, rig, bg, mod)
+    return np.where(valid & np.isfinite(s) & (s > 0), s, np.nan)
+
+
+def _studentized(t: np.ndarray, vx, vy, sigma, use, degree: int):
+    """Weighted per-pixel polynomial fit and studentized residuals.
+
+    Parameters
+    ----------
+    t : (Kp,) float, normalised z
+    vx, vy : (Kp, n) float, mm (anything where not ``use``)
+    sigma : (Kp, n) float, mm
+    use : (Kp, n) bool
+    degree : int
+
+    Returns
+    -------
+    z : (Kp, n) float
+        max(|studentized X|, |studentized Y|); NaN where not used or the pixel has no fit.
+    slope : (Kp, n) float
+        |d(X, Y)/dt| of the fit at each position (normalised z units), for the stage term.
+    """
+    v = np.vander(t, degree + 1, increasing=True)  # (Kp, D)
+    w = np.where(use, 1.0 / np.where(use, sigma, 1.0) ** 2, 0.0)
+    a = np.einsum("kp,ki,kj->pij", w, v, v)
+    n_used = use.sum(axis=0)
+    ok = n_used >= degree + 2
+    a[~ok] = np.eye(degree + 1)
+    ainv = np.linalg.inv(a)
+    out = []
+    for vals in (vx, vy):
+        vals = np.where(use, vals, 0.0)
+        c = np.einsum("pij,kj,kp,kp->pi", ainv, v, w, vals)
+        out.append((vals - v @ c.T, c))
+    h = np.einsum("ki,pij,kj->kp", v, ainv, v) * w
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = sigma * np.sqrt(np.clip(1.0 - h, 1e-6, None))
+        z = np.fmax(np.abs(out[0][0]) / den, np.abs(out[1][0]) / den)
+    z = np.where(use & ok[None, :], z, np.nan)
+    dv = np.vander(t, degree, increasing=True) * np.arange(1, degree + 1)  # d/dt of each power
+    slope = np.hypot(dv @ out[0][1][:, 1:].T, dv @ out[1][1][:, 1:].T)
+    return z, slope
+
+
+def _noise_scale(t, vx, vy, sigma, use, z, degree: int, noise_model: bool) -> float:
+    """The residuals' spread in predicted sigmas, with every pixel's worst sample left out.
+
+    Leaving the worst out first keeps one bad position (which drags every pixel's curve,
+    and so every residual) from inflating the threshold that is to find it. At least 1
+    with a noise model (the prediction is a floor, never lowered).
+    """
+    zf = np.where(np.isfinite(z), z, -1.0)
+    cols = np.arange(zf.shape[1])
+    worst = np.argmax(zf, axis=0)
+    trim = use.sum(axis=0) > degree + 2
+    use2 = use.copy()
+    use2[worst[trim], cols[trim]] = False
+    z2, _slope = _studentized(t, vx, vy, sigma, use2, degree)
+    med = np.nanmedian(z2) if np.isfinite(z2).any() else np.nan
+    scale = med / _MEDIAN_MAX_ABS_N01 if np.isfinite(med) and med > 0 else 1.0
+    return max(scale, 1.0) if noise_model else scale
+
+
+def _screen_block(samples, rig, start, stop, idx, t, degree, k_sigma, stage_t_sigma):
+    """Reject the outliers of pixels ``[start, stop)``; returns (Kp, n) bool and the block's noise scale."""
+    valid = read_block(samples.reasons, start, stop, idx) == 0
+    vx = read_block(samples.x, start, stop, idx).astype(float)
+    vy = read_block(samples.y, start, stop, idx).astype(float)
+    valid &= np.isfinite(vx) & np.isfinite(vy)
+    sigma = _sigma_block(samples, rig, start, stop, idx, valid)
+    use = valid & np.isfinite(sigma)
+    rejected = np.zeros_like(use)
+    scale = np.nan
+    for it in range(MAX_PER_PIXEL + 1):
+        z, slope = _studentized(t, vx, vy, sigma, use, degree)
+        if it == 0 and stage_t_sigma > 0:  # the stage reading's error moves the sample along its ray
+            sigma = np.sqrt(sigma ** 2 + (slope * stage_t_sigma) ** 2)
+            z, slope = _studentized(t, vx, vy, sigma, use, degree)
+        if it == 0:
+            scale = _noise_scale(t, vx, vy, sigma, use, z, degree, samples.noise is not None)
+        if it == MAX_PER_PIXEL:
+            break
+        zf = np.where(np.isfinite(z), z, -1.0)
+        worst = np.argmax(zf, axis=0)
+        cols = np.arange(zf.shape[1])
+        bad = (zf[worst, cols] > k_sigma * scale) & (use.sum(axis=0) > degree + 2)
+        if not bad.any():
+            break
+        use[worst[bad], cols[bad]] = False
+        rejected[worst[bad], cols[bad]] = True
+    return rejected, valid, scale
+
+
+def screen_samples(samples: SampleStack, rig: Rig, positions=None, *, k_sigma: float = K_SIGMA,
+                   degree: int = SCREEN_DEGREE, stage_sigma_mm: float = 0.0) -> RobustReport:
+    """Find the samples far outside their pixel's curve, and the suspect positions (module docstring).
+
+    Parameters
+    ----------
+    samples : SampleStack
+    rig : Rig
+    positions : sequence of int, optional
+        Positions to screen (default all); the others are left alone.
+    k_sigma : float
+        Threshold in (scaled) predicted sigmas.
+    degree : int
+        Screening polynomial degree, lowered to ``len(positions) - 4`` (at least 1).
+    stage_sigma_mm : float
+        1-sigma error of the stage readings (mm).
+
+    Returns
+    -------
+    RobustReport
+
+    Raises
+    ------
+    ValueError
+        ``k_sigma`` not positive.
+    """
+    if not k_sigma > 0:
+        raise ValueError(f"k_sigma must be > 0, got {k_sigma}")
+    idx = np.arange(samples.z.size) if positions is None else np.asarray(positions, dtype=np.int64)
+    h, w = samples.shape
+    deg = int(max(1, min(degree, idx.size - 4)))
+    z = np.asarray(samples.z, float)[idx]
+    zc, zs = 0.5 * (z.max() + z.min()), max(0.5 * (z.max() - z.min()), 1e-9)
+    t = (z - zc) / zs
+    rejected = np.zeros((idx.size, h * w), bool)
+    n_valid = np.zeros(idx.size, np.int64)
+    scales = []
+    if idx.size >= 5:  # fewer: nothing to judge a sample against
+        for start in range(0, h * w, _BLOCK):
+            stop = min(start + _BLOCK, h * w)
+            rej, valid, scale = _screen_block(samples, rig, start, stop, idx, t, deg, k_sigma, stage_sigma_mm / zs)
+            rejected[:, start:stop] = rej
+            n_valid += valid.sum(axis=1)
+            scales.append(scale)
+    fraction = rejected.sum(axis=1) / np.maximum(n_valid, 1)
+    suspect = [int(k) for k, f in zip(idx, fraction) if f > SUSPECT_FRACTION]
+    for k in suspect:  # left out everywhere it was valid
+        i = int(np.flatnonzero(idx == k)[0])
+        rejected[i] |= read_block(samples.reasons, 0, h * w, [k])[0] == 0
+    rejected = rejected.reshape(idx.size, h, w)
+    n_rej = np.minimum(rejected.sum(axis=0), 65535).astype(np.uint16)
+    scale = float(np.nanmedian(scales)) if scales else 1.0
+    return RobustReport(idx, rejected, n_rej, fraction, suspect, float(k_sigma), deg, scale,
+                        samples.noise is not None and samples.modulation is not None)
+
+
+def without_outliers(samples: SampleStack, report: RobustReport) -> SampleStack:
+    """The stack with the rejected samples flagged :attr:`Reason.OUTLIER` (a copy of ``reasons`` only)."""
+    reasons = np.array(samples.reasons, copy=True)
+    sub = reasons[report.positions]
+    sub[report.rejected] |= np.uint8(Reason.OUTLIER)
+    reasons[report.positions] = sub
+    return replace(samples, reasons=reasons)
+
+
+def fit_robust(samples: SampleStack, rig: Rig, model: str = "auto", degree: int = 3, positions=None, *,
+               k_sigma: float = K_SIGMA, stage_sigma_mm: float = 0.0, progress=None, **kwargs):
+    """Screen the samples (:func:`screen_samples`), then fit ``model`` without the outliers.
+
+    Parameters
+    ----------
+    samples, rig, model, degree, positions, stage_sigma_mm, progress, **kwargs
+        As for :func:`ptpcore.fit.models.fit_model` (``level_bias``, ``footprint``).
+    k_sigma : float
+
+    Returns
+    -------
+    lut : Lut
+        With ``n_rejected`` (H, W) and ``provenance["robust"]`` (:meth:`RobustReport.to_json`).
+    report : RobustReport
+    """
+    from ptpcore.fit.models import fit_model
+
+    if progress:
+        progress(0.0, "screening the samples for outliers")
+    report = screen_samples(samples, rig, positions, k_sigma=k_sigma, stage_sigma_mm=stage_sigma_mm)
+    clean = without_outliers(samples, report) if report.n_outliers else samples
+    sub = None if progress is None else (lambda f, msg: progress(0.05 + 0.95 * f, msg))
+    lut = fit_model(clean, rig, model, degree, positions, sub, stage_sigma_mm=stage_sigma_mm, **kwargs)
+    lut.n_rejected = report.n_rejected
+    lut.provenance["robust"] = report.to_json()
+    return lut, report
