@@ -23,7 +23,10 @@ LUT_MODELS = ("auto", "poly", "pchip", "linear", "smooth")
 
 def positions_needed(model: str, degree: int = 3) -> int:
     """Fewest calibration positions a model can be fitted (and checked) on: ``degree + 2`` for
-    ``poly`` and ``smooth`` (one more than its coefficients), 2 for the tables."""
+    ``poly`` and ``smooth`` (one more than its coefficients), 3 for ``auto`` (it judges its
+    candidates at a position held out between two others), 2 for the tables."""
+    if model == "auto":
+        return 3
     return int(degree) + 2 if model in ("poly", "smooth") else 2
 
 
