@@ -67,7 +67,8 @@ def _run_bad(capfd, ds: Path, out: Path, *culprits: str) -> str:
     lut = out / "calib.lut.h5"
     before = lut.read_bytes()
     capfd.readouterr()
-    code = main(["calibrate", str(ds), "--out", str(lut), "--session", str(out / "s.ptps.h5"), "--force", "-q"])
+    code = main(["calibrate", str(ds), "--out", str(lut), "--session", str(out / "s.ptps.h5"), "--force",
+                 "--degree", "1", "-q"])
     captured = capfd.readouterr()
     err = captured.err
     assert code == 2, err
@@ -291,7 +292,7 @@ def test_colour_images_pass_with_one_warning(case):
     for p in sorted(ds.rglob("z000/y_*.png")):
         grey = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         p.write_bytes(_png(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)))
-    with pytest.warns(UserWarning, match="20 colour images will be converted to grey") as rec:
+    with pytest.warns(UserWarning, match="20 colour images will be decoded from their BT.601 luminance") as rec:
         report = validate_dataset(ds)
     assert len(rec) == 1 and len(report.colour) == 20
 
@@ -304,7 +305,7 @@ def test_colour_dataset_calibrates_with_one_warning_line(case, capfd):
     capfd.readouterr()
     assert main(["calibrate", str(ds), "--out", str(out / "c.lut.h5"), "--degree", "1", "-q"]) == 0
     err = capfd.readouterr().err.splitlines()
-    assert err == [f"ptp: warning: {ds}: 24 colour images will be converted to grey (e.g. z000/x_T32_n00.png)"]
+    assert err == [f"ptp: warning: {ds}: 24 colour images will be decoded from their BT.601 luminance (e.g. z000/x_T32_n00.png)"]
 
 
 def test_extra_files_are_ignored(case):
@@ -339,7 +340,8 @@ def test_subprocess_end_to_end_no_traceback(case):
     (ds / FIRST).write_bytes(b"")
     before = (out / "calib.lut.h5").read_bytes()
     proc = subprocess.run([sys.executable, "-m", "ptpcore.cli", "calibrate", str(ds), "--out",
-                           str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"), "--force"],
+                           str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"), "--force",
+                           "--degree", "1"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and FIRST in proc.stderr and "Traceback" not in proc.stderr
@@ -349,7 +351,7 @@ def test_subprocess_end_to_end_no_traceback(case):
 
 def test_rig_toml_in_session_matches_dataset(case):
     ds, _ = case
-    s = new_session(ds)
+    s = new_session(ds, degree=1)
     assert rig_to_toml(s.rig) == (ds / "rig.toml").read_text()
 
 
@@ -377,7 +379,7 @@ def test_corrupt_pixels_found_while_decoding_still_give_one_line(case, capfd):
     before = (out / "calib.lut.h5").read_bytes()
     capfd.readouterr()
     code = main(["calibrate", str(ds), "--out", str(out / "calib.lut.h5"), "--session", str(out / "s.ptps.h5"),
-                 "--force", "-q"])
+                 "--force", "--degree", "1", "-q"])
     err = capfd.readouterr().err
     assert code == 2 and err.count("\n") == 1 and last in err and "corrupt PNG" in err, err
     assert (out / "calib.lut.h5").read_bytes() == before

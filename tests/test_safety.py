@@ -267,7 +267,7 @@ def test_disk_full_on_a_1mb_filesystem_lut(tiny_fs, dataset, capfd):
         save_lut(_random_lut(120, 160), tiny_fs / "big.lut.h5")  # ~2.5 MB of random coefficients
     assert list(tiny_fs.iterdir()) == []
     (tiny_fs / "filler").write_bytes(b"\0" * (1024 * 1024 - 8 * 1024))  # leaves 8 kB
-    code = main(["calibrate", str(dataset), "--out", str(tiny_fs / "c.lut.h5"), "-q"])
+    code = main(["calibrate", str(dataset), "--out", str(tiny_fs / "c.lut.h5"), "--degree", "1", "-q"])
     line = _one_error_line(capfd)
     assert code == 2 and "c.lut.h5" in line and "disk full" in line and "needs" in line
     assert sorted(p.name for p in tiny_fs.iterdir()) == ["filler"]
@@ -283,7 +283,7 @@ def test_disk_full_on_a_1mb_filesystem_spill(tiny_fs, dataset, capfd, monkeypatc
     monkeypatch.setenv("PTP_SPILL_DIR", str(tiny_fs))
     (tiny_fs / "filler").write_bytes(b"\0" * (1024 * 1024 - 32 * 1024))
     out = tiny_fs.parent / "c.lut.h5"
-    assert main(["calibrate", str(dataset), "--out", str(out), "-q"]) == 2
+    assert main(["calibrate", str(dataset), "--out", str(out), "--degree", "1", "-q"]) == 2
     line = _one_error_line(capfd)
     assert "disk full" in line and "spill" in line and not out.exists()
     assert sorted(p.name for p in tiny_fs.iterdir()) == ["filler"]
@@ -340,7 +340,7 @@ def test_reversed_readings_in_rig_toml_exit_2(dataset, tmp_path, capfd):
     doc = tomllib.loads((ds / "rig.toml").read_text())
     doc["stage"]["z_mm"] = doc["stage"]["z_mm"][::-1]
     (ds / "rig.toml").write_text(tomli_w.dumps(doc))
-    assert main(["calibrate", str(ds), "--out", str(tmp_path / "c.lut.h5"), "-q"]) == 2
+    assert main(["calibrate", str(ds), "--out", str(tmp_path / "c.lut.h5"), "--degree", "1", "-q"]) == 2
     line = _one_error_line(capfd)
     assert "z_mm" in line and "rig.toml" in line and not (tmp_path / "c.lut.h5").exists()
 

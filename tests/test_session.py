@@ -174,7 +174,7 @@ def test_cli_saves_each_stage_and_resume_continues(dataset, complete, tmp_path, 
 
 
 def test_resume_without_an_output_file_asks_for_one(dataset, tmp_path, capfd):
-    s = new_session(dataset)
+    s = new_session(dataset, degree=2)
     save_session(s, tmp_path / "x.ptps.h5")
     capfd.readouterr()
     assert main(["resume", str(tmp_path / "x.ptps.h5"), "-q"]) == 2
@@ -184,7 +184,7 @@ def test_resume_without_an_output_file_asks_for_one(dataset, tmp_path, capfd):
 
 def test_cancel_during_decode_keeps_the_saved_stage(dataset, tmp_path):
     path = tmp_path / "c.ptps.h5"
-    s = new_session(dataset)
+    s = new_session(dataset, degree=2)
     save_session(s, path)
     before = path.read_bytes()
 

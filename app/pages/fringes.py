@@ -9,11 +9,11 @@ import pyqtgraph as pg
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout, QGroupBox,
-                               QHBoxLayout, QHeaderView, QLabel, QLineEdit, QSlider, QTableWidget,
+                               QHBoxLayout, QHeaderView, QLabel, QLineEdit, QSlider, QSpinBox, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
 from ptpcore.decode import design_check, fringe_image, fringe_profile
-from ptpcore.rig import FringeDesign, rig_from_toml, rig_to_toml
+from ptpcore.rig import DirectionFringes, FringeDesign, format_period, rig_from_toml, rig_to_toml
 from ptpcore.evaluate import predicted_signal
 
 from ..widgets.maps import MapView, axis_label, plain_axes
@@ -78,9 +78,35 @@ class FringesPage(StudioPage):
         self.carrier_x = _dspin(-100, 100, 0.0, 3, 0.1)
         self.carrier_y = _dspin(-100, 100, 0.0, 3, 0.1)
         self.gamma = _dspin(0.1, 5.0, 1.0, 2, 0.1)
+        # ptp-dataset/2 conventions (METHOD.md section 3)
+        self.periods_y = QLineEdit()
+        self.periods_y.setPlaceholderText("as x")
+        self.periods_y.setToolTip("Periods of the y patterns when they differ from x ([fringes.y]); may be fractional")
+        self.steps_y = QLineEdit()
+        self.steps_y.setPlaceholderText("as x")
+        self.steps_y.setToolTip("Steps of the y periods when they differ from x ([fringes.y])")
+        self.origin = _dspin(-7.0, 7.0, 0.0, 5, 0.1)
+        self.origin.setToolTip("phase_origin_rad: the phase every pattern starts at (e.g. 3.14159)")
+        self.sign = QComboBox()
+        self.sign.addItems(["+1", "-1"])
+        self.sign.setToolTip("shift_sign: the direction the phase steps run in")
+        self.unwrap = QComboBox()
+        self.unwrap.addItems(["periods", "gray"])
+        self.unwrap.setToolTip("Temporal unwrapping by the period list, or by Gray-code images")
+        self.gray_bits = QSpinBox()
+        self.gray_bits.setRange(0, 24)
+        self.gray_bits.setToolTip("Gray-code bits counting cycles of the coarsest period (x; y the same)")
+        self.gray_inverse = QCheckBox("each bit followed by its inverse")
         form.addRow("Directions", dirs)
         form.addRow("Periods (px)", self.periods)
         form.addRow("Steps N", self.steps)
+        form.addRow("Periods y (px)", self.periods_y)
+        form.addRow("Steps N y", self.steps_y)
+        form.addRow("Phase origin (rad)", self.origin)
+        form.addRow("Shift sign", self.sign)
+        form.addRow("Unwrapping", self.unwrap)
+        form.addRow("Gray-code bits", self.gray_bits)
+        form.addRow("", self.gray_inverse)
         form.addRow("Offset (grey level)", self.offset)
         form.addRow("Amplitude (grey levels)", self.amplitude)
         form.addRow("Carrier x (px/mm)", self.carrier_x)
@@ -153,10 +179,14 @@ class FringesPage(StudioPage):
 
         for w in (self.dir_x, self.dir_y):
             w.toggled.connect(self._edited)
-        for w in (self.periods, self.steps):
+        for w in (self.periods, self.steps, self.periods_y, self.steps_y):
             w.editingFinished.connect(self._edited)
-        for w in (self.offset, self.amplitude, self.carrier_x, self.carrier_y, self.gamma):
+        for w in (self.offset, self.amplitude, self.carrier_x, self.carrier_y, self.gamma, self.origin,
+                  self.gray_bits):
             w.valueChanged.connect(self._edited)
+        for w in (self.sign, self.unwrap):
+            w.currentIndexChanged.connect(self._edited)
+        self.gray_inverse.toggled.connect(self._edited)
         for w in (self.s_pos, self.s_level, self.s_step):
             w.valueChanged.connect(self._scrubbed)
         self.s_dir.currentIndexChanged.connect(self._scrubbed)
@@ -177,16 +207,26 @@ class FringesPage(StudioPage):
         try:
             self.dir_x.setChecked("x" in f.directions)
             self.dir_y.setChecked("y" in f.directions)
-            self.periods.setText(", ".join(str(p) for p in f.periods_px))
+            self.periods.setText(", ".join(str(format_period(p)) for p in f.periods_px))
             # One number when every period has the same N: it follows the period list.
             self.steps.setText(str(f.steps[0]) if len(set(f.steps)) == 1 else ", ".join(str(n) for n in f.steps))
+            oy = dict(f.per_direction).get("y", DirectionFringes())
+            self.periods_y.setText("" if oy.periods_px is None else
+                                   ", ".join(str(format_period(p)) for p in oy.periods_px))
+            self.steps_y.setText("" if oy.steps is None else ", ".join(str(n) for n in oy.steps))
+            self.origin.setValue(f.phase_origin_rad)
+            self.sign.setCurrentIndex(0 if f.shift_sign == 1 else 1)
+            self.unwrap.setCurrentText(f.unwrap)
+            self.gray_bits.setValue(f.gray_bits)
+            self.gray_inverse.setChecked(f.gray_inverse)
             self.offset.setValue(f.offset)
             self.amplitude.setValue(f.amplitude)
             self.carrier_x.setValue(f.carrier_px_per_mm[0])
             self.carrier_y.setValue(f.carrier_px_per_mm[1])
             self.gamma.setValue(f.gamma)
             for w in (self.dir_x, self.dir_y, self.periods, self.steps, self.offset, self.amplitude,
-                      self.carrier_x, self.carrier_y, self.gamma):
+                      self.carrier_x, self.carrier_y, self.gamma, self.periods_y, self.steps_y, self.origin,
+                      self.sign, self.unwrap, self.gray_bits, self.gray_inverse):
                 w.setEnabled(self.editable)
             cur_dir = self.s_dir.currentText()
             self.s_dir.clear()
@@ -194,7 +234,7 @@ class FringesPage(StudioPage):
             if cur_dir in f.directions:
                 self.s_dir.setCurrentText(cur_dir)
             self.s_pos.setMaximum(rig.stage.n_positions - 1)
-            self.s_level.setMaximum(len(f.periods_px) - 1)
+            self.s_level.setMaximum(max(len(f.periods(d)) for d in f.directions) - 1)
         finally:
             self._loading = False
         self._error = None
@@ -255,21 +295,22 @@ class FringesPage(StudioPage):
         rig = self.model.session.rig
         f = rig.fringes
         d = self.s_dir.currentText() or f.directions[0]
-        j = min(self.s_level.value(), len(f.periods_px) - 1)
-        n_steps = f.steps[j]
+        periods, steps = f.periods(d), f.steps_of(d)
+        j = min(self.s_level.value(), len(periods) - 1)
+        n_steps = steps[j]
         self.s_step.setMaximum(n_steps - 1)
         step = min(self.s_step.value(), n_steps - 1)
         k = min(self.s_pos.value(), rig.stage.n_positions - 1)
         z = rig.stage.z_mm[k]
-        period = f.periods_px[j]
+        period = periods[j]
         img = fringe_image(rig.lcd, f, d, period, step, n_steps, z)
         self.preview.set_map(img, levels=(0, 255), cmap="CET-L1", label="level")
         shift = f.carrier(d) * z
         self.preview_label.setText(
-            f"{d}, T = {period} px ({j + 1}/{len(f.periods_px)}), step {step + 1}/{n_steps},"
+            f"{d}, T = {format_period(period)} px ({j + 1}/{len(periods)}), step {step + 1}/{n_steps},"
             f" position {k + 1}/{rig.stage.n_positions}: z = {z:g} mm, carrier shift {shift:.1f} px")
         prof = fringe_profile(rig.lcd, f, d, period, step, n_steps, z)
-        span = min(prof.size, max(2 * period, 256))
+        span = min(prof.size, max(int(2 * period), 256))
         self.profile_curve.setData(np.arange(span), prof[:span].astype(float))
         axis_label(self.profile, "bottom", "LCD column u" if d == "x" else "LCD row v", "px")
         self.profile.setTitle(f"Displayed levels along {'u' if d == 'x' else 'v'} (first {span} px)")
@@ -287,13 +328,25 @@ class FringesPage(StudioPage):
             return
         try:
             directions = tuple(d for d, w in (("x", self.dir_x), ("y", self.dir_y)) if w.isChecked())
-            periods = parse_numbers(self.periods.text(), int)
+            periods = [format_period(p) for p in parse_numbers(self.periods.text(), float)]
             steps = parse_numbers(self.steps.text(), int)
             if len(steps) == 1:
                 steps = steps * len(periods)
+            per_direction = ()
+            py_text, sy_text = self.periods_y.text().strip(), self.steps_y.text().strip()
+            if py_text or sy_text:
+                py = tuple(format_period(p) for p in parse_numbers(py_text, float)) if py_text else None
+                sy = parse_numbers(sy_text, int) if sy_text else None
+                if sy is not None and len(sy) == 1:
+                    sy = sy * len(py or periods)
+                elif sy is None and py is not None and len(py) != len(periods):
+                    sy = [steps[0]] * len(py)
+                per_direction = (("y", DirectionFringes(py, None if sy is None else tuple(sy))),)
             design = FringeDesign(directions, tuple(periods), tuple(steps), self.offset.value(),
                                   self.amplitude.value(), (self.carrier_x.value(), self.carrier_y.value()),
-                                  self.gamma.value())
+                                  self.gamma.value(), self.origin.value(), 1 if self.sign.currentIndex() == 0 else -1,
+                                  self.unwrap.currentText(), self.gray_bits.value(), self.gray_inverse.isChecked(),
+                                  per_direction)
             rig = replace(self.model.session.rig, fringes=design)
             rig = rig_from_toml(rig_to_toml(rig), "fringes")
         except ValueError as exc:

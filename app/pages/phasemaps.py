@@ -7,6 +7,7 @@ import pyqtgraph as pg
 from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, QLabel, QVBoxLayout)
 
 from ptpcore.decode import REASON_NAMES
+from ptpcore.rig import format_period
 from ptpcore.run import decode_position
 from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
     reason_text)
@@ -207,7 +208,24 @@ class PhaseMapsPage(StudioPage):
     def _decoded_arrived(self, k: int) -> None:
         if self.isVisible() and k == self.pos_combo.currentData():
             self.decoded = self.model.session.decoded[k]
+            self._say_what_is_wrong(self.decoded)
             self._show()
+
+    def _say_what_is_wrong(self, pos) -> None:
+        """What ``ptp decode`` says of this position: a wrong phase convention (naming the
+        setting), or too few valid pixels with the dominant reason."""
+        from ptpcore.run.diagnose import convention_check, position_report
+
+        rig = self.model.session.rig
+        try:
+            lines = [fd.message() for fd in convention_check(rig, pos)]
+        except Exception as exc:  # noqa: BLE001 - a diagnosis must never break the page
+            lines = [f"convention check failed: {exc}"]
+        line = position_report(f"position {pos.index + 1} (z = {pos.z_mm:g} mm)", pos.reasons)
+        if line:
+            lines.append(line)
+        if lines:
+            self.jobs.show_error("; ".join(lines))
 
     # ---- drawing ------------------------------------------------------------------
     def _show(self) -> None:
@@ -218,9 +236,10 @@ class PhaseMapsPage(StudioPage):
         d = self.dir_combo.currentData() or rig.fringes.directions[0]
         kind = self.kind_combo.currentData()
         j = self.level_combo.currentData()
-        j = len(rig.fringes.periods_px) - 1 if j is None else j
+        periods = rig.fringes.periods(d)
+        j = len(periods) - 1 if j is None else min(j, len(periods) - 1)
         dec = pos.directions[d]
-        period = rig.fringes.periods_px[j]
+        period = format_period(periods[j])
         where = f"position {pos.index + 1} (z = {pos.z_mm:g} mm), direction {d}"
         self.current = (pos.index, d, kind, j)
         self._reasons = pos.reasons

@@ -182,6 +182,49 @@ def _lut_summary(lut, path) -> str:
     return "\n".join(lines)
 
 
+def cmd_decode(args) -> int:
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.io.decodedfile import save_decoded
+    from ptpcore.run.decoding import decode_dataset
+
+    source = DatasetSource(args.dataset_dir)
+    positions = _parse_positions(args.positions, source.rig.stage.n_positions) if args.positions else None
+    source.validate(check_design=False)
+    bar = progress_bar(args)
+    try:
+        run = decode_dataset(source, positions, min_fraction=args.min_valid / 100.0, progress=bar)
+    finally:
+        bar.close()
+    save_decoded(args.out, run.decoded)
+    rig = source.rig
+    print(f"{args.out}: ptp-decoded/1, {len(run.decoded.positions)} position(s), direction(s)"
+          f" {', '.join(rig.fringes.directions)}, {rig.camera.width}x{rig.camera.height} px")
+    for (k, d), frac in run.valid_fraction.items():
+        src = run.noise_sources.get((k, d))
+        print(f"  position {k} (z = {rig.stage.z_mm[k]:g} mm) {d}: {100 * frac:.1f} % valid"
+              + (f"; noise from the {src}" if src else ""))
+    return 0
+
+
+def _parse_positions(text: str, k_total: int) -> list[int]:
+    """``"0,2,5-7"`` -> ``[0, 2, 5, 6, 7]``; every index must exist."""
+    out = []
+    for part in text.split(","):
+        part = part.strip()
+        try:
+            if "-" in part[1:]:
+                a, b = part.split("-", 1)
+                out.extend(range(int(a), int(b) + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise ValueError(f"--positions: {part!r} is not a position index or range (e.g. 0,2,5-7)") from None
+    bad = [k for k in out if not 0 <= k < k_total]
+    if bad:
+        raise ValueError(f"--positions: {bad[0]} does not exist (the dataset has {k_total}: 0 to {k_total - 1})")
+    return out
+
+
 def _choice_lines(lut) -> list[str]:
     """The model-choice table of an ``auto`` LUT (``/provenance`` ``model_choice``), indented."""
     from ptpcore.fit.choice import ModelChoice
@@ -510,6 +553,18 @@ def _add_resume_inspect(sub) -> None:
     r.add_argument("--force", action="store_true", help=_FORCE)
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_resume)
+
+    de = sub.add_parser("decode", help="images -> decoded LCD coordinates (ptp-decoded/1)",
+                        description="Decode some or all positions of a dataset folder (one or both directions; no"
+                                    " heights needed, the z readings are not judged) and write the LCD coordinates"
+                                    " every pixel sees as a ptp-decoded/1 file.")
+    de.add_argument("dataset_dir", metavar="DATASET")
+    de.add_argument("--out", required=True, metavar="FILE.decoded.h5")
+    de.add_argument("--positions", metavar="LIST", help="position indices, e.g. 0 or 0,2,5-7 (default all)")
+    de.add_argument("--min-valid", type=float, default=10.0, metavar="PCT",
+                    help="report positions keeping less than this percentage of their pixels (default 10)")
+    de.add_argument("-q", "--quiet", action="store_true")
+    de.set_defaults(func=cmd_decode)
 
     i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
     i.add_argument("lut_file", metavar="FILE.lut.h5", type=existing_file)

@@ -1,8 +1,9 @@
 """Camera noise measured from the data itself.
 
 Every N-step fit with N > 3 leaves N - 3 degrees of freedom: the scatter of
-the samples about the fitted sinusoid is an unbiased estimate of the noise
-variance at that pixel (:attr:`ptpcore.decode.phase.WrappedPhase.residual_var`).
+the samples about the fitted sinusoid estimates the noise variance at that
+pixel, once the display's harmonics are taken out of it
+(:mod:`ptpcore.decode.harmonics`).
 Pooled over millions of pixels and binned by grey level it gives the sensor's
 photon-transfer curve ``var = read_var + gain * level`` without any dark or
 flat frames. The phase noise of every sample then follows from METHOD.md
@@ -33,6 +34,10 @@ class NoiseModel:
 
     read_var: float
     gain: float
+    source: str = "residual"
+    """Where it was measured: the N-step residual with the display's harmonics taken out
+    (``"residual"``, ``"residual of period T"`` for another level than the finest), or the
+    spread of the decoded coordinate over the neighbourhood (``"neighbourhood"``)."""
 
     def sigma_dn(self, level) -> np.ndarray:
         """1-sigma noise (grey levels) of a sample at mean ``level``."""
@@ -49,7 +54,8 @@ class NoiseAccumulator:
     bins : int
     """
 
-    def __init__(self, max_level: int, bins: int = 64):
+    def __init__(self, max_level: int, bins: int = 64, source: str = "residual"):
+        self.source = source
         self.edges = np.linspace(0.0, float(max_level), bins + 1)
         self.sum_var = np.zeros(bins)
         self.sum_level = np.zeros(bins)
@@ -78,6 +84,6 @@ class NoiseAccumulator:
         w = np.sqrt(self.count[use] / 2.0) / np.maximum(var, 1e-12)
         design = np.stack([np.ones_like(level), level], axis=1)
         if use.sum() == 1:
-            return NoiseModel(float(var[0]), 0.0)
+            return NoiseModel(float(var[0]), 0.0, self.source)
         fit = lsq_linear(design * w[:, None], var * w, bounds=(0.0, np.inf))
-        return NoiseModel(float(fit.x[0]), float(fit.x[1]))
+        return NoiseModel(float(fit.x[0]), float(fit.x[1]), self.source)

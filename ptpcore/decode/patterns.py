@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ptpcore.rig.rigfile import FringeDesign, Lcd, Rig
+from ptpcore.rig.rigfile import FringeDesign, Lcd, Rig, format_period
 
 __all__ = [
     "fringe_values",
@@ -22,11 +22,12 @@ __all__ = [
     "DesignItem",
     "DesignReport",
     "design_check",
+    "convention_detectable",
     "phase_noise_rad",
 ]
 
 
-def fringe_values(coord, design: FringeDesign, direction: str, period: int, step: int,
+def fringe_values(coord, design: FringeDesign, direction: str, period: float, step: int,
                   n_steps: int, z_mm: float) -> np.ndarray:
     """Continuous (unrounded, uncompensated) pattern value at LCD coordinates.
 
@@ -46,12 +47,14 @@ def fringe_values(coord, design: FringeDesign, direction: str, period: int, step
     Returns
     -------
     ndarray, same shape as ``coord``
-        ``offset + amplitude * cos(2*pi*(coord + s)/T + 2*pi*n/N)``, grey levels.
+        ``offset + amplitude * cos(2*pi*(coord + s)/T + phase_origin + shift_sign*2*pi*n/N)``,
+        grey levels (the direction's ``phase_origin_rad`` and ``shift_sign``).
     """
     s = design.carrier(direction) * z_mm
     coord = np.asarray(coord, dtype=float)
     return design.offset + design.amplitude * np.cos(
-        2.0 * np.pi * (coord + s) / period + 2.0 * np.pi * step / n_steps
+        2.0 * np.pi * (coord + s) / period + design.origin(direction)
+        + design.sign(direction) * (2.0 * np.pi * step / n_steps)
     )
 
 
@@ -120,8 +123,27 @@ class DesignReport:
         return [item for item in self.items if not item.ok]
 
 
+def convention_detectable(rig: Rig, direction: str) -> dict:
+    """Whether a wrong ``phase_origin`` (by pi) and a wrong ``shift_sign`` show in decoded data
+    (METHOD.md section 4): as unwrapping disagreement when a period ratio is not an odd
+    integer (origin) or not an integer (sign), or as coordinates off the LCD when the
+    coarsest period exceeds it."""
+    f = rig.fringes
+    ps = [float(t) for t in f.periods(direction)]
+    ratios = [a / b for a, b in zip(ps, ps[1:])]
+    extent = rig.lcd.width if direction == "x" else rig.lcd.height
+    exceeds = ps[0] > extent + 1.0
+
+    def is_int(r):
+        return abs(r - round(r)) < 1e-9
+
+    origin = exceeds or any(not (is_int(r) and round(r) % 2 == 1) for r in ratios)
+    sign = exceeds or any(not is_int(r) for r in ratios)
+    return {"phase_origin_rad": origin, "shift_sign": sign}
+
+
 def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
-                 margin_sigmas: float = 6.0) -> DesignReport:
+                 margin_sigmas: float = 6.0, harmonic_dn: float | None = None) -> DesignReport:
     """Check a fringe design against the rig and the expected signal.
 
     Parameters
@@ -134,6 +156,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
         Expected noise per sample (grey levels). Default: 1 % of full scale.
     margin_sigmas : float
         How many sigmas of phase noise each unwrapping step must tolerate.
+    harmonic_dn : float, optional
+        Measured amplitude of the display's harmonics (grey levels): a warning
+        when it exceeds ``noise_dn``.
 
     Returns
     -------
@@ -158,32 +183,69 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
         span_lo = min(0.0, shifts.min()) - 0.5
         span_hi = extent - 0.5 + max(0.0, shifts.max())
         span = span_hi - span_lo
-        ok = span_lo >= -0.5 and span_hi < f.periods_px[0]
-        items.append(DesignItem(
-            f"unambiguous range {d}", bool(ok), float(f.periods_px[0]),
-            f"coarsest period > span of u+s = [{span_lo:.1f}, {span_hi:.1f}] px ({span:.1f} px)",
-            (f"period {f.periods_px[0]} px covers the LCD plus carrier" if ok else
-             f"coarsest period {f.periods_px[0]} px does not cover u+s in [{span_lo:.1f}, {span_hi:.1f}]"
-             " px: unwrapping would be ambiguous; use a longer coarse period or a smaller carrier"
-             if span_lo >= -0.5 else
-             f"negative carrier shifts u+s below 0 (to {span_lo:.1f} px): the coarse phase wraps"),
-        ))
+        t0 = f.periods(d)[0]
+        if f.unwrap == "gray":
+            cover = t0 * (1 << f.bits(d))
+            ok = span_lo >= -0.5 and span_hi < cover
+            items.append(DesignItem(
+                f"unambiguous range {d}", bool(ok), float(cover),
+                f"Gray code ({f.bits(d)} bits of {format_period(t0)} px cycles) > span of u+s"
+                f" = [{span_lo:.1f}, {span_hi:.1f}] px",
+                (f"{f.bits(d)} Gray-code bits cover {cover:g} px: the LCD plus carrier" if ok else
+                 f"{f.bits(d)} Gray-code bits cover only {cover:g} px of u+s in [{span_lo:.1f}, {span_hi:.1f}] px:"
+                 " add a bit"),
+            ))
+        else:
+            ok = span_lo >= -0.5 and span_hi < t0
+            items.append(DesignItem(
+                f"unambiguous range {d}", bool(ok), float(t0),
+                f"coarsest period > span of u+s = [{span_lo:.1f}, {span_hi:.1f}] px ({span:.1f} px)",
+                (f"period {format_period(t0)} px covers the LCD plus carrier" if ok else
+                 f"coarsest period {format_period(t0)} px does not cover u+s in [{span_lo:.1f}, {span_hi:.1f}]"
+                 " px: unwrapping would be ambiguous; use a longer coarse period or a smaller carrier"
+                 if span_lo >= -0.5 else
+                 f"negative carrier shifts u+s below 0 (to {span_lo:.1f} px): the coarse phase wraps"),
+            ))
     worst_mod = float(mod.min())
-    for j in range(1, len(f.periods_px)):
-        ratio = f.periods_px[j - 1] / f.periods_px[j]
-        s_prev = phase_noise_rad(noise_dn, worst_mod, f.steps[j - 1]) * ratio
-        s_this = phase_noise_rad(noise_dn, worst_mod, f.steps[j])
-        sigma = float(math.hypot(s_prev, s_this))
-        margin = (np.pi / 2) / sigma if sigma > 0 else np.inf
-        ok = margin >= margin_sigmas
+    dirs = f.directions if f.per_direction else f.directions[:1]
+    for d in dirs:
+        ps, ns = f.periods(d), f.steps_of(d)
+        for j in range(1, len(ps)):
+            ratio = ps[j - 1] / ps[j]
+            s_prev = phase_noise_rad(noise_dn, worst_mod, ns[j - 1]) * ratio
+            s_this = phase_noise_rad(noise_dn, worst_mod, ns[j])
+            sigma = float(math.hypot(s_prev, s_this))
+            margin = (np.pi / 2) / sigma if sigma > 0 else np.inf
+            ok = margin >= margin_sigmas
+            label = f"unwrapping {format_period(ps[j - 1])} -> {format_period(ps[j])}"
+            items.append(DesignItem(
+                label + (f" ({d})" if f.per_direction else ""), bool(ok), float(margin),
+                f"margin >= {margin_sigmas:g} sigma (quarter-period tolerance / phase noise)",
+                f"ratio {ratio:.2f}: margin {margin:.1f} sigma" + ("" if ok else
+                  " is too small: add an intermediate period or more steps"),
+            ))
+    for d in (f.directions if f.unwrap == "periods" else ()):
+        tells = convention_detectable(rig, d)
+        if not all(tells.values()):
+            blind = [k for k, v in tells.items() if not v]
+            items.append(DesignItem(
+                f"convention check {d}", True, 0.0,
+                "a wrong phase_origin_rad or shift_sign shows in the data",
+                f"this design cannot tell a wrong {' or '.join(blind)} from the data (direction {d}):"
+                " consecutive period ratios are odd integers (origin) or integers (sign) and the coarsest"
+                " period does not exceed the LCD; check those settings against the pattern generator",
+            ))
+    if harmonic_dn is not None and noise_dn is not None and harmonic_dn > noise_dn:
         items.append(DesignItem(
-            f"unwrapping {f.periods_px[j - 1]} -> {f.periods_px[j]}", bool(ok), float(margin),
-            f"margin >= {margin_sigmas:g} sigma (quarter-period tolerance / phase noise)",
-            f"ratio {ratio:.2f}: margin {margin:.1f} sigma" + ("" if ok else
-              " is too small: add an intermediate period or more steps"),
+            "display harmonics", False, float(harmonic_dn),
+            "display harmonics below the noise",
+            f"the fringes carry harmonics of {harmonic_dn:.2g} DN, above the noise ({noise_dn:.2g} DN): the"
+            " display's response differs from the gamma pre-compensation; use more steps (they then cancel"
+            " in the phase) or a matching pre-compensation ([display] levels and luminance)",
         ))
     pitch = max(rig.lcd.pitch_mm)
-    sigma_u = phase_noise_rad(noise_dn, mod, f.steps[-1]) * f.periods_px[-1] / (2 * np.pi)
+    d_fine = f.directions[0]
+    sigma_u = phase_noise_rad(noise_dn, mod, f.steps_of(d_fine)[-1]) * f.periods(d_fine)[-1] / (2 * np.pi)
     floor_um = sigma_u * pitch * 1000.0
     items.append(DesignItem(
         "noise floor", True, float(floor_um.max()),

@@ -19,7 +19,7 @@ import functools
 import os
 import sys
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,6 +31,9 @@ from ptpcore.rig.rigfile import Rig
 __all__ = [
     "Reason",
     "REASON_NAMES",
+    "REASON_KEYS",
+    "apply_convention",
+    "black_clipped",
     "PhaseAccumulator",
     "WrappedPhase",
     "wrapped_phase",
@@ -51,7 +54,13 @@ class Reason:
     UNWRAP = 4
     OUTSIDE_LCD = 8
     BORDER = 16
-    OUTLIER = 32  # set by the robust fit (ptpcore.fit.robust), never by the decoder
+    BLACK_CLIPPED = 32
+    GRAY_CODE = 64
+    SPATIAL = 128
+    # The robust fit (ptpcore.fit.robust) flags a sample far from its pixel's curve along z with the
+    # spatial bit: both say "inconsistent with its neighbours beyond k predicted sigma", and the
+    # uint8 reasons have no ninth bit. /quality/n_rejected counts the robust fit's own.
+    OUTLIER = SPATIAL
 
 
 REASON_NAMES = {
@@ -60,8 +69,22 @@ REASON_NAMES = {
     Reason.UNWRAP: "unwrapping disagreement",
     Reason.OUTSIDE_LCD: "outside the LCD",
     Reason.BORDER: "near the LCD border",
-    Reason.OUTLIER: "far from its pixel's curve (robust fit)",
+    Reason.BLACK_CLIPPED: "clipped at black",
+    Reason.GRAY_CODE: "Gray-code failure",
+    Reason.SPATIAL: "departs from its neighbours (in the image; or along z: robust fit)",
 }
+
+REASON_KEYS = {
+    Reason.LOW_MODULATION: "low_modulation",
+    Reason.SATURATED: "saturated",
+    Reason.UNWRAP: "unwrap",
+    Reason.OUTSIDE_LCD: "outside_lcd",
+    Reason.BORDER: "border",
+    Reason.BLACK_CLIPPED: "black_clipped",
+    Reason.GRAY_CODE: "gray_code",
+    Reason.SPATIAL: "spatial",
+}
+"""Attribute names of the reason bits (``/reasons`` of ``ptp-decoded/1``)."""
 
 
 @dataclass
@@ -77,6 +100,8 @@ class WrappedPhase:
     residual_var : (H, W) float32 or None
         Variance of the samples about the fitted sinusoid (grey levels^2),
         an unbiased noise estimate with N - 3 degrees of freedom; None for N = 3.
+    black : (H, W) bool or None
+        Any step at the sensor's black (0); None when not checked.
     """
 
     phase: np.ndarray
@@ -84,7 +109,37 @@ class WrappedPhase:
     background: np.ndarray
     saturated: np.ndarray
     residual_var: np.ndarray | None = None
+    black: np.ndarray | None = None
 
+
+def apply_convention(wp: WrappedPhase, shift_sign: int = 1, phase_origin_rad: float = 0.0) -> WrappedPhase:
+    """Turn the N-step phase of frames shown as ``cos(theta + origin + sign * 2 pi n / N)``
+    into ``theta`` (METHOD.md section 3), in place; the identity for ``(1, 0)``.
+
+    With ``sign = -1`` the N-step estimate is ``-(theta + origin)``; the origin is
+    then subtracted and the phase wrapped back into ``[-pi, pi)``.
+    """
+    if shift_sign == 1 and phase_origin_rad == 0.0:
+        return wp
+    p = wp.phase
+    if shift_sign == -1:
+        np.negative(p, out=p)
+    if phase_origin_rad != 0.0:
+        p64 = p.astype(np.float64) - (float(phase_origin_rad) - np.pi)
+        np.mod(p64, 2.0 * np.pi, out=p64)
+        p64 -= np.pi
+        p[...] = p64
+    return wp
+
+
+def black_clipped(frames, black_level: float = 0.0) -> np.ndarray:
+    """(H, W) bool: any frame at or below ``black_level`` (the sensor's black clips it)."""
+    out = None
+    for f in frames:
+        f = np.asarray(f)
+        hit = f <= black_level
+        out = hit if out is None else np.logical_or(out, hit, out=out)
+    return out
 
 class PhaseAccumulator:
     """Accumulate N phase-shifted frames one at a time (paper Eq. 2).
@@ -451,17 +506,27 @@ def unwrap_hierarchical(phases, periods) -> tuple[np.ndarray, np.ndarray]:
     return coord, disagreement
 
 
-def _unwrap_rows(phases, periods, shift: float, coord: np.ndarray, disagreement: np.ndarray, rows) -> None:
+def _unwrap_rows(phases, periods, shift: float, coord: np.ndarray, disagreement: np.ndarray, rows,
+                 tolerance: float = 0.25, absolute0: np.ndarray | None = None) -> None:
     """:func:`unwrap_hierarchical` of ``rows``, minus a carrier ``shift``, into ``coord``/``disagreement``.
 
     The arithmetic is the reference's, operation for operation, in float64.
+    ``tolerance``: disagreement limit in periods of the finer level (a quarter
+    is the reference's ``pi / 2``, exactly). ``absolute0``: the absolute coarse
+    phase (e.g. from a Gray code) instead of the coarsest phase in ``[0, 2 pi)``.
     """
     two_pi = 2.0 * np.pi
+    limit = two_pi * tolerance  # 0.25: exactly pi / 2
     # Coarsest level: its phase in [0, 2*pi) is absolute by design. For
     # phases in [-2pi, 2pi) (atan2's are) mod is one conditional add, the same
     # numbers as np.mod, which is ten times slower.
-    unwrapped = np.array(phases[0][rows], dtype=np.float64)
-    if unwrapped.size and np.min(unwrapped) >= -two_pi and np.max(unwrapped) < two_pi:
+    if absolute0 is not None:
+        unwrapped = np.array(absolute0[rows], dtype=np.float64)
+    else:
+        unwrapped = np.array(phases[0][rows], dtype=np.float64)
+    if absolute0 is not None:
+        pass
+    elif unwrapped.size and np.min(unwrapped) >= -two_pi and np.max(unwrapped) < two_pi:
         np.add(unwrapped, two_pi, out=unwrapped, where=unwrapped < 0)
         unwrapped += 0.0  # -0.0 -> +0.0, as np.mod gives
     else:
@@ -482,7 +547,7 @@ def _unwrap_rows(phases, periods, shift: float, coord: np.ndarray, disagreement:
         unwrapped = np.add(phi, step, dtype=np.float64)
         np.subtract(unwrapped, predicted, out=tmp)
         np.abs(tmp, out=tmp)
-        dis |= tmp > (np.pi / 2)
+        dis |= tmp > limit
     out = coord[rows]
     np.multiply(unwrapped, periods[-1] / two_pi, out=out)
     if shift:
@@ -499,11 +564,17 @@ class DirectionDecode:
         Real LCD coordinate (``u`` or ``v``) with the carrier removed, LCD px.
     wrapped : list of WrappedPhase, coarse to fine
     disagreement : (H, W) bool
+    gray_failed : (H, W) bool or None
+        Gray-code failures (Gray-code unwrapping only).
+    periods : tuple of float, optional
+        The direction's periods (coarse to fine).
     """
 
     coord: np.ndarray
     wrapped: list
     disagreement: np.ndarray
+    gray_failed: np.ndarray | None = None
+    periods: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -521,6 +592,18 @@ class DecodeOptions:
 
     min_modulation: float = 0.03
     border_margin_px: int = 3
+    unwrap_tolerance: float = 0.25
+    spatial_k: float | None = 5.0
+
+    def for_rig(self, rig: Rig) -> "DecodeOptions":
+        """These options with the rig's ``[decode]`` thresholds where these are the defaults."""
+        d, base = rig.decode, DecodeOptions()
+        changes = {}
+        for name in ("min_modulation", "border_margin_px", "unwrap_tolerance"):
+            val = getattr(d, name)
+            if val is not None and getattr(self, name) == getattr(base, name):
+                changes[name] = val
+        return replace(self, **changes) if changes else self
 
 
 @dataclass
@@ -544,6 +627,9 @@ class DecodedPosition:
     v: np.ndarray | None
     reasons: np.ndarray
     directions: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    """Per-position diagnostics: ``noise_samples`` (harmonic-free noise samples per direction),
+    ``noise_source``, ``sigma`` (median predicted coordinate sigma per direction, LCD px)."""
 
     @property
     def valid(self) -> np.ndarray:
@@ -551,10 +637,13 @@ class DecodedPosition:
         return self.reasons == 0
 
 
-def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None) -> DirectionDecode:
+def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None, tolerance: float = 0.25,
+                     absolute0: np.ndarray | None = None, gray_failed: np.ndarray | None = None) -> DirectionDecode:
     """Unwrap one direction and remove the carrier displacement ``s_k`` (LCD px).
 
     ``out``: optional ``(coord, disagreement)`` arrays to fill (reused by a streaming caller).
+    ``tolerance``: unwrapping disagreement limit (periods of the finer level).
+    ``absolute0``: the absolute coarse phase (Gray-code unwrapping), with its ``gray_failed`` pixels.
     """
     phases = [w.phase for w in wrapped]
     shape = np.shape(phases[0])
@@ -565,11 +654,11 @@ def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None) -> 
         coord, disagreement = out
         disagreement[...] = False
     if len(shape) != 2:
-        _unwrap_rows(phases, periods, carrier_shift_px, coord, disagreement, slice(None))
+        _unwrap_rows(phases, periods, carrier_shift_px, coord, disagreement, slice(None), tolerance, absolute0)
     else:
         run_tiles(lambda r0, r1: _unwrap_rows(phases, periods, carrier_shift_px, coord, disagreement,
-                                              slice(r0, r1)), *shape)
-    return DirectionDecode(coord, list(wrapped), disagreement)
+                                              slice(r0, r1), tolerance, absolute0), *shape)
+    return DirectionDecode(coord, list(wrapped), disagreement, gray_failed, tuple(periods))
 
 
 def _flag(reasons: np.ndarray, cond: np.ndarray, bit: int) -> None:
@@ -751,32 +840,34 @@ def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions
     else:
         reasons[...] = 0
     two_pi = 2.0 * np.pi
-    periods = list(f.periods_px)
-    ratios = np.array([1.0] + [periods[j - 1] / periods[j] for j in range(1, len(periods))])
-    scale = periods[-1] / two_pi
+    if options.unwrap_tolerance != 0.25 or f.unwrap != "periods":
+        return None  # the kernel's limit is a quarter period; Gray codes take the numpy path
     min_mod = np.float32(options.min_modulation * rig.camera.max_level)  # as numpy compares float32 maps
     m = options.border_margin_px
     jobs = []
     decoded = {}
     for d, wrapped in levels.items():
+        periods = list(f.periods(d))
         if len(wrapped) != len(periods):
             raise ValueError("need one wrapped phase per period")
+        ratios = np.array([1.0] + [periods[j - 1] / periods[j] for j in range(1, len(periods))])
+        scale = periods[-1] / two_pi
         coord, dis = outs.get(d) or (np.empty((h, w), np.float64), np.empty((h, w), bool))
         extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
         jobs.append((tuple(wp.phase for wp in wrapped), float(f.carrier(d) * z),
                      tuple(wp.modulation for wp in wrapped), tuple(wp.saturated for wp in wrapped),
-                     extent, coord, dis))
-        decoded[d] = DirectionDecode(coord, list(wrapped), dis)
+                     extent, coord, dis, ratios, scale))
+        decoded[d] = DirectionDecode(coord, list(wrapped), dis, None, tuple(periods))
 
     def rows(r0: int, r1: int) -> None:
-        for phases, shift, mods, sats, extent, coord, dis in jobs:
+        for phases, shift, mods, sats, extent, coord, dis, ratios, scale in jobs:
             kern.unwrap_classify_rows(r0, r1, phases, ratios, scale, shift, mods, sats, min_mod,
                                       extent, coord, dis, reasons)
 
     run_tiles(rows, h, w, KERNEL_TILE_PIXELS)
     if m > 0:
         def edges(r0: int, r1: int) -> None:
-            for *_, extent, coord, _dis in jobs:
+            for *_, extent, coord, _dis, _ratios, _scale in jobs:
                 kern.near_edge_rows(r0, r1, coord, extent, float(m), reasons)
 
         run_tiles(edges, h, w, KERNEL_TILE_PIXELS)

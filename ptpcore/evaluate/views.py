@@ -35,10 +35,12 @@ __all__ = [
 REASON_ORDER: tuple[int, ...] = (
     Reason.OUTSIDE_LCD,
     Reason.SATURATED,
+    Reason.BLACK_CLIPPED,
     Reason.LOW_MODULATION,
+    Reason.GRAY_CODE,
     Reason.UNWRAP,
     Reason.BORDER,
-    Reason.OUTLIER,
+    Reason.SPATIAL,
 )
 
 # RGBA, 0-255. Distinguishable for the common colour-vision deficiencies
@@ -49,7 +51,9 @@ REASON_COLOURS: dict[int, tuple[int, int, int, int]] = {
     Reason.LOW_MODULATION: (0, 114, 178, 255),
     Reason.UNWRAP: (204, 121, 167, 255),
     Reason.BORDER: (230, 159, 0, 255),
-    Reason.OUTLIER: (240, 228, 66, 255),
+    Reason.BLACK_CLIPPED: (40, 40, 40, 255),
+    Reason.GRAY_CODE: (86, 180, 233, 255),
+    Reason.SPATIAL: (240, 228, 66, 255),
 }
 VALID_COLOUR: tuple[int, int, int, int] = (0, 158, 115, 255)
 

@@ -16,9 +16,35 @@ from ptpcore.fit.perpixel import fit_lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig, rig_to_toml
 
-__all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut"]
+__all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut", "positions_needed", "check_positions_for_model"]
 
 LUT_MODELS = ("auto", "poly", "pchip", "linear", "smooth")
+
+
+def positions_needed(model: str, degree: int = 3) -> int:
+    """Fewest calibration positions a model can be fitted (and checked) on: ``degree + 2`` for
+    ``poly`` and ``smooth`` (one more than its coefficients), 3 for ``auto`` (it judges its
+    candidates at a position held out between two others), 2 for the tables."""
+    if model == "auto":
+        return 3
+    return int(degree) + 2 if model in ("poly", "smooth") else 2
+
+
+def check_positions_for_model(model: str, degree: int, n_positions: int, source: str = "the dataset") -> None:
+    """Refuse, before any decoding, a model that needs more positions than there are.
+
+    Raises
+    ------
+    ValueError
+        One line naming the model, the number it needs and the number available.
+    """
+    need = positions_needed(model, degree)
+    if n_positions < need:
+        what = f"{model} of degree {degree}" if model in ("poly", "smooth") else model
+        lower = (f"; choose --degree {max(1, n_positions - 2)}" if model in ("poly", "smooth") and n_positions >= 3
+                 else "; choose --model linear" if n_positions >= 2 else "")
+        raise ValueError(f"{source}: model {what} needs at least {need} positions, the dataset has"
+                         f" {n_positions}{lower} or capture more positions")
 
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,

@@ -263,7 +263,7 @@ def _header(path: Path) -> ImageHeader:
                 return _png_header(fh, size)
             if sig[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
                 return _tiff_header(fh, size)
-            raise _Unusable("unsupported", "not a PNG or TIFF file")
+            raise _Unusable("unsupported", "not a PNG or TIFF file")  # BMP, JPEG: decoded instead
     except struct.error:
         raise _Unusable("truncated", "truncated image (header cut short)") from None
 
@@ -291,48 +291,72 @@ def _check_depth(bits: int, sample_format: str, rig: Rig) -> None:
 
 # --------------------------------------------------------------------------- full reads
 
-def _decode(path: Path, rig: Rig) -> tuple[np.ndarray, bool]:
-    """Read, decode and check one image; returns ``(grey image (H, W), was_colour)``."""
+BT601 = (0.299, 0.587, 0.114)
+"""ITU-R BT.601 luminance weights of R, G, B (as OpenCV's conversion to grey)."""
+
+_JPEG_SIGNATURE = b"\xff\xd8\xff"
+
+
+def luminance(img: np.ndarray, max_level: int) -> np.ndarray:
+    """Floating-point BT.601 luminance of a colour image (OpenCV's BGR or BGRA order).
+
+    A pixel with any channel saturated (at ``max_level``) gets ``max_level``, one with
+    any channel clipped at black (0) gets 0, so the decoder flags both per channel.
+    """
+    b, g, r = (img[:, :, i].astype(np.float32) for i in range(3))
+    lum = np.float32(BT601[0]) * r + np.float32(BT601[1]) * g + np.float32(BT601[2]) * b
+    chans = img[:, :, :3]
+    lum[(chans <= 0).any(axis=2)] = 0.0
+    lum[(chans >= max_level).any(axis=2)] = float(max_level)
+    return lum
+
+
+def _decode(path: Path, rig: Rig) -> tuple[np.ndarray, bool, bool]:
+    """Read, decode and check one image; returns ``(image (H, W), was_colour, was_jpeg)``.
+
+    Grey images come back as they are stored (uint8/uint16); colour images as
+    float32 luminance (:func:`luminance`).
+    """
     with _file_errors():
         data = np.fromfile(path, dtype=np.uint8)
     if data.size == 0:
         raise _Unusable("empty", "image file is empty (0 bytes)")
     if data[:8].tobytes() == _PNG_SIGNATURE:
         _png_check_bytes(memoryview(data))  # before libpng, which would print its own complaint
+    jpeg = data[:3].tobytes() == _JPEG_SIGNATURE
     try:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error:
         img = None
     if img is None:
-        raise _Unusable("unreadable", "not a readable PNG or TIFF image (truncated or corrupt?)")
-    colour = img.ndim == 3 and img.shape[2] > 1
-    if img.ndim == 3:
-        c = img.shape[2]
-        if c <= 2:  # grey (+ alpha)
-            img = np.ascontiguousarray(img[:, :, 0])
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if c == 4 else cv2.COLOR_BGR2GRAY)
+        raise _Unusable("unreadable", "not a readable PNG, TIFF, BMP or JPEG image (truncated or corrupt?)")
+    colour = img.ndim == 3 and img.shape[2] > 2
+    if img.ndim == 3 and img.shape[2] <= 2:  # grey (+ alpha)
+        img = np.ascontiguousarray(img[:, :, 0])
     expected = rig.camera.shape
-    if img.shape != expected:
+    if img.shape[:2] != expected:
         raise _Unusable("wrong size", f"image is {img.shape[1]}x{img.shape[0]} px, rig.toml says camera"
                                       f" {expected[1]}x{expected[0]}")
     if img.dtype not in (np.uint8, np.uint16):
         kind = "float" if img.dtype.kind == "f" else ("int" if img.dtype.kind == "i" else "uint")
         _check_depth(8 * img.dtype.itemsize, kind, rig)
     _check_depth(8 * img.dtype.itemsize, "uint", rig)
-    return img, colour
+    if colour:
+        img = luminance(img, rig.camera.max_level)
+    return img, colour, jpeg
 
 
 def read_image(path: Path, rig: Rig) -> np.ndarray:
-    """Read one single-channel image and check it against the rig.
+    """Read one image and check it against the rig.
 
-    Colour images are converted to grey with a warning. 16-bit samples are
+    Colour images are decoded from their BT.601 luminance as floating point
+    (saturation and black clipping per channel), with a warning; JPEG is read
+    with a warning that its compression biases phases. 16-bit samples are
     shifted right by ``[camera] bit_shift`` (MSB-aligned samples, FORMATS.md).
 
     Returns
     -------
-    (H, W) uint8 or uint16
-        Grey levels (counts), otherwise not scaled.
+    (H, W) uint8 or uint16 (grey levels: counts, otherwise not scaled), or float32 (colour)
 
     Raises
     ------
@@ -340,14 +364,20 @@ def read_image(path: Path, rig: Rig) -> np.ndarray:
         Missing, unreadable, wrongly sized or wrong bit depth, naming the file.
     """
     try:
-        img, colour = _decode(Path(path), rig)
+        img, colour, jpeg = _decode(Path(path), rig)
     except _Unusable as exc:
         raise DatasetError(f"{path}: {exc.detail}") from None
     if colour:
-        _warn_colour(f"{path}: colour image converted to grey (and any others of this dataset)", rig)
+        _warn_colour(f"{path}: colour image decoded from its BT.601 luminance (and any others of this dataset)",
+                     rig)
+    if jpeg:
+        _warn_once(_jpeg_warned, f"{path}: JPEG image: its lossy compression biases the phases (and any other"
+                                 " JPEG of this dataset)", rig)
     shift = bit_shift(rig)
     if shift and img.dtype == np.uint16:
         np.right_shift(img, shift, out=img)
+    elif shift and img.dtype == np.float32:  # colour luminance of MSB-aligned samples
+        img *= np.float32(1.0 / (1 << shift))
     return img
 
 
@@ -381,7 +411,7 @@ def check_bit_alignment(path, rig: Rig, low_bits: int = 4) -> str | None:
     if rig.camera.bit_depth <= 8 or bit_shift(rig):
         return None
     try:
-        img, _ = _decode(Path(path), rig)
+        img = _decode(Path(path), rig)[0]
     except _Unusable:
         return None  # reported by the validation with its reason
     if img.dtype != np.uint16 or not img.any():
@@ -395,18 +425,23 @@ def check_bit_alignment(path, rig: Rig, low_bits: int = 4) -> str | None:
     return msg
 
 
-# Rigs whose colour images were already reported: one warning per dataset, not one per file.
+# Rigs whose colour (JPEG) images were already reported: one warning per dataset, not one per file.
 _colour_warned: "weakref.WeakSet[Rig]" = weakref.WeakSet()
+_jpeg_warned: "weakref.WeakSet[Rig]" = weakref.WeakSet()
 _colour_lock = threading.Lock()
 
 
 def _warn_colour(message: str | None, rig: Rig) -> None:
+    _warn_once(_colour_warned, message, rig)
+
+
+def _warn_once(seen, message: str | None, rig: Rig) -> None:
     with _colour_lock:
-        if rig in _colour_warned:
+        if rig in seen:
             return
-        _colour_warned.add(rig)
+        seen.add(rig)
     if message:
-        warnings.warn(message, stacklevel=3)
+        warnings.warn(message, stacklevel=4)
 
 
 # --------------------------------------------------------------------------- validation
@@ -510,9 +545,13 @@ def validate_dataset(folder, rig: Rig | None = None, *, full: bool = False, work
         rig = load_rig(toml_path)
     if check_design:
         check_calibration_design(rig, str(toml_path))
-    names = [rig.image_name(k, d, t, n, big_n)
+    names = [rig.image_name(k, d, t, n, big_n, j)
              for k in range(rig.stage.n_positions)
-             for d, _j, t, n, big_n in rig.fringes.frames()]
+             for d, j, t, n, big_n in rig.fringes.frames()]
+    names += [rig.gray_name(k, d, b, inv) for k in range(rig.stage.n_positions)
+              for d, b, inv in rig.fringes.gray_frames()]
+    names += [n for k in range(rig.stage.n_positions) for n in (rig.reference_name(k, "white"),
+                                                              rig.reference_name(k, "black")) if n]
     dupes = [n for n, c in Counter(names).items() if c > 1]
     if dupes:
         raise ConfigError(f"{toml_path}: key 'images.template' gives several images the same name"
@@ -533,7 +572,7 @@ def validate_dataset(folder, rig: Rig | None = None, *, full: bool = False, work
                 unparsed, fmt = exc, {"tif": "tiff"}.get(path.suffix.lower()[1:], path.suffix.lower()[1:])
             if full or unparsed is not None:
                 try:
-                    _img, colour = _decode(path, rig)
+                    _img, colour, _jpeg = _decode(path, rig)
                 except _Unusable as exc:
                     if unparsed is not None and exc.kind == "unreadable":
                         raise _Unusable("unreadable", unparsed.detail) from None
@@ -550,8 +589,13 @@ def validate_dataset(folder, rig: Rig | None = None, *, full: bool = False, work
     colour = [name for name, _f, c, _e in results if c]
     if colour:
         warnings.warn(f"{folder}: {len(colour)} colour image{'s' if len(colour) > 1 else ''} will be"
-                      f" converted to grey (e.g. {colour[0]})", stacklevel=2)
+                      f" decoded from their BT.601 luminance (e.g. {colour[0]})", stacklevel=2)
         _warn_colour(None, rig)  # said once here; reading them later stays quiet
+    jpeg = [name for name, f, _c, _e in results if f in ("jpg", "jpeg")]
+    if jpeg:
+        warnings.warn(f"{folder}: {len(jpeg)} JPEG image{'s' if len(jpeg) > 1 else ''} (e.g. {jpeg[0]}):"
+                      " lossy compression biases the phases; capture PNG, TIFF or BMP", stacklevel=2)
+        _warn_once(_jpeg_warned, None, rig)
     formats = dict(Counter(f for _n, f, _c, _e in results))
     return DatasetReport(folder, rig, len(names), formats, colour, full)
 
@@ -587,9 +631,46 @@ class DatasetSource:
             raise DatasetError(f"{self.folder}: dataset folder not found")
         self.rig = load_rig(self.folder / "rig.toml")
         self.workers = workers
+        self._colour = None
 
-    def path(self, k: int, direction: str, period: int, step: int, n_steps: int) -> Path:
-        return self.folder / self.rig.image_name(k, direction, period, step, n_steps)
+    @property
+    def colour(self) -> bool:
+        """Whether the dataset's images are colour (decoded as float32 luminance): any image of its
+        first position (headers only, where the format has one we parse)."""
+        if self._colour is None:
+            self._colour = False
+            for d, j, t, n, big_n in self.rig.fringes.frames():
+                path = self.path(0, d, t, n, big_n, j)
+                try:
+                    colour = _header(path).channels > 2
+                except _Unusable:
+                    try:
+                        colour = _decode(path, self.rig)[1]
+                    except _Unusable:
+                        colour = False  # the read itself will name the problem
+                if colour:
+                    self._colour = True
+                    break
+        return self._colour
+
+    def path(self, k: int, direction: str, period, step: int, n_steps: int, level: int | None = None) -> Path:
+        return self.folder / self.rig.image_name(k, direction, period, step, n_steps, level)
+
+    def gray_frames(self, k: int) -> dict:
+        """``{(dir, bit, inverse): image}``: the Gray-code frames of position ``k``."""
+        specs = list(self.rig.fringes.gray_frames())
+        paths = [self.folder / self.rig.gray_name(k, d, b, inv) for d, b, inv in specs]
+        with ThreadPoolExecutor(self.workers) as pool:
+            return dict(zip(specs, pool.map(lambda p: read_image(p, self.rig), paths)))
+
+    def reference_frames(self, k: int) -> dict:
+        """``{"white": image, "black": image}`` of position ``k`` (empty without them)."""
+        out = {}
+        for which in ("white", "black"):
+            name = self.rig.reference_name(k, which)
+            if name is not None:
+                out[which] = read_image(self.folder / name, self.rig)
+        return out
 
     def validate(self, **kwargs) -> DatasetReport:
         """:func:`validate_dataset` of this folder with this source's rig."""
@@ -597,7 +678,7 @@ class DatasetSource:
 
     def frames(self, k: int):
         specs = list(self.rig.fringes.frames())
-        paths = [self.path(k, d, t, n, big_n) for d, _j, t, n, big_n in specs]
+        paths = [self.path(k, d, t, n, big_n, j) for d, j, t, n, big_n in specs]
         with ThreadPoolExecutor(self.workers) as pool:
             for spec, img in zip(specs, pool.map(lambda p: read_image(p, self.rig), paths)):
                 yield spec, img

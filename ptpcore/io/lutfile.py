@@ -501,7 +501,7 @@ def _read_lut_group(group, where: str) -> Lut:
     rd = _GroupReader(group, where)
     try:
         lut, camera_shape = _read_lut_arrays(rd)
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:  # h5py raises RuntimeError for some damaged structures
         raise rd.fail(f"truncated or damaged ({exc})") from None
     _check_lut_model(rd, lut)
     _check_lut_shapes(rd, lut, camera_shape)

@@ -34,9 +34,10 @@ import numpy as np
 from ptpcore.io.lutfile import Lut
 from ptpcore.fit.perpixel import fit_lut
 from ptpcore.io.samples import SampleStack
-from ptpcore.decode.noise import NoiseAccumulator
-from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, WrappedPhase, decode_and_finish,
-    decode_direction, finish_position, fused_kernels, wrapped_phase)
+from ptpcore.decode.harmonics import harmonic_noise_samples
+from ptpcore.decode.noise import NoiseAccumulator, NoiseModel
+from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, WrappedPhase, apply_convention,
+    black_clipped, decode_and_finish, decode_direction, finish_position, fused_kernels, wrapped_phase)
 from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, run_tiles, tile_workers
 from ptpcore.rig.rigfile import Rig, rig_to_toml
 
@@ -55,7 +56,7 @@ NOISE_PIXELS = 1 << 18
 def _set_order(rig: Rig) -> list[tuple[str, int, int, int]]:
     """``(direction, level, period, N)`` of every set, in capture order."""
     f = rig.fringes
-    return [(d, j, t, n) for d in f.directions for j, (t, n) in enumerate(zip(f.periods_px, f.steps))]
+    return [(d, j, t, n) for d in f.directions for j, (t, n) in enumerate(zip(f.periods(d), f.steps_of(d)))]
 
 
 def _frame_dtype(rig: Rig):
@@ -124,8 +125,11 @@ class _DatasetReader:
         self.sets = _set_order(self.rig)
         n_max = max(n for *_, n in self.sets)
         self.free: queue.Queue = queue.Queue()
+        self.dtype = np.dtype(np.float32) if getattr(source, "colour", False) else np.dtype(_frame_dtype(self.rig))
+        if self.dtype == np.float32:
+            self.map_files = False
         for _ in range(depth):
-            self.free.put(np.empty((n_max, *self.rig.camera.shape), _frame_dtype(self.rig)))
+            self.free.put(np.empty((n_max, *self.rig.camera.shape), self.dtype))
         self.out: queue.Queue = queue.Queue()
         self.stop = threading.Event()
         self.pool = ThreadPoolExecutor(tile_workers(), thread_name_prefix="ptp-read")
@@ -139,11 +143,14 @@ class _DatasetReader:
             mapped = self._map_frame(path, out.shape, out.dtype)
             if mapped is not None:
                 return mapped
-        if self._read_into(path, out):
+        if out.dtype != np.float32 and self._read_into(path, out):
             if self.shift and out.dtype == np.uint16:  # [camera] bit_shift: MSB-aligned samples
                 np.right_shift(out, self.shift, out=out)
         else:
-            out[...] = self._read_image(path, self.rig)  # shifted there
+            img = self._read_image(path, self.rig)  # shifted there
+            if img.dtype.kind == "f" and out.dtype.kind != "f":
+                img = np.rint(img)  # a colour image among grey ones (DatasetSource.colour looks at position 0)
+            out[...] = img
         return out
 
     def _run(self) -> None:
@@ -158,7 +165,7 @@ class _DatasetReader:
                             buf = self.free.get(timeout=0.1)
                         except queue.Empty:
                             pass
-                    paths = [self.source.path(k, d, t, s, n) for s in range(n)]
+                    paths = [self.source.path(k, d, t, s, n, j) for s in range(n)]
                     frames = list(self.pool.map(self._read_one, zip(paths, buf[:n])))
                     if all(f.base is buf for f in frames):
                         frames = buf[:n]  # all read into the buffer: the stack itself
@@ -215,18 +222,28 @@ def _is_dataset(source) -> bool:
 
 
 def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: bool,
-                 buffers: dict | None = None) -> DecodedPosition:
+                 buffers: dict | None = None, source=None) -> DecodedPosition:
     """Wrapped phases of every set, then unwrapping and classification.
 
     ``buffers``: a dict kept by a streaming caller; the position's maps are
     written into arrays it holds (allocated on first use), so the next
-    position overwrites them.
+    position overwrites them. ``source``: where Gray-code and reference frames
+    come from (Gray-code designs).
+
+    The phase convention (``shift_sign``, ``phase_origin_rad``) is applied to
+    each wrapped phase; designs that unwrap by periods with the default
+    tolerance take the fused kernels (fractional and per-direction periods
+    included), Gray codes and other tolerances the numpy path.
     """
     f = rig.fringes
-    last = len(f.periods_px) - 1
+    options = options.for_rig(rig)
     h, w = rig.camera.shape
+    stride = _noise_stride(rig)
     wrapped: dict = {}
+    noise_parts: dict = {}
     for (d, j), stack in sets:
+        steps = f.steps_of(d)
+        last = len(steps) - 1
         photometry = all_photometry or j == last
         out = None
         if buffers is not None:
@@ -236,10 +253,21 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
                     np.empty((h, w), np.float32), np.empty((h, w), np.float32),
                     np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
                     np.empty((h, w), np.float32) if photometry and len(stack) > 3 else None)
-        wrapped[(d, j)] = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+        wp = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+        apply_convention(wp, f.sign(d), f.origin(d))
+        wp.black = black_clipped(stack)
+        if steps[j] >= 5:
+            # Harmonic-free noise: the finest level, else the level with most steps.
+            best = noise_parts.get(d)
+            if best is None or (j == last or steps[j] > best[1]) and best[0] != last:
+                part = harmonic_noise_samples(stack, stride, 1 if d == "x" else 0)
+                if part is not None:
+                    noise_parts[d] = (j, steps[j], part)
+        wrapped[(d, j)] = wp
     stack = None  # a set mapped from its files is unmapped once its phases are out
-    levels = {d: [wrapped[(d, j)] for j in range(len(f.periods_px))] for d in f.directions}
-    if fused_kernels() is not None:
+    levels = {d: [wrapped[(d, j)] for j in range(len(f.periods(d)))] for d in f.directions}
+    pos = None
+    if fused_kernels() is not None and f.unwrap == "periods" and options.unwrap_tolerance == 0.25:
         outs = None
         if buffers is not None:
             outs = {}
@@ -251,24 +279,117 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
             if outs["reasons"] is None:
                 outs["reasons"] = buffers["reasons"] = np.empty((h, w), np.uint8)
         pos = decode_and_finish(rig, k, levels, options, outs=outs)
-        if pos is not None:
-            return pos
-    z = rig.stage.z_mm[k]
-    decoded = {}
-    for d in f.directions:
-        levels = [wrapped[(d, j)] for j in range(len(f.periods_px))]
+    if pos is None:
+        z = rig.stage.z_mm[k]
+        decoded = {}
+        gray = _gray_unwrap(rig, k, source, levels, options) if f.unwrap == "gray" else {}
+        for d in f.directions:
+            out = None
+            if buffers is not None:
+                out = buffers.get(d)
+                if out is None:
+                    out = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
+            absolute0, failed = gray.get(d, (None, None))
+            decoded[d] = decode_direction(levels[d], f.periods(d), f.carrier(d) * z, out=out,
+                                          tolerance=options.unwrap_tolerance, absolute0=absolute0,
+                                          gray_failed=failed)
         out = None
         if buffers is not None:
-            out = buffers.get(d)
+            out = buffers.get("reasons")
             if out is None:
-                out = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
-        decoded[d] = decode_direction(levels, f.periods_px, f.carrier(d) * z, out=out)
-    out = None
-    if buffers is not None:
-        out = buffers.get("reasons")
-        if out is None:
-            out = buffers["reasons"] = np.empty((h, w), np.uint8)
-    return finish_position(rig, k, decoded, options, out=out)
+                out = buffers["reasons"] = np.empty((h, w), np.uint8)
+        pos = finish_position(rig, k, decoded, options, out=out)
+    pos.info["noise_samples"] = {d: part for d, (_j, _n, part) in noise_parts.items()}
+    pos.info["noise_levels"] = {d: (f.periods(d)[j], n) for d, (j, n, _p) in noise_parts.items()}
+    flag_more_reasons(rig, pos, options, pos.reasons)
+    return pos
+
+
+def _noise_stride(rig: Rig) -> int:
+    h, w = rig.camera.shape
+    return max(1, int(np.sqrt(h * w / NOISE_PIXELS)))
+
+
+def _gray_unwrap(rig: Rig, k: int, source, levels: dict, options: DecodeOptions) -> dict:
+    """``{d: (absolute coarse phase, Gray-code failures)}`` from the Gray-code frames of position ``k``."""
+    from ptpcore.decode.graycode import absolute_coarse_phase, gray_index
+
+    if source is None or not hasattr(source, "gray_frames"):
+        raise ValueError("this frame source cannot give Gray-code frames")
+    frames = source.gray_frames(k)
+    refs = source.reference_frames(k) if hasattr(source, "reference_frames") else {}
+    f = rig.fringes
+    out = {}
+    for d in f.directions:
+        coarse = levels[d][0]
+        bits = range(f.bits(d))
+        imgs = [frames[(d, b, False)] for b in bits]
+        inv = [frames[(d, b, True)] for b in bits] if f.gray_inverse else None
+        bg = coarse.background if coarse.background is not None else levels[d][-1].background
+        index, contrast = gray_index(imgs, inv, white=refs.get("white"), black=refs.get("black"), background=bg)
+        # The code counts cycles of u + s: the carrier moves it with the fringes.
+        phi0, failed = absolute_coarse_phase(coarse.phase, index, contrast, coarse.modulation,
+                                             options.unwrap_tolerance)
+        out[d] = (phi0, failed)
+    return out
+
+
+def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, reasons: np.ndarray,
+                      directions=None) -> None:
+    """Black clipping, Gray-code failures and spatial consistency (METHOD.md section 4), into ``reasons``.
+
+    Also records in ``pos.info`` the predicted coordinate noise used (``sigma``)
+    and where the noise came from (``noise_source``).
+    """
+    from ptpcore.decode.spatial import spatial_outliers
+    from ptpcore.decode.noise import NoiseAccumulator
+
+    f = rig.fringes
+    dirs = [d for d in (directions or pos.directions) if d in pos.directions]
+    for d in dirs:
+        dec = pos.directions[d]
+        for wp in dec.wrapped:
+            if wp.black is not None:
+                _or(reasons, wp.black, Reason.BLACK_CLIPPED)
+        if dec.gray_failed is not None:
+            _or(reasons, dec.gray_failed, Reason.GRAY_CODE)
+    pos.info.setdefault("sigma", {})
+    pos.info.setdefault("noise_source", {})
+    if options.spatial_k is None:
+        return
+    samples = pos.info.get("noise_samples", {})
+    levels = pos.info.get("noise_levels", {})
+    base = reasons.copy()
+    for d in dirs:
+        dec = pos.directions[d]
+        fine = dec.wrapped[-1]
+        valid = base == 0
+        sigma = None
+        source = "neighbourhood"
+        part = samples.get(d)
+        if part is not None and fine.background is not None:
+            acc = NoiseAccumulator(rig.camera.max_level)
+            sub = valid[part["rows"]][:, part["cols"]].ravel()
+            acc.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
+            model = acc.model()
+            if model is not None:
+                n_fine = f.steps_of(d)[-1]
+                # The camera's noise and the display's rounding to integer levels (uniform, 1/12
+                # of a level squared; a level is B / amplitude camera DN).
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    var_dn = model.sigma_dn(fine.background) ** 2 + (fine.modulation / f.amplitude) ** 2 / 12.0
+                    sigma = (np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / fine.modulation
+                             * f.periods(d)[-1] / (2 * np.pi))
+                t, n = levels[d]
+                source = "residual" if float(t) == float(f.periods(d)[-1]) else f"residual of period {t:g} px (N = {n})"
+        flagged, used = spatial_outliers(dec.coord, valid, sigma, options.spatial_k)
+        _or(reasons, flagged, Reason.SPATIAL)
+        pos.info["sigma"][d] = used
+        pos.info["noise_source"][d] = source
+
+
+def _or(reasons: np.ndarray, cond: np.ndarray, bit: int) -> None:
+    np.bitwise_or(reasons, cond.view(np.uint8) * np.uint8(bit), out=reasons)
 
 
 def decode_position(source, k: int, options: DecodeOptions = DecodeOptions()) -> DecodedPosition:
@@ -289,10 +410,10 @@ def decode_position(source, k: int, options: DecodeOptions = DecodeOptions()) ->
     if _is_dataset(source):
         reader = _DatasetReader(source, [k])
         try:
-            return _decode_sets(rig, k, reader.sets_of(k), options, True)
+            return _decode_sets(rig, k, reader.sets_of(k), options, True, source=source)
         finally:
             reader.close()
-    return _decode_sets(rig, k, _source_sets(source, k), options, True)
+    return _decode_sets(rig, k, _source_sets(source, k), options, True, source=source)
 
 
 def world_xy(rig: Rig, pos: DecodedPosition) -> tuple[np.ndarray, np.ndarray]:
@@ -360,7 +481,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     else:
         samples = SampleStack.empty(rig.stage.z_mm, shape)
     noise = NoiseAccumulator(rig.camera.max_level)
-    stride = max(1, int(np.sqrt(shape[0] * shape[1] / NOISE_PIXELS)))
+    fallback: list = []
     reader = _DatasetReader(source, todo) if _is_dataset(source) else None
     buffers: dict = {}
     noise_jobs: list = []
@@ -371,7 +492,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             sets = reader.sets_of(k) if reader else _source_sets(source, k)
             # Without a listener the position's maps are scratch: reuse them.
             pos = _decode_sets(rig, k, sets, options, on_position is not None,
-                               None if on_position else buffers)
+                               None if on_position else buffers, source)
             fine_x = pos.directions["x"].wrapped[-1]
             fine_y = pos.directions["y"].wrapped[-1]
             if store is None:
@@ -392,15 +513,17 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             if store is not None:
                 for name in dest:
                     store.mark_written(name, k)
-            valid = pos.reasons[::stride, ::stride] == 0
-            for fine in (fine_x, fine_y):
-                if fine.residual_var is not None:
-                    args = (fine.background[::stride, ::stride], fine.residual_var[::stride, ::stride],
-                            valid, rig.fringes.steps[-1] - 3)
-                    if store is None:
-                        noise.add(*args)
-                    else:  # on its own thread (in order), off the decoding's path
-                        noise_jobs.append(writer.submit(noise.add, *(np.array(a) for a in args[:3]), args[3]))
+            for d, part in pos.info.get("noise_samples", {}).items():
+                valid = pos.reasons[part["rows"]][:, part["cols"]].ravel() == 0
+                args = (part["background"], part["var"], valid & np.isfinite(part["var"]), part["dof"])
+                if store is None:
+                    noise.add(*args)
+                else:  # on its own thread (in order), off the decoding's path
+                    noise_jobs.append(writer.submit(noise.add, *args))
+            fallback.extend(_neighbourhood_noise_dn(rig, pos))
+            for d, (t, n) in pos.info.get("noise_levels", {}).items():
+                if float(t) != float(rig.fringes.periods(d)[-1]):
+                    noise.source = f"residual of period {float(t):g} px (N = {n})"
             if on_position:
                 on_position(pos)
     finally:
@@ -416,9 +539,29 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         samples = SampleStack(z_all, arrays["x"], arrays["y"], samples.x_ref, samples.y_ref,
                               arrays["reasons"], arrays["modulation"], arrays["background"])
     samples.noise = noise.model()
+    if samples.noise is None and fallback:
+        samples.noise = NoiseModel(float(np.median(fallback)) ** 2, 0.0, "neighbourhood")
     if progress:
         progress(1.0, "decoding done")
     return samples
+
+
+def _neighbourhood_noise_dn(rig: Rig, pos: DecodedPosition) -> list[float]:
+    """Sample noise (grey levels) implied by the coordinate's spread over the neighbourhood, for
+    directions without a harmonic-free residual (every level N <= 4)."""
+    f = rig.fringes
+    out = []
+    for d, dec in pos.directions.items():
+        if pos.info.get("noise_source", {}).get(d) != "neighbourhood":
+            continue
+        sigma_u = pos.info.get("sigma", {}).get(d)
+        valid = pos.reasons == 0
+        if sigma_u is None or not np.isfinite(sigma_u) or not valid.any():
+            continue
+        b = float(np.median(dec.wrapped[-1].modulation[valid]))
+        n = f.steps_of(d)[-1]
+        out.append(sigma_u * b / (np.sqrt(2.0 / n) * f.periods(d)[-1] / (2 * np.pi)))
+    return out
 
 
 def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,

@@ -69,7 +69,7 @@ from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read
     _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
-from ptpcore.fit.models import LUT_MODELS, fit_model
+from ptpcore.fit.models import LUT_MODELS, check_positions_for_model, fit_model
 from ptpcore.fit.stage_pose import refine_and_correct
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.rig.rigfile import Rig, rig_from_toml, rig_to_toml
@@ -222,13 +222,15 @@ def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
     if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0):
         raise ValueError(f"stage sigma must be a finite number >= 0 um, got {stage_sigma_um}")
     source = DatasetSource(dataset)
-    if validate:
-        source.validate(full=full_check)
     if positions is not None:
         positions = tuple(int(p) for p in positions)
         bad = [p for p in positions if not 0 <= p < source.rig.stage.n_positions]
         if bad:
             raise ValueError(f"positions {bad} do not exist (the rig has {source.rig.stage.n_positions})")
+    n_cal = source.rig.stage.n_positions if positions is None else len(positions)
+    check_positions_for_model(model, degree, n_cal, str(source.folder / "rig.toml"))
+    if validate:
+        source.validate(full=full_check)
     return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
                    stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
                    refine_stage=bool(refine_stage), robust=bool(robust),
@@ -302,8 +304,12 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
                                    " (the dataset changed since the session started)")
             if validate:
                 source.validate()
+            _check_conventions(source, session)
         samples = collect_samples(source, options=session.options, positions=session.positions,
                                   progress=sub(0.0, 0.9))
+        from ptpcore.run.diagnose import check_valid_fractions
+
+        check_valid_fractions(samples, session.positions)  # warns per position; no valid pixel: an error
         _check_decoded(samples, session)
         session.samples = samples
         if path is not None:
@@ -338,6 +344,23 @@ def _check_decoded(samples: SampleStack, session: Session) -> None:
 
     where = str(Path(session.dataset) / "rig.toml") if session.dataset else "rig.toml"
     check_samples(samples, positions=session.positions, source=where)
+
+
+def _check_conventions(source, session: Session) -> None:
+    """Before the long decode: one position decoded and checked for a wrong ``phase_origin_rad``
+    or ``shift_sign`` (:func:`ptpcore.run.diagnose.convention_check`), named if found."""
+    from ptpcore.run.diagnose import convention_check
+    from ptpcore.run.pipeline import decode_position
+
+    rig = source.rig
+    if rig.fringes.unwrap != "periods":
+        return
+    positions = session.positions or range(rig.stage.n_positions)
+    k = list(positions)[len(positions) // 2]
+    findings = convention_check(rig, decode_position(source, k, session.options), session.options)
+    if findings:
+        where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
+        raise DatasetError("; ".join(fd.message(where) for fd in findings))
 
 
 # --------------------------------------------------------------------------- writing

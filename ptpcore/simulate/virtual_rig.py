@@ -110,6 +110,12 @@ class SimSettings:
     roll_urad: float = 0.0
     runout_um: float = 0.0
     bow_um: float = 0.0
+    dust: tuple[tuple[float, float, float, float], ...] = ()
+    """Dark disks on the LCD: ``(u, v, diameter, transmission)`` (LCD px; 0..1). Rendered
+    exactly only with ``pixelated = False`` (point-sampled footprints)."""
+    black_offset: tuple[float, float, float, float, float] | None = None
+    """A camera black-level offset in one region: ``(col0, row0, col1, row1, dn)``: the
+    camera subtracts ``dn`` there before clipping at 0 (a region clipped at black)."""
 
     def e_per_dn(self, camera: Camera) -> float:
         """Electrons per grey level."""
@@ -492,6 +498,8 @@ class VirtualRig:
         h, w = h + 2 * m, w + 2 * m
         ss = s.supersample
         if s.pixelated:
+            if s.dust:
+                raise ConfigError("dust on the LCD is simulated with pixelated = False only")
             edges, across, n_along, n_across = geo[direction]
             prof = fringe_profile(rig.lcd, f, direction, period, step, n_steps, z_read)
             pad = 2
@@ -519,8 +527,17 @@ class VirtualRig:
             if f.gamma != 1.0:
                 g = 255.0 * (g / 255.0) ** (1.0 / f.gamma)
             lum = np.where(inside, self._luminance(g), 0.0)
+            if s.dust:
+                lum = lum * self.dust_transmission(u, v)
             irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
         return self._expose(irr, self.blur_sigma(k), (2, k, "xy".index(direction), period, step))
+
+    def dust_transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Transmission (0..1) of the dust disks of the settings at LCD points ``(u, v)``."""
+        t = np.ones(np.broadcast(u, v).shape)
+        for du, dv, diameter, trans in self.settings.dust:
+            t[np.hypot(u - du, v - dv) <= diameter / 2.0] *= trans
+        return t
 
     def render_image(self, image, z_mm: float, noise_key=(3,)) -> np.ndarray:
         """One camera frame of any LCD image, with the LCD at true height ``z_mm``.
@@ -586,7 +603,11 @@ class VirtualRig:
             rng = np.random.default_rng([self.seed, *noise_key])
             electrons = electrons + rng.standard_normal(electrons.shape) * np.sqrt(
                 np.maximum(electrons, 0.0) + s.read_noise_e ** 2)
-        dn = np.clip(np.rint(electrons / s.e_per_dn(rig.camera)), 0, rig.camera.max_level)
+        dn = electrons / s.e_per_dn(rig.camera)
+        if s.black_offset is not None:
+            c0, r0, c1, r1, off = s.black_offset
+            dn[int(r0):int(r1), int(c0):int(c1)] -= off
+        dn = np.clip(np.rint(dn), 0, rig.camera.max_level)
         return dn.astype(np.uint8 if rig.camera.bit_depth == 8 else np.uint16)
 
     def _vignetting(self) -> np.ndarray:
@@ -614,6 +635,8 @@ def settings_from_json(text: str) -> tuple[SimSettings, int]:
     seed = d.pop("seed")
     lens = LensSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("lens").items()})
     d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    if "dust" in d:
+        d["dust"] = tuple(tuple(x) for x in d["dust"])
     return SimSettings(lens=lens, **d), seed
 
 

@@ -1,0 +1,94 @@
+"""Camera noise with the display's harmonics taken out (METHOD.md section 4).
+
+A display whose response differs from the gamma pre-compensation puts
+harmonics ``h = 2 .. N//2`` into the fringes. The N-step phase is immune to
+them (unless ``h = +-1 mod N``), but its residual is not: the N-step fit of
+N samples leaves exactly the bins ``2 .. N//2`` of their discrete Fourier
+transform, so the plain residual mixes noise and harmonics (the noise model
+then reads 10x too much) and no per-pixel fit can separate them.
+
+What separates them is that harmonics are deterministic: demodulated by the
+fundamental's phase, ``Z_h = X_h exp(-i h phi) / |X_1|`` is the same smooth
+function of the display response at neighbouring pixels, while noise is
+independent from pixel to pixel. The difference of ``Z_h`` between
+horizontally adjacent pixels therefore holds noise only:
+``E |X_h(p) - Z_h(q) |X_1(p)|exp(i h phi_p)|^2 = 2 N sigma^2`` for every bin
+``0 < h < N/2`` (the bin ``N/2`` is real and not demodulable; it is left out).
+N = 3 and N = 4 have no such bin: the caller takes the noise from another level
+or from the neighbourhood (:mod:`ptpcore.decode.spatial`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["noise_bins", "harmonic_noise_samples"]
+
+
+def noise_bins(n_steps: int) -> list[int]:
+    """The harmonic bins ``2 .. ceil(N/2) - 1`` that carry a noise estimate (empty for N <= 4)."""
+    return list(range(2, (n_steps + 1) // 2))
+
+
+def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | None:
+    """Noise variance samples, free of harmonics, on a sub-grid of pixel pairs.
+
+    Parameters
+    ----------
+    frames : (N, H, W) array or sequence of N (H, W) arrays
+        One N-step set, frame n shown with phase shift ``2 pi n / N`` (the sign
+        convention does not matter here).
+    stride : int
+        Rows and columns of the sub-grid.
+    axis : {1, 0}
+        Pair pixel ``(r, c)`` with ``(r, c + 1)`` (1) or ``(r + 1, c)`` (0): pair along the
+        pattern's coding direction (x: 1, y: 0), where neighbours see different phases. Across
+        it they see nearly the same level, and a noise-free camera's rounding errors are then
+        the same at both and cancel in their difference.
+
+    Returns
+    -------
+    dict or None
+        ``background`` (M,) mean level of each pair; ``var`` (M,) unbiased
+        variance estimates (grey levels^2) with ``dof`` degrees of freedom each;
+        ``harmonic`` (M,) amplitude of the largest harmonic (grey levels, at the
+        first pixel of each pair); ``modulation`` (M,). None for N <= 4 or images
+        narrower than 2 pixels.
+    """
+    n = len(frames)
+    bins = noise_bins(n)
+    if axis == 0:
+        frames = [np.asarray(f).T for f in frames]
+    h, w = np.shape(frames[0])
+    if not bins or w < 2:
+        return None
+    rows = np.arange(0, h, stride)
+    cols = np.arange(0, w - 1, stride)
+    stack = np.stack([np.asarray(f)[rows][:, np.concatenate([cols, cols + 1])] for f in frames]).astype(np.float64)
+    m = cols.size
+    delta = 2.0 * np.pi * np.arange(n) / n
+    x = {hh: np.tensordot(np.exp(-1j * hh * delta), stack, axes=(0, 0)) for hh in [1, *bins]}
+    x1 = x[1]
+    amp1 = np.abs(x1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = x1 / amp1
+    p, q = slice(0, m), slice(m, 2 * m)
+    acc = np.zeros((rows.size, m))
+    harm = np.zeros((rows.size, m))
+    for hh in bins:
+        rot = unit ** hh
+        zq = x[hh][:, q] * np.conj(rot[:, q])  # demodulated at q
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pred = zq * (amp1[:, p] / amp1[:, q]) * rot[:, p]  # carried to p
+        acc += np.abs(x[hh][:, p] - pred) ** 2
+        harm = np.maximum(harm, (2.0 / n) * np.abs(x[hh][:, p]))
+    var = acc / (2.0 * n * len(bins))
+    bg = stack.mean(axis=0)
+    out = {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": var, "harmonic": harm,
+           "modulation": (2.0 / n) * amp1[:, p]}
+    if axis == 0:  # back to (rows, cols) of the image
+        out = {k: v.T for k, v in out.items()}
+        rows, cols = cols, rows
+    out = {k: v.ravel() for k, v in out.items()}
+    out.update(dof=2 * len(bins), rows=rows, cols=cols)
+    return out

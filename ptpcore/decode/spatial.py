@@ -1,0 +1,140 @@
+"""Spatial consistency of a decoded coordinate map (METHOD.md section 4).
+
+A pixel whose decoded coordinate departs from a smooth fit over its
+neighbourhood by more than ``k`` sigma of its predicted noise is flagged: dust
+on the target, dead LCD pixels or printed dots decode many times worse than
+their neighbours while their modulation may still pass.
+
+The fit is robust: the local gradient is the median of the central differences
+in the window, and the prediction the median of the neighbours carried to the
+centre along it; the median of the neighbours' own residuals (what the local
+plane misses of a curved map) is then taken off. Neighbours are taken on a sparse grid (every second pixel out
+to ``radius``), so a defect a few pixels across cannot take over the median.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+__all__ = ["neighbourhood_residual", "spatial_outliers", "ROBUST_SIGMA"]
+
+ROBUST_SIGMA = 1.4826
+"""Median absolute deviation -> standard deviation for normal data."""
+
+MIN_NEIGHBOURS = 8
+ROWS_PER_CHUNK = 64
+
+
+def _nanmedian0(stack: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(stack, axis=0)`` by one sort (NaN sort last): many times faster."""
+    s = np.sort(stack, axis=0)
+    n = np.count_nonzero(~np.isnan(stack), axis=0)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(s, (n // 2)[None], axis=0)[0] if s.shape[0] else lo
+    out = 0.5 * (lo + hi)
+    out[n == 0] = np.nan
+    return out
+
+
+def _offsets(radius: int, step: int) -> list[tuple[int, int]]:
+    r = range(-radius, radius + 1, step)
+    return [(dr, dc) for dr in r for dc in r if (dr, dc) != (0, 0)]
+
+
+def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int = 4, step: int = 2
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Decoded coordinate minus its robust local prediction.
+
+    Parameters
+    ----------
+    coord : (H, W) float
+        LCD coordinate map (px).
+    valid : (H, W) bool
+        Pixels that may serve as neighbours (and be judged).
+
+    Returns
+    -------
+    residual : (H, W) float64
+        NaN where the pixel is invalid or has too few valid neighbours.
+    n_neighbours : (H, W) int16
+    """
+    h, w = coord.shape
+    c = np.where(valid, coord, np.nan).astype(np.float64)
+    gc = np.full((h, w), np.nan)
+    gr = np.full((h, w), np.nan)
+    if w > 2:
+        gc[:, 1:-1] = 0.5 * (c[:, 2:] - c[:, :-2])
+    if h > 2:
+        gr[1:-1] = 0.5 * (c[2:] - c[:-2])
+    offs = _offsets(radius, step)
+    pad = radius
+    cp = np.pad(c, pad, constant_values=np.nan)
+    gcp = np.pad(gc, pad, constant_values=np.nan)
+    grp = np.pad(gr, pad, constant_values=np.nan)
+    resid = np.full((h, w), np.nan)
+    count = np.zeros((h, w), np.int16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+        for r0 in range(0, h, ROWS_PER_CHUNK):
+            r1 = min(h, r0 + ROWS_PER_CHUNK)
+            sl = [(r0 + pad + dr, r1 + pad + dr, pad + dc, pad + dc + w) for dr, dc in offs]
+            centre = (r0 + pad, r1 + pad, pad, pad + w)
+            g_c = _nanmedian0(np.stack([gcp[a:b, e:f] for a, b, e, f in sl + [centre]]))
+            g_r = _nanmedian0(np.stack([grp[a:b, e:f] for a, b, e, f in sl + [centre]]))
+            carried = np.stack([cp[a:b, e:f] - g_c * dc - g_r * dr
+                                for (a, b, e, f), (dr, dc) in zip(sl, offs)])
+            n = np.count_nonzero(np.isfinite(carried), axis=0)
+            pred = _nanmedian0(carried)
+            res = c[r0:r1] - pred
+            res[n < MIN_NEIGHBOURS] = np.nan
+            resid[r0:r1] = res
+            count[r0:r1] = n
+        # What a plane leaves of a curved map is smooth too: take the neighbours' residuals
+        # (their median) off, so only what stands out from its surroundings remains.
+        rp = np.pad(resid, pad, constant_values=np.nan)
+        out = np.full((h, w), np.nan)
+        for r0 in range(0, h, ROWS_PER_CHUNK):
+            r1 = min(h, r0 + ROWS_PER_CHUNK)
+            around = _nanmedian0(np.stack([rp[r0 + pad + dr:r1 + pad + dr, pad + dc:pad + dc + w]
+                                           for dr, dc in offs]))
+            out[r0:r1] = resid[r0:r1] - np.where(np.isfinite(around), around, 0.0)
+    return out, count
+
+
+def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0, **kwargs
+                     ) -> tuple[np.ndarray, float]:
+    """Pixels departing from their neighbourhood by more than ``k`` sigma.
+
+    Parameters
+    ----------
+    coord, valid : see :func:`neighbourhood_residual`
+    sigma : float, (H, W) array or None
+        Predicted 1-sigma noise of ``coord`` (px). None: estimated from the
+        residuals themselves (robust spread over the valid pixels).
+    k : float
+
+    Returns
+    -------
+    flagged : (H, W) bool
+    sigma_used : float
+        The median sigma used: the predicted one, but never below the robust
+        spread of the residuals over the map (the fit's own floor).
+    """
+    resid, n = neighbourhood_residual(coord, valid, **kwargs)
+    finite = np.isfinite(resid)
+    if not finite.any():
+        return np.zeros(coord.shape, bool), float("nan")
+    spread = ROBUST_SIGMA * float(np.median(np.abs(resid[finite])))
+    if sigma is None:
+        sigma = spread
+    # Where the map is less smooth than the noise (noise-free data, structure the
+    # local plane does not follow), the robust spread of the residuals is the floor.
+    sig = np.maximum(np.asarray(sigma, np.float64), spread)
+    # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
+    scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n, 1))
+    with np.errstate(invalid="ignore"):
+        flagged = finite & (np.abs(resid) > k * sig * scale)
+    used = float(np.nanmedian(sig)) if sig.ndim else float(sig)
+    return flagged, used
