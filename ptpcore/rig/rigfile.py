@@ -502,6 +502,17 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
                 raise ConfigError(f"{source}: unknown key {key!r} in a {DATASET_FORMAT} file"
                                   f" (it is a {DATASET_FORMAT_2} key; set format = \"{DATASET_FORMAT_2}\")")
 
+    camera = _camera_section(doc, source, v2)
+    lcd = _lcd_section(doc, source, v2)
+    stage = _stage_section(doc, source, v2)
+    fringes = _fringes(doc, source, v2)
+    display = _display_section(doc, source, v2)
+    decode = _decode_section(doc, source, v2)
+    return _images_section(doc, source, v2, camera, lcd, stage, fringes, display, decode)
+
+
+def _camera_section(doc: dict, source: str, v2: bool) -> Camera:
+    """``[camera]``: size 1..100000 px, bit depth 8..16, bit_shift within the stored bits (/2)."""
     s = _Section(doc, "camera", source)
     camera = Camera(s.get("width", "int"), s.get("height", "int"), s.get("bit_depth", "int", 8),
                     s.get("bit_shift", "int", 0) if v2 else 0)
@@ -515,7 +526,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     if not 0 <= camera.bit_shift <= stored_bits - camera.bit_depth:
         raise ConfigError(f"{source}: key 'camera.bit_shift' must be 0 to {stored_bits - camera.bit_depth}"
                           f" for a {camera.bit_depth}-bit camera, got {camera.bit_shift}")
+    return camera
 
+
+def _lcd_section(doc: dict, source: str, v2: bool) -> Lcd:
+    """``[lcd]``: size, pitch (mm), and for /2 the cover glass, its tolerances and the flatness grid."""
     s = _Section(doc, "lcd", source)
     lcd_w, lcd_h = s.get("width", "int"), s.get("height", "int")
     pitch = s.get("pitch_mm", "list[float]")
@@ -557,7 +572,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
                 raise ConfigError(f"{source}: key 'lcd.flatness_um' must have {len(fv)} rows of {len(fu)} values"
                                   " ([v][u], one per flatness_v_px and flatness_u_px)")
     lcd = Lcd(lcd_w, lcd_h, (pitch[0], pitch[1]), **extra)
+    return lcd
 
+
+def _stage_section(doc: dict, source: str, v2: bool) -> Stage:
+    """``[stage]``: readings strictly monotonic (mm), travel direction ``[a, b, 1]``, repeat readings (/2)."""
     s = _Section(doc, "stage", source)
     z = s.get("z_mm", "list[float]")
     direction = s.get("direction", "list[float]", [0.0, 0.0, 1.0])
@@ -580,9 +599,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     if len(direction) != 3 or direction[2] != 1.0:
         raise ConfigError(f"{source}: key 'stage.direction' must be [a, b, 1.0], got {_short_repr(direction)}")
     stage = Stage(tuple(z), (direction[0], direction[1], 1.0), tuple(repeat))
+    return stage
 
-    fringes = _fringes(doc, source, v2)
 
+def _display_section(doc: dict, source: str, v2: bool):
+    """``[display]`` (/2): a measured response, levels strictly increasing in 0..255 and luminance monotonic; or None."""
     display = None
     if v2 and "display" in doc:
         s = _Section(doc, "display", source)
@@ -599,7 +620,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
             raise ConfigError(f"{source}: key 'display.luminance' must be monotonic (increasing),"
                               f" got {_short_repr(lum)}")
         display = Display(tuple(levels), tuple(lum))
+    return display
 
+
+def _decode_section(doc: dict, source: str, v2: bool) -> DecodeSettings:
+    """``[decode]`` (/2): thresholds, each None where the engine's default applies."""
     decode = DecodeSettings()
     if v2 and "decode" in doc:
         s = _Section(doc, "decode", source)
@@ -614,7 +639,12 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
         if decode.unwrap_tolerance is not None and not 0 < decode.unwrap_tolerance <= 0.5:
             raise ConfigError(f"{source}: key 'decode.unwrap_tolerance' must be above 0 and at most 0.5 (periods),"
                               f" got {decode.unwrap_tolerance}")
+    return decode
 
+
+def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, stage: Stage, fringes,
+                    display, decode: DecodeSettings) -> Rig:
+    """``[images]``: the templates (or, /2, the frames named one by one), checked against the design; the whole rig."""
     s = _Section(doc, "images", source, required=False)
     template = s.get("template", "str", DEFAULT_TEMPLATE)
     gray_t = white_t = black_t = None
