@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.bundle_size import sizes  # bytes on disk (hard links once) and apparent bytes
+
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "packaging" / "ptp-studio.spec"
 MAX_BUNDLE_MB = 600.0
@@ -186,23 +188,10 @@ def bundle(tmp_path_factory):
     return folder, tmp
 
 
-def _sizes(folder: Path) -> tuple[int, int]:
-    """(bytes on disk with each file once, hard links counted once as ``du`` does; apparent bytes)."""
-    seen, disk, apparent = set(), 0, 0
-    for dirpath, _dirs, files in os.walk(folder):
-        for f in files:
-            st = os.lstat(os.path.join(dirpath, f))
-            apparent += st.st_size
-            if (st.st_dev, st.st_ino) not in seen:
-                seen.add((st.st_dev, st.st_ino))
-                disk += st.st_size
-    return disk, apparent
-
-
 @pytest.mark.slow
 def test_bundle_size_and_contents(bundle):
     folder, _tmp = bundle
-    disk, apparent = _sizes(folder)
+    disk, apparent = sizes(folder)
     print(f"bundle: {disk / 1e6:.1f} MB on disk ({apparent / 1e6:.1f} MB counting ptp and ptp-studio apart)")
     assert disk / 1e6 < MAX_BUNDLE_MB, f"the bundle is {disk / 1e6:.1f} MB (limit {MAX_BUNDLE_MB:g} MB)"
 

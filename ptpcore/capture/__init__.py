@@ -5,19 +5,8 @@ displays, ``capture.toml``).
 May import :mod:`ptpcore.simulate` (the devices' simulated twins) and everything below it.
 """
 
-from .sequence import (STATE_FILE, ExposureLimits, ExposureReport, ExposureError, CaptureResult,
-    display_levels, exposure_report, check_exposure, capture, capture_state, pattern_image)
+from . import sequence
+from .sequence import *  # noqa: F401,F403  (the names of sequence.__all__)
 
-__all__ = [
-    "STATE_FILE",
-    "ExposureLimits",
-    "ExposureReport",
-    "ExposureError",
-    "CaptureResult",
-    "display_levels",
-    "exposure_report",
-    "check_exposure",
-    "capture",
-    "capture_state",
-    "pattern_image",
-]
+# One list of public names: each module's own __all__.
+__all__ = list(sequence.__all__)

@@ -5,16 +5,10 @@ by the smooth LUT's global model.
 Imports nothing of ptpcore but the base modules.
 """
 
-from .lens import normalise_dist, distort_normalised, undistort_normalised
-from .camera import PinholeModel, PinholeFit, dlt_initial_guess, fit_pinhole, opencv_calibrate
+from . import lens
+from .lens import *  # noqa: F401,F403  (the names of lens.__all__)
+from . import camera
+from .camera import *  # noqa: F401,F403  (the names of camera.__all__)
 
-__all__ = [
-    "normalise_dist",
-    "distort_normalised",
-    "undistort_normalised",
-    "PinholeModel",
-    "PinholeFit",
-    "dlt_initial_guess",
-    "fit_pinhole",
-    "opencv_calibrate",
-]
+# One list of public names: each module's own __all__.
+__all__ = list(lens.__all__ + camera.__all__)

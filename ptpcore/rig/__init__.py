@@ -4,26 +4,8 @@
 The bottom layer: imports only :mod:`ptpcore.errors` and :mod:`ptpcore.atomic`.
 """
 
-from .rigfile import (DATASET_FORMAT, DATASET_FORMAT_2, Camera, Lcd, Stage, Display,
-    DirectionFringes, FringeDesign, DecodeSettings, FrameEntry, Rig, format_period, load_rig,
-    rig_from_toml, rig_to_toml, save_rig, validate_template)
+from . import rigfile
+from .rigfile import *  # noqa: F401,F403  (the names of rigfile.__all__)
 
-__all__ = [
-    "DATASET_FORMAT",
-    "DATASET_FORMAT_2",
-    "Camera",
-    "Lcd",
-    "Stage",
-    "Display",
-    "DirectionFringes",
-    "FringeDesign",
-    "DecodeSettings",
-    "FrameEntry",
-    "Rig",
-    "format_period",
-    "load_rig",
-    "rig_from_toml",
-    "rig_to_toml",
-    "save_rig",
-    "validate_template",
-]
+# One list of public names: each module's own __all__.
+__all__ = list(rigfile.__all__)

@@ -5,17 +5,8 @@ May import :mod:`ptpcore.fit` and everything below it (today it needs only
 :mod:`ptpcore.pinhole`, :mod:`ptpcore.decode` and :mod:`ptpcore.rig`).
 """
 
-from .virtual_rig import (LensSettings, SimSettings, PRESETS, preset, scaled_preset, GroundTruth,
-    VirtualRig, simulate_dataset, load_truth)
+from . import virtual_rig
+from .virtual_rig import *  # noqa: F401,F403  (the names of virtual_rig.__all__)
 
-__all__ = [
-    "LensSettings",
-    "SimSettings",
-    "PRESETS",
-    "preset",
-    "scaled_preset",
-    "GroundTruth",
-    "VirtualRig",
-    "simulate_dataset",
-    "load_truth",
-]
+# One list of public names: each module's own __all__.
+__all__ = list(virtual_rig.__all__)
