@@ -316,6 +316,35 @@ def test_sigterm_mid_decode_leaves_no_temporary_and_resumes(tmp_path):
     assert load_lut(out / "c.lut.h5").shape == (240, 320) and _leftovers(tmp_path) == []
 
 
+def test_sigterm_swallowed_by_a_c_callback_still_stops_at_the_next_progress_report():
+    """CI saw SIGTERM land while numba compiled (a ctypes callback prints and drops the exception)."""
+    from ptpcore.cli.progress import ProgressBar
+    from ptpcore.cli.safety import signals_as_interrupts
+
+    bar = ProgressBar(enabled=False)
+    with signals_as_interrupts():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)  # the handler runs here
+        except Terminated:
+            pass  # what a ctypes callback does with an exception
+        with pytest.raises(Terminated):
+            bar(0.5, "decoding")
+    bar(0.6, "a later job is not stopped")  # the request ends with its block
+
+
+def test_sigterm_swallowed_after_the_last_step_still_exits_143(monkeypatch, capfd):
+    def job(_args):
+        with contextlib.suppress(Terminated):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        return 0
+
+    monkeypatch.setattr(sys.modules["ptpcore.cli.main"], "_run", job)  # ptpcore.cli.main is also the function
+    assert main(["inspect", str(Path(__file__))]) == 143
+    assert "terminated" in capfd.readouterr().err
+
+
 # --------------------------------------------------------------------------- 3. sanity checks from the data
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from ptpcore.atomic import remove_temporaries
 from ptpcore.cli.progress import progress_bar
 from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLineParser, Terminated,
                                 existing_dir, existing_file, positive_int, quiet_broken_pipe,
-                                seed, signals_as_interrupts)
+                                seed, signals_as_interrupts, termination_requested)
 from ptpcore.errors import Cancelled, OutputError, PtpError
 from ptpcore.io.outputs import check_output_file, check_output_folder
 
@@ -652,6 +652,9 @@ def main(argv=None) -> int:
     with signals_as_interrupts():
         try:
             code = _run(args)
+            if termination_requested() and code != EXIT_SIGTERM:  # SIGTERM lost after the last progress report
+                print("ptp: terminated (SIGTERM) after the job had finished its last step", file=sys.stderr)
+                return EXIT_SIGTERM
             sys.stdout.flush()
             return code
         except BrokenPipeError:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from ptpcore.cli.safety import raise_if_terminated
+
 __all__ = ["ProgressBar", "progress_bar"]
 
 
@@ -17,6 +19,7 @@ class ProgressBar:
                          bar_format="{desc:<44.44} {percentage:3.0f}%|{bar}| {elapsed}")
 
     def __call__(self, fraction: float, message: str) -> None:
+        raise_if_terminated()  # a SIGTERM whose exception a C callback swallowed stops the job here
         self._bar.n = int(round(1000 * min(max(fraction, 0.0), 1.0)))
         self._bar.set_description_str(message, refresh=False)
         self._bar.refresh()

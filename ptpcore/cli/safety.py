@@ -26,7 +26,8 @@ EXIT_SIGPIPE = 141
 EXIT_SIGTERM = 143
 
 __all__ = ["OneLineParser", "Terminated", "positive_int", "nonneg_int", "seed", "positive_float",
-           "nonneg_float", "existing_dir", "existing_file", "signals_as_interrupts", "quiet_broken_pipe",
+           "nonneg_float", "existing_dir", "existing_file", "signals_as_interrupts", "raise_if_terminated",
+           "termination_requested", "quiet_broken_pipe",
            "EXIT_BAD_INPUT", "EXIT_SIGINT", "EXIT_SIGPIPE", "EXIT_SIGTERM"]
 
 
@@ -118,8 +119,31 @@ def existing_file(text: str) -> str:
     return text
 
 
+# Set by the SIGTERM handler. The exception it raises can be swallowed when the
+# signal lands inside a C callback (numba compiling its kernels on a cold cache
+# reports "Exception ignored on calling ctypes callback function"), so the
+# request is also kept here and honoured at the next progress report.
+_termination_requested = threading.Event()
+
+
 def _raise_terminated(signum, frame) -> None:
+    _termination_requested.set()
     raise Terminated()
+
+
+def termination_requested() -> bool:
+    """True once SIGTERM has arrived inside :func:`signals_as_interrupts`."""
+    return _termination_requested.is_set()
+
+
+def raise_if_terminated() -> None:
+    """Raise :class:`Terminated` if a SIGTERM arrived whose exception was swallowed on its way.
+
+    Called at every progress report, so a lost exception stops the job at the
+    next step instead of letting it finish and exit 0.
+    """
+    if _termination_requested.is_set():
+        raise Terminated()
 
 
 @contextlib.contextmanager
@@ -134,11 +158,13 @@ def signals_as_interrupts():
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGTERM"):
         yield
         return
+    _termination_requested.clear()
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        _termination_requested.clear()
 
 
 def quiet_broken_pipe() -> int:
