@@ -221,6 +221,9 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
 
         samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
                                   on_position=decoded)
+        from .pages.acquire import check_and_report
+
+        check_and_report(samples, ctx)
         ctx.progress(1.0, "done")
         return samples, truth, result.rig
 

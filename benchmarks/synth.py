@@ -3,7 +3,7 @@
 The simulator (:mod:`ptpcore.simulate.virtual_rig`) integrates LCD pixels, blur and lens
 effects exactly and is far too slow to render 1000 frames of 5-12 MP. Here the
 stack is analytic instead: every camera pixel looks along a straight ray (a
-pinhole camera with radial and a little tangential distortion, 500 mm above
+pinhole camera with radial and a little tangential distortion, 500 mm in front of
 the LCD), so at stage height ``z`` it sees LCD coordinates ``u(col, row, z)``,
 ``v(col, row, z)``; the frames are
 
@@ -91,13 +91,12 @@ class SyntheticStack:
         # Barrel distortion (about 2.6 % at the corners) plus a little tangential.
         xd = xn * (1 - 0.6 * r2) + 0.0008 * (r2 + 2 * xn * xn)
         yd = yn * (1 - 0.6 * r2) + 0.0005 * xn * yn
-        zc = 500.0
+        zc = -500.0
         lcd_w, lcd_h = rig.lcd.width * rig.lcd.pitch_mm[0], rig.lcd.height * rig.lcd.pitch_mm[1]
-        # Rays through the pupil, travelling towards the camera: X(z) = centre + xd * (zc - z),
-        # Y(z) = centre - yd * (zc - z). A camera looking down at the LCD (its z axis along -Z)
-        # with its x axis along +X has its y axis (image rows) along -Y: Y falls as the row
-        # grows, or the rays would be a mirror image that no pinhole camera sees.
-        self.truth = Truth(xd * zc + lcd_w / 2, lcd_h / 2 - yd * zc, -xd, yd)
+        # METHOD section 2: the camera at Z = zc < 0 looks at the screen's face along +Z, its x
+        # axis along +X and its y axis (image rows) along +Y; the stage readings grow away from
+        # it. Rays through the pupil: X(z) = centre + xd * (z - zc), Y(z) = centre + yd * (z - zc).
+        self.truth = Truth(lcd_w / 2 - xd * zc, lcd_h / 2 - yd * zc, xd, yd)
         vign = (1.0 / (1.0 + 4.0 * r2)) ** 2
         self.a = (20.0 + 100.0 * vign) * scale
         self.b = 80.0 * vign * scale

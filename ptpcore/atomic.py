@@ -7,7 +7,7 @@ source and target are on the same file system, hence the same folder).
 Every temporary path in use is registered (:func:`live_temporaries`), so a
 signal handler or a last ``finally`` can remove them (:func:`remove_temporaries`)
 even when the exception that stopped the write never reached the writer. A
-disk that fills during a write raises :class:`~ptpcore.errors.DiskFullError`
+disk that fills during a write raises :class:`DiskFullError`
 naming the file and the space it needs, the temporary file removed.
 """
 
@@ -22,14 +22,16 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
+from ptpcore.errors import PtpError
 
-class DiskFullError(OSError):
+
+class DiskFullError(OSError, PtpError):
     """The disk filled while a file was written; nothing half-written is left.
 
-    The message (one line) names the file and the space it needs. An
-    ``OSError`` (``errno.ENOSPC``), defined here because this module sits
-    beside :mod:`ptpcore.errors` in the layers, not above it; the CLI and the
-    GUI show it as one line like every user-facing error.
+    The message (one line) names the file and the space it needs. Both an
+    ``OSError`` (``errno.ENOSPC``, for code that handles the system's errors)
+    and a :class:`~ptpcore.errors.PtpError` (a user-facing error: the CLI and
+    the GUI show it as one line).
     """
 
     def __str__(self) -> str:

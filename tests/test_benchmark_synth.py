@@ -1,5 +1,6 @@
 """The benchmarks' analytic rays (``benchmarks/synth.py``) are ones a pinhole camera can see:
-a pinhole + Brown fit puts the camera 500 mm above the LCD with every point in front of it.
+a pinhole + Brown fit puts the camera 500 mm in front of the LCD's face (Z = -500, METHOD section 2)
+with every point in front of it.
 (When the rays were a mirror image the best fit put the points behind the camera, and casting
 rays through it gave NaN.)"""
 
@@ -25,9 +26,9 @@ def test_synthetic_rays_fit_a_pinhole_camera():
     fit = fit_pinhole(np.column_stack([x, y, z]), np.column_stack([cols, rows]).astype(float))
     assert np.isfinite(fit.reprojection_rms_px) and fit.reprojection_rms_px < 0.05
     m = fit.model
-    assert m.centre[2] == pytest.approx(500.0, abs=1.0)
+    assert m.centre[2] == pytest.approx(-500.0, abs=1.0)
     depth = (np.column_stack([x, y, z]) @ m.R.T + m.tvec)[:, 2]
     assert (depth > 400).all()
-    # Seen from the camera (looking down, image rows along -Y): X grows with the column,
-    # Y falls with the row.
-    assert truth.x0[h // 2, -1] > truth.x0[h // 2, 0] and truth.y0[-1, w // 2] < truth.y0[0, w // 2]
+    # Seen from the camera (facing the screen, image rows along +Y): X grows with the column,
+    # Y with the row.
+    assert truth.x0[h // 2, -1] > truth.x0[h // 2, 0] and truth.y0[-1, w // 2] > truth.y0[0, w // 2]

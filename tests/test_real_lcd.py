@@ -70,9 +70,9 @@ def test_glass_alone_moves_each_pixel_by_its_plate_offset():
         dy = v * rig.lcd.pitch_mm[1] + b * z - ty
         slope = np.hypot(truth.sx, truth.sy)
         assert np.max(np.abs(np.hypot(dx, dy) - exact)) < 1e-9
-        # Toward the foot of the normal: along +(sx, sy), the slope dX/dZ of a ray seen going down.
-        assert np.max(np.abs(dx - exact * truth.sx / slope)) < 1e-9
-        assert np.max(np.abs(dy - exact * truth.sy / slope)) < 1e-9
+        # Toward the foot of the normal: along -(sx, sy), Z growing away from the camera (METHOD 2).
+        assert np.max(np.abs(dx + exact * truth.sx / slope)) < 1e-9
+        assert np.max(np.abs(dy + exact * truth.sy / slope)) < 1e-9
     assert 0.15 < exact.max() < 0.3  # corners at about 30 degrees
 
 

@@ -24,7 +24,7 @@ import tomllib
 from ptpcore.atomic import DiskFullError, atomic_path, live_temporaries, remove_temporaries
 from ptpcore.cli import main
 from ptpcore.cli.safety import Terminated
-from ptpcore.errors import ConfigError, DataWarning, OutputError
+from ptpcore.errors import ConfigError, DataWarning, OutputError, PtpError
 from ptpcore.io import DatasetSource, SimulatedSource, load_lut
 from ptpcore.io.dataset import read_image
 from ptpcore.io.fastio import SpillStore
@@ -211,6 +211,7 @@ def test_disk_full_monkeypatched_lut_session_and_spill(tmp_path, monkeypatch):
         save_lut(lut, tmp_path / "a.lut.h5")
     msg = str(exc.value)
     assert "a.lut.h5" in msg and "MB" in msg and "disk full" in msg and "\n" not in msg
+    assert isinstance(exc.value, PtpError) and exc.value.errno == errno.ENOSPC  # user-facing, and still an OSError
     assert list(tmp_path.iterdir()) == []
     from ptpcore.run.session import Session, save_session
 

@@ -68,12 +68,25 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
         samples = collect_samples(TappedSource(src, ctx),
                                   progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
                                   on_position=on_position)
-        check_samples(samples)  # z_mm's sense (ConfigError), stuck positions (DataWarning; list returned)
+        check_and_report(samples, ctx)
         ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
         truth = session_truth(kind, rig, settings, seed, folder if kind == "folder" else write_folder)
         return samples, truth
 
     return Job(run, "acquisition")
+
+
+def check_and_report(samples, ctx) -> None:
+    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
+
+    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
+    reverse (the job fails with that message) and returns one message per pair
+    of positions that look stuck; those go to the page as a ``("warnings", [...])``
+    partial result, shown under the progress bar.
+    """
+    findings = check_samples(samples, warn=False)
+    if findings:
+        ctx.emit(("warnings", findings))
 
 
 class AcquirePage(StudioPage):
@@ -256,6 +269,8 @@ class AcquirePage(StudioPage):
                 self.model.update_position(PositionStatus(k, s.positions[k].z_mm, kind))
         elif kind == "exposure":
             self.live.show_exposure(payload[1], payload[2])
+        elif kind == "warnings":
+            self.jobs.show_warning("Warning: " + "\n".join(payload[1]))
         elif kind == "position":
             _, status, decoded = payload
             self.model.update_position(status)

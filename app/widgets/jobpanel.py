@@ -47,6 +47,12 @@ class JobPanel(QWidget):
         self.error.setTextInteractionFlags(Qt.TextSelectableByMouse)
         self.error.hide()
         lay.addWidget(self.error)
+        self.warning = QLabel("", self)
+        self.warning.setObjectName("warningText")
+        self.warning.setWordWrap(True)
+        self.warning.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        self.warning.hide()
+        lay.addWidget(self.warning)
         self.job: Job | None = None
 
     @property
@@ -57,6 +63,11 @@ class JobPanel(QWidget):
         """Show ``text`` in the panel's error line (cleared when the next job starts)."""
         self.error.setText(text)
         self.error.show()
+
+    def show_warning(self, text: str) -> None:
+        """Show ``text`` (a finding the job made, the result still usable) until the next job starts."""
+        self.warning.setText(text)
+        self.warning.show()
 
     def run(self, job: Job) -> Job:
         """Start ``job`` (after the previous one has ended)."""
@@ -72,6 +83,8 @@ class JobPanel(QWidget):
         self.message.setText(f"{job.name} …")
         self.error.hide()
         self.error.setText("")
+        self.warning.hide()
+        self.warning.setText("")
         self.cancel_button.setEnabled(True)
         job.start()
         self.started.emit()

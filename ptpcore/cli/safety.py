@@ -131,6 +131,18 @@ def _raise_terminated(signum, frame) -> None:
     raise Terminated()
 
 
+def _quiet_about_swallowed_interrupts(unraisable) -> None:
+    """``sys.unraisablehook``: no traceback for a Terminated that a C callback swallowed.
+
+    The request is kept (:func:`raise_if_terminated` honours it); the user sees
+    the one ``ptp: terminated`` line, as for any other SIGTERM. Everything else
+    goes to Python's default hook.
+    """
+    if isinstance(unraisable.exc_value, Terminated):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def termination_requested() -> bool:
     """True once SIGTERM has arrived inside :func:`signals_as_interrupts`."""
     return _termination_requested.is_set()
@@ -160,10 +172,13 @@ def signals_as_interrupts():
         return
     _termination_requested.clear()
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_about_swallowed_interrupts
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = previous_hook
         _termination_requested.clear()
 
 

@@ -156,8 +156,10 @@ def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma
     with np.errstate(invalid="ignore", divide="ignore"):
         ux = np.where(ok & (tan > 0), sx / tan, 0.0)
         uy = np.where(ok & (tan > 0), sy / tan, 0.0)
-    # The decoded point lies delta along +(sx, sy) from the air ray's point: move it back.
-    shift_x, shift_y = -delta * ux, -delta * uy
+    # METHOD section 2: Z grows away from the camera, so (sx, sy) points away from the foot of
+    # the normal; the decoded point lies delta closer to that foot, along -(sx, sy), than the
+    # air ray's point: move it back. (run.sanity refuses readings whose sense says otherwise.)
+    shift_x, shift_y = delta * ux, delta * uy
     eps_t, eps_n = max(1e-6, 1e-3 * t_mm), 1e-6
     d_t = (plate_offset_mm(tan, t_mm + eps_t, index) - plate_offset_mm(tan, t_mm - eps_t, index)) / (2 * eps_t)
     d_n = (plate_offset_mm(tan, t_mm, index + eps_n) - plate_offset_mm(tan, t_mm, index - eps_n)) / (2 * eps_n)

@@ -28,16 +28,11 @@ from ptpcore.io.samples import SampleStack
 
 __all__ = ["check_samples", "convergence_z", "STUCK_RATIO", "CAMERA_SIDE"]
 
-CAMERA_SIDE = +1
-"""The side of the screen positions the camera's centre is on: +1 above the largest reading, -1 below the smallest.
+CAMERA_SIDE = -1
+"""The side of the screen positions the camera's centre is on: -1 below the smallest reading, +1 above the largest.
 
-METHOD.md section 2 says -1 (camera at Z < 0, readings growing away from it).
-The engine's virtual rig (``ptpcore.simulate``: camera centre at
-``Z = z_mid + distance_mm``), every simulated dataset and the smooth model's
-tests use +1 (readings growing toward the camera). Until the simulator is
-moved to METHOD's side, the check follows the engine's convention, so that
-simulated and captured data agree; flipping this constant is the one change
-the check then needs.
+METHOD.md section 2: the camera at Z < 0, readings growing as the screen moves
+away from it. The engine's virtual rig (``ptpcore.simulate``) follows it.
 """
 
 STUCK_RATIO = 0.1

@@ -252,7 +252,12 @@ def scaled_preset(name: str, width: int, height: int | None = None,
 
 
 def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
-    """Small tilts (degrees) applied to a camera that looks straight down -Z."""
+    """Small tilts (degrees) applied to a camera that looks straight at the screen's face, along +Z.
+
+    METHOD.md section 2: the camera's centre has Z < 0 and the stage readings
+    grow as the LCD moves away from it; the camera sees the screen unmirrored
+    (image columns along LCD columns, image rows along LCD rows).
+    """
     def rot(axis, a):
         c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
         m = np.eye(3)
@@ -262,9 +267,8 @@ def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
         m[i, j] = -s
         m[j, i] = s
         return m
-    # Camera x = world X, camera y = world -Y, camera z (viewing) = world -Z.
-    base = np.diag([1.0, -1.0, -1.0])
-    return rot(0, rx) @ rot(1, ry) @ rot(2, rz) @ base
+    # Camera x = world X, camera y = world Y (down the screen), camera z (viewing) = world Z.
+    return rot(0, rx) @ rot(1, ry) @ rot(2, rz)
 
 
 @dataclass
@@ -324,8 +328,9 @@ class VirtualRig:
         lcd_centre = np.array([(rig.lcd.width - 1) / 2 * rig.lcd.pitch_mm[0],
                                (rig.lcd.height - 1) / 2 * rig.lcd.pitch_mm[1], 0.0])
         z_mid = 0.5 * (min(rig.stage.z_mm) + max(rig.stage.z_mm))
+        # METHOD section 2: the camera in front of the screen's face, at Z < 0.
         self.centre = lcd_centre + np.array([settings.offset_mm[0], settings.offset_mm[1],
-                                             settings.distance_mm + z_mid])
+                                             z_mid - settings.distance_mm])
         # Smooth non-parametric distortion: a few low-frequency modes (pixels).
         n_modes = 4
         self._modes = [
@@ -430,8 +435,10 @@ class VirtualRig:
         c = np.array([(self.rig.lcd.width - 1) / 2 * px, (self.rig.lcd.height - 1) / 2 * py, 0.0])
         shift = np.array([self.skew[0] * z + 1e-3 * pose[0], self.skew[1] * z + 1e-3 * pose[1], z])
         r = pose_matrix(*pose[3:6])  # LCD -> world about the LCD centre
-        # LCD frame: q = R^T (p - shift - c) + c, in row vectors p @ R.
-        x, y = self.physics.hit((o - shift - c) @ r + c, d @ r)
+        # LCD frame: q = R^T (p - shift - c) + c, in row vectors p @ R; lcd_physics
+        # measures its third axis toward the camera, i.e. along -Z.
+        toward_camera = np.array([1.0, 1.0, -1.0])
+        x, y = self.physics.hit(((o - shift - c) @ r + c) * toward_camera, (d @ r) * toward_camera)
         return x / px, y / py
 
     def _geometry(self, k: int) -> dict:

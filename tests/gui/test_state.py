@@ -388,3 +388,24 @@ def test_axes_show_plain_units(wizard):
     assert not [a for a in axes if a.autoSIPrefix], "an axis rescales its unit with an SI prefix"
     labelled = [a.labelString() for a in axes if a.labelUnits]
     assert any("(µm)" in t for t in labelled) and not any("(x" in t for t in labelled)
+
+
+# ---- the data's sanity checks on the page, not only on the console -------------------------------------
+
+def test_stuck_positions_are_shown_on_the_acquire_page(wizard, qtbot, tmp_path):
+    folder, _rig = _dataset(tmp_path / "a", 64, 48, 5, 1)
+    shutil.rmtree(folder / "z002")
+    shutil.copytree(folder / "z001", folder / "z002")  # the stage did not move: position 2 repeats 1
+    assert wizard.page_by_key["rig"].import_folder(folder)
+    _acquire(wizard, qtbot)
+    warning = wizard.page_by_key["acquire"].jobs.warning
+    assert warning.isVisibleTo(wizard) and "positions 1" in warning.text() and "stuck" in warning.text()
+    _acquire(wizard, qtbot)  # the same data again: the warning is shown again, not stacked
+    assert warning.text().count("stuck") == 1
+
+
+def test_clean_data_shows_no_warning_on_the_acquire_page(wizard, qtbot, tmp_path):
+    folder, _rig = _dataset(tmp_path / "a", 64, 48, 5, 1)
+    assert wizard.page_by_key["rig"].import_folder(folder)
+    _acquire(wizard, qtbot)
+    assert not wizard.page_by_key["acquire"].jobs.warning.isVisibleTo(wizard)
