@@ -1,6 +1,8 @@
 """Per-pixel LUTs: fitting, leave-one-out, evaluation, ranges and the ptp-lut/1 file."""
 
 import h5py
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.interpolate import PchipInterpolator
@@ -97,6 +99,21 @@ def test_out_of_range_is_flagged_not_extrapolated():
     zmap[0, 0] = 99.0
     ev = lut.evaluate(zmap)
     assert not ev.in_range[0, 0] and ev.in_range[1, 1]
+
+
+def test_a_reading_that_float32_cannot_hold_is_in_its_own_range():
+    """/quality/z_min, z_max are float32: 0.1 mm is stored as 0.10000000149. The reading itself is in
+    range (it once was not: the 1e-9 tolerance vanished in float32); a micrometre beyond is not."""
+    s, *_ = _stack(missing=0.0)
+    lut = fit_lut(s, "poly", 2)
+    lo, hi = 0.1, 20.3  # neither is a float32 number
+    lut = replace(lut, pixel_z_min=np.full(lut.shape, lo, np.float32), pixel_z_max=np.full(lut.shape, hi, np.float32))
+    assert float(np.float32(lo)) > lo and float(np.float32(hi)) < hi
+    for z in (lo, hi, np.full(lut.shape, lo)):
+        ev = lut.evaluate(z)
+        assert ev.in_range[lut.valid].all() and np.isfinite(ev.x[lut.valid]).all()
+    for z in (lo - 1e-3, hi + 1e-3):
+        assert not lut.evaluate(z).in_range.any()
 
 
 def _plain_h5py_evaluate(path, z):

@@ -138,7 +138,6 @@ class Lut:
         z = np.asarray(z, dtype=float)
         if z.ndim not in (0, 2) or (z.ndim == 2 and z.shape != self.shape):
             raise ValueError(f"z must be a scalar or a {self.shape} map, got shape {z.shape}")
-        eps = 1e-9
         if self.kind == "poly":
             # Row tiles on every core: each tile's Horner steps stay in cache, so
             # the coefficients are read once (the cost floor) instead of once per step.
@@ -151,7 +150,7 @@ class Lut:
 
             def rows(r0: int, r1: int) -> None:
                 zr = z if z.ndim == 0 else z[r0:r1]
-                ok = self.valid[r0:r1] & (zr >= self.pixel_z_min[r0:r1] - eps) & (zr <= self.pixel_z_max[r0:r1] + eps)
+                ok = _in_range(self.valid[r0:r1], zr, self.pixel_z_min[r0:r1], self.pixel_z_max[r0:r1])
                 in_range[r0:r1] = ok
                 keep = ok if not extrapolate else self.valid[r0:r1]
                 t = (zr - self.z_center) / self.z_scale
@@ -162,7 +161,7 @@ class Lut:
 
             run_tiles(rows, h, w)
             return LutEvaluation(x, y, in_range)
-        in_range = self.valid & (z >= self.pixel_z_min - eps) & (z <= self.pixel_z_max + eps)
+        in_range = _in_range(self.valid, z, self.pixel_z_min, self.pixel_z_max)
         x = _interp_table(self.z_nodes, self.x, z, self.kind)
         y = _interp_table(self.z_nodes, self.y, z, self.kind)
         keep = in_range if not extrapolate else self.valid
@@ -224,6 +223,23 @@ class Lut:
         point = np.array([self.x[0, row, col], self.y[0, row, col], self.z_center])
         direction = np.array([self.x[1, row, col] / self.z_scale, self.y[1, row, col] / self.z_scale, 1.0])
         return point, direction
+
+
+RANGE_EPS_MM = 1e-9
+RANGE_REL = 2.0 ** -23
+"""A height is in a pixel's range when ``z_min - tol <= z <= z_max + tol``, ``tol = 1e-9 + |bound| 2**-23``.
+
+The bounds are stored as float32: a reading of 0.1 mm is kept as 0.10000000149. The
+relative part (two float32 half-steps) lets that reading itself be in range; the
+comparison is made in float64. The C reader (readers/c/ptplut.c) uses the same rule.
+"""
+
+
+def _in_range(valid, z, z_min, z_max) -> np.ndarray:
+    """``valid`` and ``z`` within the pixels' calibrated ranges (float64 comparison; bool, shape of ``valid``)."""
+    lo = np.asarray(z_min, np.float64)
+    hi = np.asarray(z_max, np.float64)
+    return valid & (z >= lo - (RANGE_EPS_MM + np.abs(lo) * RANGE_REL)) & (z <= hi + (RANGE_EPS_MM + np.abs(hi) * RANGE_REL))
 
 
 def _horner(coeffs: np.ndarray, t, out: np.ndarray | None = None) -> np.ndarray:

@@ -7,8 +7,8 @@
  * this refuses too, with a message naming the file and the dataset.
  *
  * Evaluation follows ptpcore's Lut.evaluate number for number:
- *  - range: valid and z_min - 1e-9 <= z <= z_max + 1e-9, the bounds computed in
- *    the stored precision (float32 in files PTP Studio writes, as numpy does);
+ *  - range: valid and z_min - tol <= z <= z_max + tol in double, tol = 1e-9 mm +
+ *    |bound| * 2^-23 (two float32 half-steps: a reading stored as float32 is in range);
  *  - poly: Horner's rule in t = (z - z_center) / z_scale;
  *  - tables: each of X and Y over the maximal run of consecutive finite nodes
  *    that contains z (within 1e-9 mm); a run of one node gives nothing; linear
@@ -30,6 +30,7 @@
 #include <hdf5.h>
 
 #define RANGE_EPS 1e-9
+#define RANGE_REL 0x1p-23
 #define MAX_DEGREE 5
 
 struct ptplut {
@@ -380,25 +381,17 @@ done:
     return status;
 }
 
-/* The per-pixel range bounds, as numpy computes `z_min - 1e-9` in the stored precision. */
-static double lower_bound(double v, int f32)
+/* The per-pixel range bounds, as Lut.evaluate computes them (in double): the stored bound
+ * widened by 1e-9 mm plus two float32 half-steps of it, so that a reading kept as float32
+ * (0.1 mm stored as 0.10000000149) is itself in range. */
+static double lower_bound(double v)
 {
-    if (f32) {
-        float a = (float)v, e = (float)RANGE_EPS;
-        float r = a - e;
-        return (double)r;
-    }
-    return v - RANGE_EPS;
+    return v - (RANGE_EPS + fabs(v) * RANGE_REL);
 }
 
-static double upper_bound(double v, int f32)
+static double upper_bound(double v)
 {
-    if (f32) {
-        float a = (float)v, e = (float)RANGE_EPS;
-        float r = a + e;
-        return (double)r;
-    }
-    return v + RANGE_EPS;
+    return v + (RANGE_EPS + fabs(v) * RANGE_REL);
 }
 
 static int read_tables(ctx_t *c, hid_t file, ptplut *lut)
@@ -407,7 +400,7 @@ static int read_tables(ctx_t *c, hid_t file, ptplut *lut)
     const size_t hw = (size_t)h * (size_t)w;
     hsize_t nd[1];
     double *valid = NULL, *npos = NULL;
-    int status, f32_min = 0, f32_max = 0;
+    int status;
 
     if (lut->kind != PTPLUT_POLY) {
         if ((status = read_dataset(c, file, "/z_nodes", 1, NULL, NUM_FLOAT, &lut->z_nodes, nd, NULL)) != PTPLUT_OK)
@@ -433,9 +426,9 @@ static int read_tables(ctx_t *c, hid_t file, ptplut *lut)
             goto done;
     if ((status = read_dataset(c, file, "/quality/n_positions", 2, shape2, NUM_FLOAT | NUM_INT, &npos, NULL, NULL))
             != PTPLUT_OK
-        || (status = read_dataset(c, file, "/quality/z_min", 2, shape2, NUM_FLOAT | NUM_INT, &lut->lo, NULL, &f32_min))
+        || (status = read_dataset(c, file, "/quality/z_min", 2, shape2, NUM_FLOAT | NUM_INT, &lut->lo, NULL, NULL))
             != PTPLUT_OK
-        || (status = read_dataset(c, file, "/quality/z_max", 2, shape2, NUM_FLOAT | NUM_INT, &lut->hi, NULL, &f32_max))
+        || (status = read_dataset(c, file, "/quality/z_max", 2, shape2, NUM_FLOAT | NUM_INT, &lut->hi, NULL, NULL))
             != PTPLUT_OK)
         goto done;
     if (has_link(file, "/quality/sigma_x") && has_link(file, "/quality/sigma_y")) {
@@ -494,8 +487,8 @@ static int read_tables(ctx_t *c, hid_t file, ptplut *lut)
         }
     }
     for (size_t p = 0; p < hw; p++) {
-        lut->lo[p] = lower_bound(lut->lo[p], f32_min);
-        lut->hi[p] = upper_bound(lut->hi[p], f32_max);
+        lut->lo[p] = lower_bound(lut->lo[p]);
+        lut->hi[p] = upper_bound(lut->hi[p]);
     }
 done:
     free(valid);
