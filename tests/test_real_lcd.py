@@ -151,7 +151,7 @@ def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
     raw = collect_samples(SimulatedSource(glass))
     rig = glass.rig
     # A rig that declares no glass: a bare panel is assumed, and said.
-    rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0))
+    rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=None))
     same, applied = correct_samples(raw, rig)
     assert not applied and same.x_ref is raw.x_ref
     lut = fit_lut(same, "poly", 1)
@@ -160,6 +160,12 @@ def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
     back = load_lut(tmp_path / "a.lut.h5")
     assert json.loads(back.provenance["corrections"])["cover_glass"]["t_mm"] == 0.0
     assert "bare panel is assumed" in _lut_summary(back, "a.lut.h5")
+    # cover_glass_mm = 0 declared: no glass, said so (not "assumed").
+    none, applied = correct_samples(raw, replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0)))
+    assert not applied and none.x_ref is raw.x_ref
+    lut.provenance["corrections"] = json.dumps(none.corrections)
+    text = _lut_summary(lut, "b.lut.h5")
+    assert "no cover glass (declared" in text and "assumed" not in text
 
 
 @pytest.mark.slow

@@ -213,3 +213,19 @@ def test_plain_design_flag():
     rig = rig_from_toml(FULL)
     assert not rig.fringes.is_plain
     assert math.isclose(rig.fringes.origin("x"), 3.14159)
+
+
+def test_cover_glass_zero_declared_is_not_absent():
+    """Issue 14: ``cover_glass_mm = 0`` (no glass, declared) round-trips and differs from the key absent."""
+    from dataclasses import replace
+
+    from ptpcore.rig import rig_from_toml, rig_to_toml
+    from ptpcore.simulate import preset
+
+    rig = preset("mild")[0]
+    assert rig.lcd.cover_glass_mm is None and "cover_glass_mm" not in rig_to_toml(rig)
+    zero = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0))
+    text = rig_to_toml(zero)
+    assert "cover_glass_mm = 0.0" in text
+    back = rig_from_toml(text)
+    assert back.lcd.cover_glass_mm == 0.0 and back == zero and back != rig

@@ -43,6 +43,10 @@ def parse_numbers(text: str, kind=float) -> list:
     return out
 
 
+GLASS_UNDECLARED = -0.001
+"""The cover glass field's minimum, shown as "not declared": ``[lcd] cover_glass_mm`` absent."""
+
+
 def _dspin(lo, hi, value, decimals=3, step=0.1, suffix=""):
     s = QDoubleSpinBox()
     s.setRange(lo, hi)
@@ -241,9 +245,11 @@ class RigPage(StudioPage):
         glass_tip = ("Everything between the LCD's pixel plane and the air, as one plate: top substrate,\n"
                      "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
                      "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"
-                     "Nothing in the data reveals them: left at 0, a bare panel is assumed and the LUT is\n"
-                     "off by the refraction, tens to hundreds of um at oblique pixels.")
-        self.glass_t = _dspin(0.0, 20.0, 0.0, 3, 0.1, " mm")
+                     "Nothing in the data reveals them: left 'not declared', a bare panel is assumed and the\n"
+                     "LUT is off by the refraction, tens to hundreds of um at oblique pixels. 0 declares a\n"
+                     "panel without glass.")
+        self.glass_t = _dspin(GLASS_UNDECLARED, 20.0, GLASS_UNDECLARED, 3, 0.1, " mm")
+        self.glass_t.setSpecialValueText("not declared")  # shown at the minimum: the key is absent
         self.glass_n = _dspin(1.0, 3.0, 1.52, 3, 0.01)
         self.glass_t.setToolTip(glass_tip)
         self.glass_n.setToolTip(glass_tip)
@@ -298,7 +304,7 @@ class RigPage(StudioPage):
             self.lcd_h.setValue(lcd.height)
             self.pitch_x.setValue(lcd.pitch_mm[0])
             self.pitch_y.setValue(lcd.pitch_mm[1])
-            self.glass_t.setValue(lcd.cover_glass_mm)
+            self.glass_t.setValue(GLASS_UNDECLARED if lcd.cover_glass_mm is None else lcd.cover_glass_mm)
             self.glass_n.setValue(lcd.cover_glass_index)
             self._update_glass_hint()
             z = np.asarray(st.z_mm)
@@ -320,10 +326,12 @@ class RigPage(StudioPage):
 
     def _update_glass_hint(self) -> None:
         lcd = self.model.session.rig.lcd
-        if lcd.cover_glass_mm > 0:
+        if lcd.cover_glass_mm:
             tol = (f" (± {lcd.cover_glass_mm_sigma:g} mm)" if lcd.cover_glass_mm_sigma else "")
             self.glass_hint.setText(f"Cover glass {lcd.cover_glass_mm:g} mm{tol}, n {lcd.cover_glass_index:g}:"
                                     " removed from every sample before fitting.")
+        elif lcd.cover_glass_mm == 0:
+            self.glass_hint.setText("No cover glass (declared): nothing to remove.")
         else:
             self.glass_hint.setText("No cover glass declared: a bare panel is assumed (see the tooltip).")
 
@@ -495,7 +503,8 @@ class RigPage(StudioPage):
             camera=Camera(self.cam_w.value(), self.cam_h.value(), self.cam_bits.value()),
             lcd=replace(old.lcd, width=self.lcd_w.value(), height=self.lcd_h.value(),
                         pitch_mm=(self.pitch_x.value(), self.pitch_y.value()),
-                        cover_glass_mm=self.glass_t.value(), cover_glass_index=self.glass_n.value()),
+                        cover_glass_mm=None if self.glass_t.value() < 0 else self.glass_t.value(),
+                        cover_glass_index=self.glass_n.value()),
             stage=Stage(tuple(float(v) for v in z), (self.skew_a.value(), self.skew_b.value(), 1.0)),
         )
         # The same validation as a rig.toml on disk, with the same messages.

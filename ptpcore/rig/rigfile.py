@@ -83,7 +83,7 @@ class Lcd:
     height: int = 2160
     pitch_mm: tuple[float, float] = (0.05, 0.05)
     # ptp-dataset/2 (kept here for the corrections that use them):
-    cover_glass_mm: float = 0.0
+    cover_glass_mm: float | None = None  # None: the key is absent (a bare panel assumed); 0: no glass, declared
     cover_glass_index: float = 1.52
     cover_glass_mm_sigma: float = 0.0
     cover_glass_index_sigma: float = 0.0
@@ -485,6 +485,11 @@ def _nonneg(v: float, where: str) -> float:
     return v
 
 
+def _nonneg_or_none(v: float | None, where: str) -> float | None:
+    """``v`` checked >= 0; None (an absent key) stays None."""
+    return None if v is None else _nonneg(v, where)
+
+
 def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     """Parse and validate the text of a ``rig.toml`` (``ptp-dataset/1`` or ``/2``).
 
@@ -537,7 +542,7 @@ def _lcd_section(doc: dict, source: str, v2: bool) -> Lcd:
     extra = {}
     if v2:
         extra = dict(
-            cover_glass_mm=_nonneg(s.get("cover_glass_mm", "float", 0.0), f"{source}: key 'lcd.cover_glass_mm'"),
+            cover_glass_mm=_nonneg_or_none(s.get("cover_glass_mm", "float", None), f"{source}: key 'lcd.cover_glass_mm'"),
             cover_glass_index=s.get("cover_glass_index", "float", 1.52),
             cover_glass_mm_sigma=_nonneg(s.get("cover_glass_mm_sigma", "float", 0.0),
                                          f"{source}: key 'lcd.cover_glass_mm_sigma'"),
@@ -919,7 +924,9 @@ def rig_to_toml(rig: Rig) -> str:
     if c.bit_shift:
         put("camera", "bit_shift", c.bit_shift)
     d = Lcd()
-    for key in ("cover_glass_mm", "cover_glass_index", "cover_glass_mm_sigma", "cover_glass_index_sigma"):
+    if lcd.cover_glass_mm is not None:  # 0 too: "no glass" declared is not a bare panel assumed
+        put("lcd", "cover_glass_mm", float(lcd.cover_glass_mm))
+    for key in ("cover_glass_index", "cover_glass_mm_sigma", "cover_glass_index_sigma"):
         if getattr(lcd, key) != getattr(d, key):
             put("lcd", key, float(getattr(lcd, key)))
     if lcd.flatness_um:
