@@ -10,10 +10,9 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QHBoxLayout, QLabel, QPushButton, QSpinBox, QTableWidget, QTableWidgetItem,
                                QVBoxLayout)
 
-from ptpcore.fit import describe_lut, fit_model
-from ptpcore.fit.glass import (add_tolerances_to_sigma, correct_samples, corrected_samples, corrections_json,
-    describe_corrections)
-from ptpcore.fit.stage_pose import refine_and_correct
+from ptpcore.fit import describe_lut
+from ptpcore.fit.corrected import fit_corrected
+from ptpcore.fit.glass import corrected_samples, describe_corrections
 from ptpcore.fit.choice import ModelChoice
 from ptpcore.evaluate import pixel_series, reason_text
 from ptpcore.evaluate.residuals import residual_field
@@ -299,20 +298,13 @@ class CalibratePage(StudioPage):
         gen = self.model.generation
 
         def work(ctx):
-            # The cover glass (rig.toml) leaves the samples before the fit; the session keeps them as decoded.
-            fixed, applied = correct_samples(samples, rig)
-            est = None
-            if refine:
-                fixed, est = refine_and_correct(fixed, rig)
-            self._corrected_cache = (samples, rig, fixed)
-            lut = fit_model(fixed, rig, model, degree, positions=positions, progress=ctx.progress,
-                            stage_sigma_mm=stage_mm, level_bias=fit["level_bias"], footprint=fit["footprint"],
-                            robust=True)
-            lut.provenance["corrections"] = corrections_json(fixed)
-            add_tolerances_to_sigma(lut, applied)
-            if est is not None:
-                lut.stage_pose, lut.stage_pose_sigma = est.pose, est.sigma
-            return lut
+            # The cover glass, flatness and (refine) stage pose leave the samples before the fit; the
+            # session keeps them as decoded.
+            res = fit_corrected(samples, rig, model, degree, positions=positions, refine_stage=refine,
+                                progress=ctx.progress, stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
+                                footprint=fit["footprint"], robust=True)
+            self._corrected_cache = (samples, rig, res.samples)
+            return res.lut
 
         job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
         job.finished.connect(lambda lut: gen == self.model.generation and self._fitted(lut, positions, fit))

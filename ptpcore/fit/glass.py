@@ -15,7 +15,12 @@ offsets (and any spill file) untouched.
 (its normal is Z; a skewed stage translates the LCD, it does not turn it),
 ``tan(theta) = hypot(sx, sy)``. The correction being constant per pixel, the
 slopes of the corrected samples are those of the raw ones: the second pass
-METHOD asks for would give the same ``theta``, so it is not run.
+METHOD asks for would give the same ``theta``, so it is not run. Which way the
+foot of the normal lies along ``(sx, sy)`` depends on the camera's side of the
+LCD, read from where the rays converge (:func:`ptpcore.fit.flatness.away_sign`).
+
+:func:`correct_samples` applies everything ``rig.toml`` declares: the glass,
+then a measured flatness (:mod:`ptpcore.fit.flatness`).
 """
 
 from __future__ import annotations
@@ -29,10 +34,12 @@ from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["GlassCorrection", "plate_offset_mm", "pixel_slopes", "correct_cover_glass", "correct_samples",
-           "corrected_samples", "corrections_json", "add_tolerances_to_sigma", "describe_corrections", "glass_of", "BARE_PANEL"]
+           "corrected_samples", "corrections_json", "add_tolerances_to_sigma", "describe_corrections", "glass_of", "BARE_PANEL",
+           "NO_GLASS"]
 
 BARE_PANEL = ("no cover glass declared ([lcd] cover_glass_mm): a bare panel is assumed; a real LCD's"
               " glass and polarizer (about 1 mm, see its datasheet) would leave the LUT tens of um off")
+NO_GLASS = "no cover glass (declared: [lcd] cover_glass_mm = 0): nothing to remove"
 ROW_BLOCK_PIXELS = 1 << 20
 
 
@@ -44,9 +51,9 @@ def plate_offset_mm(tan_theta, t_mm: float, n: float):
 
 
 def glass_of(rig: Rig) -> tuple[float, float, float, float]:
-    """``(t_mm, index, t_sigma_mm, index_sigma)`` declared in ``rig.toml`` (``t_mm`` 0 for a bare panel)."""
+    """``(t_mm, index, t_sigma_mm, index_sigma)`` declared in ``rig.toml`` (``t_mm`` 0 without glass, declared or not)."""
     lcd = rig.lcd
-    return (float(lcd.cover_glass_mm), float(lcd.cover_glass_index), float(lcd.cover_glass_mm_sigma),
+    return (float(lcd.cover_glass_mm or 0.0), float(lcd.cover_glass_index), float(lcd.cover_glass_mm_sigma),
             float(lcd.cover_glass_index_sigma))
 
 
@@ -126,7 +133,8 @@ class GlassCorrection:
 
 
 def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma_mm: float = 0.0,
-                        index_sigma: float = 0.0, positions=None) -> tuple[SampleStack, GlassCorrection]:
+                        index_sigma: float = 0.0, positions=None, *, slopes=None,
+                        away: int | None = None) -> tuple[SampleStack, GlassCorrection]:
     """Samples with the cover glass removed: where each pixel's ray in air meets the pixel plane.
 
     Parameters
@@ -139,6 +147,11 @@ def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma
         Datasheet tolerances (1 sigma), for :attr:`GlassCorrection.sigma`.
     positions : sequence of int, optional
         Positions whose samples give each pixel's slope (default all).
+    slopes : (2,) tuple of (H, W) float64, optional
+        :func:`pixel_slopes` of ``samples`` (computed when not given).
+    away : int, optional
+        +1 when Z grows away from the camera, -1 toward it
+        (:func:`ptpcore.fit.flatness.away_sign`, computed when not given).
 
     Returns
     -------
@@ -149,17 +162,21 @@ def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma
     """
     if not (t_mm >= 0 and index >= 1):
         raise ValueError(f"cover glass needs t >= 0 mm and index >= 1, got {t_mm} mm, {index}")
-    sx, sy = pixel_slopes(samples, positions)
+    from ptpcore.fit.flatness import away_sign
+
+    sx, sy = pixel_slopes(samples, positions) if slopes is None else slopes
+    away = away_sign(samples, (sx, sy)) if away is None else int(away)
     tan = np.hypot(sx, sy)
     ok = np.isfinite(tan)
     delta = np.where(ok, plate_offset_mm(np.where(ok, tan, 0.0), t_mm, index), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         ux = np.where(ok & (tan > 0), sx / tan, 0.0)
         uy = np.where(ok & (tan > 0), sy / tan, 0.0)
-    # METHOD section 2: Z grows away from the camera, so (sx, sy) points away from the foot of
-    # the normal; the decoded point lies delta closer to that foot, along -(sx, sy), than the
-    # air ray's point: move it back. (run.sanity refuses readings whose sense says otherwise.)
-    shift_x, shift_y = delta * ux, delta * uy
+    # METHOD section 2: Z grows away from the camera (away = +1), so away * (sx, sy) points away from
+    # the foot of the normal; the decoded point lies delta closer to that foot than the air ray's
+    # point: move it back. (run.sanity refuses readings whose sense says otherwise; away is read
+    # from the rays all the same, so data on the other side is corrected the right way too.)
+    shift_x, shift_y = away * delta * ux, away * delta * uy
     eps_t, eps_n = max(1e-6, 1e-3 * t_mm), 1e-6
     d_t = (plate_offset_mm(tan, t_mm + eps_t, index) - plate_offset_mm(tan, t_mm - eps_t, index)) / (2 * eps_t)
     d_n = (plate_offset_mm(tan, t_mm, index + eps_n) - plate_offset_mm(tan, t_mm, index - eps_n)) / (2 * eps_n)
@@ -173,22 +190,40 @@ def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma
 
 
 def correct_samples(samples: SampleStack, rig: Rig, positions=None) -> tuple[SampleStack, dict]:
-    """Every correction ``rig.toml`` asks for, applied right after decoding.
+    """Every correction ``rig.toml`` asks for, applied right after decoding: the cover glass, then the flatness.
+
+    Parameters
+    ----------
+    samples : SampleStack
+    rig : Rig
+    positions : sequence of int, optional
+        Positions whose samples give each pixel's slope (default all).
 
     Returns
     -------
     corrected : SampleStack
-        ``samples`` itself when there is nothing to correct.
+        ``samples`` itself (with the bare-panel record) when there is nothing to correct.
     applied : dict
-        Name -> the correction object (e.g. ``"cover_glass"``: :class:`GlassCorrection`).
+        Name -> the correction object: ``"cover_glass"`` (:class:`GlassCorrection`),
+        ``"flatness"`` (:class:`ptpcore.fit.flatness.FlatnessCorrection`).
     """
+    from ptpcore.fit.flatness import away_sign, correct_flatness
+
     t, n, ts, ns = glass_of(rig)
     applied: dict = {}
+    slopes = away = None
+    if t > 0 or rig.lcd.flatness_um:
+        slopes = pixel_slopes(samples, positions)
+        away = away_sign(samples, slopes)
     if t > 0:
-        samples, applied["cover_glass"] = correct_cover_glass(samples, t, n, ts, ns, positions)
+        samples, applied["cover_glass"] = correct_cover_glass(samples, t, n, ts, ns, positions, slopes=slopes,
+                                                              away=away)
     else:
+        declared = rig.lcd.cover_glass_mm is not None
         samples = replace(samples, corrections={**samples.corrections, "cover_glass": {
-            "kind": "cover_glass", "t_mm": 0.0, "note": BARE_PANEL}})
+            "kind": "cover_glass", "t_mm": 0.0, "declared": declared, "note": NO_GLASS if declared else BARE_PANEL}})
+    if rig.lcd.flatness_um:
+        samples, applied["flatness"] = correct_flatness(samples, rig, slopes, away)
     return samples, applied
 
 
@@ -245,7 +280,7 @@ def describe_corrections(corrections: dict) -> list[str]:
         if not isinstance(rec, dict):
             lines.append(f"{name}: {rec}")
         elif rec.get("kind") == "cover_glass" and not rec.get("t_mm"):
-            lines.append(rec.get("note", BARE_PANEL))
+            lines.append(NO_GLASS if rec.get("declared") else rec.get("note", BARE_PANEL))
         elif rec.get("kind") == "cover_glass":
             tol = ""
             if rec.get("t_sigma_mm") or rec.get("index_sigma"):
@@ -253,6 +288,15 @@ def describe_corrections(corrections: dict) -> list[str]:
             lines.append(f"cover glass {rec['t_mm']:g} mm, n {rec['index']:g}{tol} removed: per-pixel shift"
                          f" median {rec['median_um']:.1f} µm, max {rec['max_um']:.1f} µm over"
                          f" {rec['pixels']} pixels (what ignoring it would have cost)")
+        elif rec.get("kind") == "flatness":
+            lines.append(f"panel flatness {rec.get('w_min_um', 0):g} .. {rec.get('w_max_um', 0):g} µm applied to the"
+                         f" heights: per-pixel shift median {rec.get('median_um', 0):.2f} µm, max"
+                         f" {rec.get('max_um', 0):.2f} µm over {rec.get('pixels', 0)} pixels (what ignoring it would"
+                         " have cost)")
+        elif rec.get("kind") == "stage_refinement" and "median_um" in rec:
+            lines.append(f"stage pose refined over {rec.get('n_pixels', 0)} pixels (rays' RMS {rec.get('rms_um', 0):.2f}"
+                         f" µm): per-pixel shift median {rec['median_um']:.2f} µm, max {rec.get('max_um', 0):.2f} µm"
+                         " (what ignoring it would have cost)")
         else:
             extra = ", ".join(f"{k} {v}" for k, v in rec.items() if k != "kind")
             lines.append(f"{name}: {extra}")

@@ -13,7 +13,8 @@ from ptpcore.fit.perpixel import _z_normalisation
 from ptpcore.io.lutfile import _group_by_pattern
 from ptpcore.io.samples import SampleStack
 
-__all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat"]
+__all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat", "stage_pose_sample_sigma",
+           "stage_pose_sigma_maps", "add_stage_pose_sigma"]
 
 
 def sample_sigma(samples: SampleStack, noise_dn, n_steps: int, period_px: int, pitch_mm: float,
@@ -108,3 +109,104 @@ def predicted_poly_sigma_flat(t: np.ndarray, te: np.ndarray, mask: np.ndarray, s
         g = ve @ np.linalg.pinv(vander[pattern])  # (E, n): value weights per sample
         out[:, cols] = np.sqrt((g * g) @ (sig[pattern][:, cols] ** 2))
     return out
+
+
+def stage_pose_sample_sigma(samples: SampleStack, rig, pose_sigma: np.ndarray, slopes, k: int,
+                            rows=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """1-sigma (mm) of every sample ``X_k``, ``Y_k`` from position ``k``'s pose uncertainty.
+
+    A pose error moves a sample at LCD point ``(u, v)`` (mm from the LCD centre)
+    by ``dX = dx - roll*v - sx*(dz + pitch*v - yaw*u)``,
+    ``dY = dy + roll*u - sy*(dz + pitch*v - yaw*u)`` (:mod:`ptpcore.fit.stage_pose`);
+    the six are taken as independent with the 1-sigma of ``pose_sigma[k]``.
+
+    Parameters
+    ----------
+    samples : SampleStack
+    rig : Rig
+        LCD centre and the stage direction.
+    pose_sigma : (K, 6) float64
+        ``dx, dy, dz`` (um), ``pitch, yaw, roll`` (urad) 1-sigma; NaN counts as 0.
+    slopes : (2,) tuple of (H, W) float64
+        Every pixel's ``dX/dZ``, ``dY/dZ``.
+    k : int
+    rows : slice
+        Image rows to compute.
+
+    Returns
+    -------
+    sigma_x, sigma_y : (h, W) float64, mm (NaN where ``X_k`` is)
+    """
+    a, b, _ = rig.stage.direction
+    px, py = rig.lcd.pitch_mm
+    zk = float(samples.z[k])
+    xa = samples.x_ref[rows] + np.asarray(samples.x[k, rows], dtype=float)
+    ya = samples.y_ref[rows] + np.asarray(samples.y[k, rows], dtype=float)
+    u = xa - a * zk - (rig.lcd.width - 1) / 2 * px
+    v = ya - b * zk - (rig.lcd.height - 1) / 2 * py
+    sdx, sdy, sdz, spitch, syaw, sroll = np.nan_to_num(np.asarray(pose_sigma[k], dtype=float))
+    sx, sy = (np.nan_to_num(np.asarray(s[rows], dtype=float)) for s in slopes)
+    var_z = (1e-3 * sdz) ** 2 + (1e-6 * spitch * v) ** 2 + (1e-6 * syaw * u) ** 2
+    var_x = (1e-3 * sdx) ** 2 + (1e-6 * sroll * v) ** 2 + sx * sx * var_z
+    var_y = (1e-3 * sdy) ** 2 + (1e-6 * sroll * u) ** 2 + sy * sy * var_z
+    return np.sqrt(var_x), np.sqrt(var_y)
+
+
+def stage_pose_sigma_maps(samples: SampleStack, rig, lut, pose_sigma: np.ndarray, slopes, positions=None,
+                          rows_per_block: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The stage pose's uncertainty propagated to each pixel's LUT: (H, W) 1-sigma maps (mm).
+
+    Every sample carries :func:`stage_pose_sample_sigma`; through the pixel's own
+    least-squares polynomial (the LUT's degree, its fitted positions) that gives
+    the LUT's 1-sigma at every height, averaged (RMS) over the pixel's
+    calibrated range, as the phase-noise maps are. A pose error moves every
+    pixel of a position at once, so smoothing across pixels does not average it
+    away: the same maps hold for the smooth LUT.
+
+    Parameters
+    ----------
+    samples : SampleStack
+        The samples the LUT was fitted to.
+    rig : Rig
+    lut : ptpcore.io.lutfile.Lut
+        A ``poly`` LUT (``degree``, ``z_min``/``z_max``, ``pixel_z_min``/``max``, ``valid``).
+    pose_sigma : (K, 6) float64
+    slopes : (2,) tuple of (H, W) float64
+    positions : sequence of int, optional
+        The LUT's positions (default all).
+    rows_per_block : int
+
+    Returns
+    -------
+    sigma_x, sigma_y : (H, W) float64, mm; NaN where the LUT is invalid.
+    """
+    positions = np.arange(len(samples.z)) if positions is None else np.asarray(list(positions))
+    t, _ = _normalised_heights(np.asarray(samples.z, float)[positions], [])
+    zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
+    _, te = _normalised_heights(np.asarray(samples.z, float)[positions], zs)
+    h, w = samples.shape
+    out = (np.full((h, w), np.nan), np.full((h, w), np.nan))
+    for r0 in range(0, h, rows_per_block):
+        rows = slice(r0, min(h, r0 + rows_per_block))
+        n = (rows.stop - r0) * w
+        mask = (np.asarray(samples.reasons[positions, rows]) == 0).reshape(len(positions), n)
+        per = [stage_pose_sample_sigma(samples, rig, pose_sigma, slopes, int(k), rows) for k in positions]
+        zmin, zmax = lut.pixel_z_min[rows].reshape(-1), lut.pixel_z_max[rows].reshape(-1)
+        inside = (zs[:, None] >= zmin) & (zs[:, None] <= zmax)
+        for axis, dest in enumerate(out):
+            sig = np.nan_to_num(np.stack([p[axis] for p in per]).reshape(len(positions), n))
+            pred = predicted_poly_sigma_flat(t, te, mask, sig, int(lut.degree or 1))
+            with np.errstate(all="ignore"):
+                sq = np.where(inside, pred * pred, np.nan)
+                rms = np.sqrt(np.nansum(sq, axis=0) / np.maximum(np.isfinite(sq).sum(axis=0), 1))
+            dest[rows] = np.where(lut.valid[rows].reshape(-1), rms, np.nan).reshape(rows.stop - r0, w)
+    return out
+
+
+def add_stage_pose_sigma(lut, samples: SampleStack, rig, pose_sigma: np.ndarray, slopes, positions=None) -> None:
+    """:func:`stage_pose_sigma_maps` into the LUT's sigma maps, in quadrature (in place; nothing without maps)."""
+    if lut.sigma_x is None or lut.sigma_y is None or lut.degree is None:
+        return
+    mx, my = stage_pose_sigma_maps(samples, rig, lut, pose_sigma, slopes, positions)
+    lut.sigma_x = np.hypot(lut.sigma_x, np.nan_to_num(mx)).astype(np.float32)
+    lut.sigma_y = np.hypot(lut.sigma_y, np.nan_to_num(my)).astype(np.float32)

@@ -67,11 +67,20 @@ class StagePose:
     rms_um: float
     n_pixels: int
 
-    def record(self) -> dict:
-        """JSON-ready summary for ``/provenance`` ``corrections``."""
-        return {"kind": "stage_refinement", "n_pixels": self.n_pixels, "rms_um": self.rms_um,
-                "max_abs": dict(zip(POSE_NAMES, np.max(np.abs(self.pose), axis=0).tolist())),
-                "median_sigma": dict(zip(POSE_NAMES, np.nanmedian(self.sigma, axis=0).tolist()))}
+    def record(self, shift_um=None) -> dict:
+        """JSON-ready summary for ``/provenance`` ``corrections``.
+
+        ``shift_um`` (H, W), optional: each pixel's largest shift (um), summarised as
+        ``median_um``, ``max_um`` over the pixels that moved.
+        """
+        rec = {"kind": "stage_refinement", "n_pixels": self.n_pixels, "rms_um": self.rms_um,
+               "max_abs": dict(zip(POSE_NAMES, np.max(np.abs(self.pose), axis=0).tolist())),
+               "median_sigma": dict(zip(POSE_NAMES, np.nanmedian(self.sigma, axis=0).tolist()))}
+        if shift_um is not None:
+            s = shift_um[np.isfinite(shift_um) & (shift_um > 0)]
+            rec.update(pixels=int(s.size), median_um=float(np.median(s)) if s.size else 0.0,
+                       max_um=float(np.max(s)) if s.size else 0.0)
+        return rec
 
 
 def gauge_part_removed(pose, z) -> np.ndarray:
@@ -235,23 +244,28 @@ def apply_stage_pose(samples: SampleStack, rig: Rig, pose: StagePose, slopes) ->
     Returns
     -------
     SampleStack
-        New ``x, y`` arrays (in memory); ``corrections`` gains ``stage_refinement``.
+        New ``x, y`` arrays (in memory); ``corrections`` gains ``stage_refinement``
+        (with each pixel's largest shift summarised: median and max, um).
     """
     sx, sy = (np.nan_to_num(s) for s in slopes)
     a, b, _ = rig.stage.direction
     px, py = rig.lcd.pitch_mm
     xs = np.empty(samples.x.shape, np.float32)
     ys = np.empty(samples.y.shape, np.float32)
+    longest = np.zeros(samples.shape)
     for k, zk in enumerate(np.asarray(samples.z, dtype=float)):
         xa, ya = samples.absolute(k)
         u = xa - a * zk - (rig.lcd.width - 1) / 2 * px
         v = ya - b * zk - (rig.lcd.height - 1) / 2 * py
         q = pose.pose[k]
         dzt = 1e-3 * q[2] + 1e-6 * (q[3] * v - q[4] * u)
-        xs[k] = samples.x[k] + (1e-3 * q[0] - 1e-6 * q[5] * v - sx * dzt)
-        ys[k] = samples.y[k] + (1e-3 * q[1] + 1e-6 * q[5] * u - sy * dzt)
+        ddx = 1e-3 * q[0] - 1e-6 * q[5] * v - sx * dzt
+        ddy = 1e-3 * q[1] + 1e-6 * q[5] * u - sy * dzt
+        xs[k] = samples.x[k] + ddx
+        ys[k] = samples.y[k] + ddy
+        longest = np.fmax(longest, np.where(np.asarray(samples.reasons[k]) == 0, 1e3 * np.hypot(ddx, ddy), 0.0))
     return replace(samples, x=xs, y=ys,
-                   corrections={**samples.corrections, "stage_refinement": pose.record()})
+                   corrections={**samples.corrections, "stage_refinement": pose.record(longest)})
 
 
 def refine_and_correct(samples: SampleStack, rig: Rig, *, seed: int = 0,

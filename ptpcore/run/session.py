@@ -68,9 +68,8 @@ from ptpcore.errors import ConfigError, DatasetError, FileFormatError
 from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read_lut_group, _str_attr,
     _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
-from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json
-from ptpcore.fit.models import LUT_MODELS, check_positions_for_model, fit_model
-from ptpcore.fit.stage_pose import refine_and_correct
+from ptpcore.fit.corrected import fit_corrected
+from ptpcore.fit.models import LUT_MODELS, check_positions_for_model
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.rig.rigfile import Rig, rig_from_toml, rig_to_toml
 
@@ -319,18 +318,12 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
     if session.lut is None:
         # The cover glass (and any other correction rig.toml asks for) leaves the
         # samples here, before any fit; the session keeps them as decoded.
-        samples, applied = correct_samples(session.samples, session.rig, session.positions)
-        est = None
-        if session.refine_stage:
-            samples, est = refine_and_correct(samples, session.rig)
-        session.lut = fit_model(samples, session.rig, session.model, session.degree,
-                                positions=session.positions, progress=sub(0.9, 1.0),
-                                stage_sigma_mm=session.stage_sigma_um * 1e-3, level_bias=session.level_bias,
-                                footprint=session.footprint, robust=session.robust)
-        session.lut.provenance["corrections"] = corrections_json(samples)
-        add_tolerances_to_sigma(session.lut, applied)
-        if est is not None:
-            session.lut.stage_pose, session.lut.stage_pose_sigma = est.pose, est.sigma
+        # The stage pose too (refine_stage); their uncertainty widens the sigma maps.
+        session.lut = fit_corrected(session.samples, session.rig, session.model, session.degree,
+                                    positions=session.positions, refine_stage=session.refine_stage,
+                                    progress=sub(0.9, 1.0), stage_sigma_mm=session.stage_sigma_um * 1e-3,
+                                    level_bias=session.level_bias, footprint=session.footprint,
+                                    robust=session.robust).lut
         if path is not None:
             save_session(session, path)
     if progress:

@@ -1,0 +1,105 @@
+"""One call from decoded samples to a LUT with every correction of METHOD.md section 8.
+
+``ptp calibrate`` (through :mod:`ptpcore.run.session`) and the wizard's
+Calibrate page both fit through :func:`fit_corrected`: the cover glass and a
+measured flatness (:func:`ptpcore.fit.glass.correct_samples`), optionally the
+stage pose (:mod:`ptpcore.fit.stage_pose`), then the fit; what cannot be
+measured enters the sigma maps (the glass's datasheet tolerances, the pose
+estimates' uncertainty) and every correction is recorded in the LUT's
+``/provenance``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json, pixel_slopes
+from ptpcore.fit.models import fit_model
+from ptpcore.fit.sigma import add_stage_pose_sigma
+from ptpcore.fit.stage_pose import StagePose, apply_stage_pose, refine_stage
+from ptpcore.io.lutfile import Lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig
+
+__all__ = ["CorrectedFit", "fit_corrected", "correct_all"]
+
+
+@dataclass
+class CorrectedFit:
+    """A LUT fitted to corrected samples.
+
+    Attributes
+    ----------
+    lut : Lut
+        With ``/provenance`` ``corrections``, ``stage_pose`` (when refined) and the
+        sigma maps widened by what no data can reveal.
+    samples : SampleStack
+        The samples the LUT was fitted to (every correction applied).
+    applied : dict
+        Name -> correction object (:func:`ptpcore.fit.glass.correct_samples`).
+    pose : StagePose or None
+        The stage pose estimates (``refine_stage``).
+    """
+
+    lut: Lut
+    samples: SampleStack
+    applied: dict
+    pose: StagePose | None = None
+
+
+def correct_all(samples: SampleStack, rig: Rig, positions=None, *, refine: bool = False, seed: int = 0,
+                progress: Callable[[float, str], None] | None = None,
+                ) -> tuple[SampleStack, dict, StagePose | None, tuple]:
+    """The samples with the glass, the flatness and (``refine``) the stage pose removed.
+
+    Returns
+    -------
+    corrected : SampleStack
+    applied : dict
+    pose : StagePose or None
+    slopes : (2,) tuple of (H, W) float64
+        Every pixel's ``dX/dZ``, ``dY/dZ`` (of the glass-corrected samples).
+    """
+    samples, applied = correct_samples(samples, rig, positions)
+    slopes = pixel_slopes(samples, positions)
+    pose = None
+    if refine:
+        if progress:
+            progress(0.0, "refining the stage pose of every position")
+        pose = refine_stage(samples, rig, n_pixels=1500, seed=seed)
+        samples = apply_stage_pose(samples, rig, pose, slopes)
+    return samples, applied, pose, slopes
+
+
+def fit_corrected(samples: SampleStack, rig: Rig, model: str = "auto", degree: int = 3, positions=None, *,
+                  refine_stage: bool = False, stage_sigma_mm: float = 0.0, level_bias: bool = True,
+                  footprint: bool = True, robust: bool = True,
+                  progress: Callable[[float, str], None] | None = None) -> CorrectedFit:
+    """Correct the samples (METHOD.md section 8), fit the LUT, record the corrections and their uncertainty.
+
+    Parameters
+    ----------
+    samples : SampleStack
+        As decoded (not modified).
+    rig : Rig
+    model, degree, positions, stage_sigma_mm, level_bias, footprint, robust, progress
+        As :func:`ptpcore.fit.models.fit_model`.
+    refine_stage : bool
+        Estimate every position's pose errors and correct the samples first
+        (:func:`ptpcore.fit.stage_pose.refine_stage`); their 1-sigma enters the
+        sigma maps (:func:`ptpcore.fit.sigma.add_stage_pose_sigma`).
+
+    Returns
+    -------
+    CorrectedFit
+    """
+    fixed, applied, pose, slopes = correct_all(samples, rig, positions, refine=refine_stage, progress=progress)
+    lut = fit_model(fixed, rig, model, degree, positions=positions, progress=progress, stage_sigma_mm=stage_sigma_mm,
+                    level_bias=level_bias, footprint=footprint, robust=robust)
+    lut.provenance["corrections"] = corrections_json(fixed)
+    add_tolerances_to_sigma(lut, applied)
+    if pose is not None:
+        lut.stage_pose, lut.stage_pose_sigma = pose.pose, pose.sigma
+        add_stage_pose_sigma(lut, fixed, rig, pose.sigma, slopes, positions)
+    return CorrectedFit(lut, fixed, applied, pose)
