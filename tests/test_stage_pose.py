@@ -142,3 +142,64 @@ def test_cli_refine_stage_writes_the_poses_into_the_lut(tmp_path, capsys):
     rec = json.loads(lut.provenance["corrections"])
     assert rec["stage_refinement"]["n_pixels"] > 100 and rec["cover_glass"]["t_mm"] == 1.1
     assert load_session(tmp_path / "s.ptps.h5").refine_stage
+
+
+def test_pose_sigma_maps_are_the_refit_response_to_each_pose_error():
+    """Each pose value's 1-sigma moves every sample of its position (first-order model); the map is the
+    RMS over the calibrated range of the refitted LUT's response, summed in quadrature over the 6 K
+    values: computed here by refitting with each value moved by its sigma, one at a time."""
+    from ptpcore.fit.perpixel import fit_lut
+    from ptpcore.fit.sigma import stage_pose_sigma_maps
+    from ptpcore.fit.stage_pose import StagePose
+
+    st, rig, _pose, slopes = _synthetic(noise_um=0.3)
+    k = len(st.z)
+    rng = np.random.default_rng(3)
+    sigma = np.column_stack([rng.uniform(0.1, 1.0, (k, 3)), rng.uniform(2.0, 20.0, (k, 3))])
+    lut = fit_lut(st, "poly", 2)
+    zs = np.linspace(lut.z_min, lut.z_max, 4 * k + 1)
+    base = [lut.evaluate(z) for z in zs]
+    var = np.zeros((2, *st.shape))
+    for i in range(k):
+        for j in range(6):
+            delta = np.zeros((k, 6))
+            delta[i, j] = sigma[i, j]
+            moved = fit_lut(apply_stage_pose(st, rig, StagePose(delta, sigma, 0.0, 0), slopes), "poly", 2)
+            for z, b in zip(zs, base):
+                e = moved.evaluate(z)
+                var[0] += (e.x - b.x) ** 2 / len(zs)
+                var[1] += (e.y - b.y) ** 2 / len(zs)
+    mx, my = stage_pose_sigma_maps(st, rig, lut, sigma, slopes)
+    # Linear in the pose (up to the slopes' and the LCD point's own shift: 1e-4 relative).
+    assert np.allclose(mx, np.sqrt(var[0]), rtol=2e-3) and np.allclose(my, np.sqrt(var[1]), rtol=2e-3)
+    assert np.median(mx) > 1e-4  # tenths of a um: not trivially zero
+
+
+def test_refined_stage_pose_widens_the_sigma_maps_by_its_propagated_sigma():
+    """On the simulator (tilting carriage): fit_corrected with the refinement on gives sigma maps that are
+    the phase-noise maps and the pose's propagated sigma in quadrature, and records it all."""
+    import json
+
+    from ptpcore.fit.corrected import fit_corrected
+    from ptpcore.fit.glass import pixel_slopes
+    from ptpcore.fit.models import fit_model
+    from ptpcore.fit.sigma import stage_pose_sigma_maps
+    from ptpcore.io.dataset import SimulatedSource
+    from ptpcore.run.pipeline import collect_samples
+    from ptpcore.simulate import VirtualRig, scaled_preset
+
+    rig, s = scaled_preset("mild", 80, positions=8)
+    s = replace(s, tilt_urad=30.0, roll_urad=30.0, runout_um=2.0, stage_error_um=2.0)
+    vr = VirtualRig(rig, s, seed=2)
+    raw = collect_samples(SimulatedSource(vr))
+    res = fit_corrected(raw, rig, "poly", 2, refine_stage=True, robust=False)
+    assert res.pose is not None and res.lut.stage_pose_sigma.shape == (8, 6)
+    plain = fit_model(res.samples, rig, "poly", 2)
+    mx, my = stage_pose_sigma_maps(res.samples, rig, plain, res.pose.sigma, pixel_slopes(res.samples))
+    v = plain.valid & np.isfinite(mx)
+    assert v.mean() > 0.5
+    grew_x = np.sqrt(np.maximum(res.lut.sigma_x[v].astype(float) ** 2 - plain.sigma_x[v].astype(float) ** 2, 0))
+    assert np.allclose(grew_x, mx[v], rtol=1e-3, atol=1e-6)
+    assert np.all(mx[v] > 0) and np.all(np.isfinite(my[v]))
+    rec = json.loads(res.lut.provenance["corrections"])["stage_refinement"]
+    assert rec["max_um"] >= rec["median_um"] > 0
