@@ -41,11 +41,11 @@ STEP_PAGES = {"decode": "acquire", "fit": "calibrate", "compare": "compare", Non
 
 
 def to_engine(s: Session, *, out=None, model: str = "auto", degree: int = 3, stage_sigma_um: float = 0.0,
-              level_bias: bool = True, footprint: bool = True) -> engine.Session:
+              level_bias: bool = True, footprint: bool = True, refine_stage: bool = False) -> engine.Session:
     """The wizard's session as an engine session (for :func:`ptpcore.run.session.save_session`).
 
     ``model``, ``degree``: the LUT model to record when no LUT is fitted yet;
-    ``stage_sigma_um``, ``level_bias``, ``footprint``: the fit's settings (the Calibrate page's);
+    ``stage_sigma_um``, ``level_bias``, ``footprint``, ``refine_stage``: the fit's settings (the Calibrate page's);
     ``out``: the LUT file (default: the one the session already names).
     """
     lut = s.lut
@@ -60,7 +60,7 @@ def to_engine(s: Session, *, out=None, model: str = "auto", degree: int = 3, sta
     es = engine.Session(
         rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None, model=model, degree=int(degree),
         stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
-        options=s.decode_options, positions=None if s.lut_positions is None else tuple(s.lut_positions),
+        refine_stage=bool(refine_stage), options=s.decode_options, positions=None if s.lut_positions is None else tuple(s.lut_positions),
         out=s.lut_file, sim_settings=sim, samples=s.samples, lut=lut, comparison=comparison)
     if s.created:
         es.created = s.created
@@ -81,6 +81,7 @@ class OpenedSession:
     stage_sigma_um: float = 0.0
     level_bias: bool = True
     footprint: bool = True
+    refine_stage: bool = False
 
     @property
     def page(self) -> str:
@@ -133,7 +134,7 @@ def read_session_file(path, progress: Callable[[float, str], None] | None = None
             s.truth = None  # optional: the comparison then judges against the measured samples
     report(1.0, f"opened {path.name} (stage '{es.stage}')")
     return OpenedSession(path, s, es.model, es.degree, engine.next_step(es), es.stage_sigma_um, es.level_bias,
-                         es.footprint)
+                         es.footprint, es.refine_stage)
 
 
 class Autosave(QObject):
@@ -144,7 +145,7 @@ class Autosave(QObject):
     model : SessionModel
     fit_choice : callable, optional
         ``() -> dict`` of :func:`to_engine`'s fit keywords (``model``, ``degree``,
-        ``stage_sigma_um``, ``level_bias``, ``footprint``): the settings to record.
+        ``stage_sigma_um``, ``level_bias``, ``footprint``, ``refine_stage``): the settings to record.
 
     Signals
     -------

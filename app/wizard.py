@@ -224,7 +224,7 @@ class StudioWizard(QWizard):
         self.page_by_key["calibrate"].configure(opened.model, opened.degree,
                                                 "half" if s.lut_positions == half else "all",
                                                 opened.stage_sigma_um, opened.level_bias, opened.footprint,
-                                                fitted=True)
+                                                fitted=True, refine_stage=opened.refine_stage)
         self.autosave.set_path(opened.path)
         self.go_to(opened.page)
 

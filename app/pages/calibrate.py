@@ -19,6 +19,7 @@ from ptpcore.evaluate.residuals import residual_field
 
 from ..widgets.maps import HeatmapPanel, axis_label
 from ..widgets.residuals import ResidualPanel
+from ..widgets.stagepose import StagePosePanel
 from ..worker import Job
 from .base import StudioPage
 
@@ -202,6 +203,8 @@ class CalibratePage(StudioPage):
         grid.setRowStretch(1, 1)
         self.residuals = ResidualPanel()
         grid.addWidget(self.residuals, 2, 0, 1, 2)
+        self.stage_pose = StagePosePanel()  # shown when the LUT carries a refined stage pose
+        grid.addWidget(self.stage_pose, 3, 0, 1, 2)
 
         self.maps: dict = {}
         self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
@@ -264,7 +267,7 @@ class CalibratePage(StudioPage):
     # ---- fitting --------------------------------------------------------------------
     def configure(self, model: str = "auto", degree: int = 3, positions: str = "all",
                   stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True,
-                  fitted: bool = False) -> None:
+                  fitted: bool = False, refine_stage: bool = False) -> None:
         """Set the model controls (the tour, an opened session file and tests use it).
 
         ``fitted``: these are the settings the session's LUT was fitted with (an opened file).
@@ -274,6 +277,7 @@ class CalibratePage(StudioPage):
         self.stage_sigma.setValue(stage_sigma_um)
         self.level_bias.setChecked(level_bias)
         self.footprint.setChecked(footprint)
+        self.refine_stage.setChecked(refine_stage)
         self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
         if fitted:
             self.fitted = self.fit_settings() if self.model.session.lut is not None else None
@@ -282,7 +286,7 @@ class CalibratePage(StudioPage):
         """The fit's settings as :func:`ptp_studio.sessionfile.to_engine` records them."""
         return {"model": self.model_combo.currentData(), "degree": self.degree.value(),
                 "stage_sigma_um": self.stage_sigma.value(), "level_bias": self.level_bias.isChecked(),
-                "footprint": self.footprint.isChecked()}
+                "footprint": self.footprint.isChecked(), "refine_stage": self.refine_stage.isChecked()}
 
     def fit(self) -> Job | None:
         s = self.model.session
@@ -293,7 +297,7 @@ class CalibratePage(StudioPage):
         k = s.rig.stage.n_positions
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
         samples, rig = s.samples, s.rig
-        refine = self.refine_stage.isChecked()
+        refine = fit["refine_stage"]
         stage_mm = fit["stage_sigma_um"] * 1e-3
         gen = self.model.generation
 
@@ -338,6 +342,7 @@ class CalibratePage(StudioPage):
             self._clear()
             self.residual_field = None
             self.residuals.set_field(None)
+            self.stage_pose.set_pose((), None, None)
             self.update_complete()
             return
         self.maps = quality_maps(lut)
@@ -364,6 +369,7 @@ class CalibratePage(StudioPage):
         self.stats.setText(text)
         self._show_choice(choice_of(lut))
         s = self.model.session
+        self.stage_pose.set_pose(s.rig.stage.z_mm, lut.stage_pose, lut.stage_pose_sigma)
         self.residual_field = (residual_field(lut, s.samples, s.lut_positions)
                                if s.samples is not None and s.samples.shape == lut.shape else None)
         self.residuals.set_field(self.residual_field)

@@ -12,6 +12,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHB
 
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, robust_levels,
                               smooth_degree_for, split_positions)
+from ptpcore.fit.corrected import correct_all
 from ptpcore.fit.glass import corrected_samples, describe_corrections
 
 from ..widgets.maps import PEN, MapView, axis_label, colormap, plain_axes
@@ -198,8 +199,15 @@ class ComparePage(StudioPage):
             self.settings_note = ""
         samples, rig = s.samples, s.rig
         gen = self.model.generation
-        job = Job(lambda ctx: compare(corrected_samples(samples, rig), rig, progress=ctx.progress, **args),
-                  "running the comparison")
+        cal = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
+        refine = bool(cal.get("refine_stage", False))  # the stage pose as Calibrate's LUT had it
+
+        def work(ctx):
+            fixed = correct_all(samples, rig, refine=refine, progress=ctx.progress)[0] if refine else \
+                corrected_samples(samples, rig)
+            return compare(fixed, rig, progress=ctx.progress, **args)
+
+        job = Job(work, "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
         return self.run_job(job)
 

@@ -130,15 +130,29 @@ def test_the_fit_settings_of_the_calibrate_page_are_saved_and_restored(qtbot, tm
     wiz = _fresh_wizard(qtbot)
     assert run_job(qtbot, wiz.open_session(tmp_path / "s.ptps.h5")) == "finished"
     cal = wiz.page_by_key["calibrate"]
-    cal.configure("smooth", 1, "all", stage_sigma_um=0.4, level_bias=False, footprint=False)
+    cal.configure("smooth", 1, "all", stage_sigma_um=0.4, level_bias=False, footprint=False, refine_stage=True)
     assert run_job(qtbot, cal.fit()) == "finished"
+    # The refined stage pose: a row per position (value ± sigma) and the plots (issue 14).
+    k = wiz.model.session.rig.stage.n_positions
+    assert not cal.stage_pose.isHidden() and cal.stage_pose.table.rowCount() == k
+    assert "±" in cal.stage_pose.table.item(0, 1).text()
+    curve, bars = cal.stage_pose.plots["angle"].series[0]
+    assert len(curve.getData()[0]) == k and np.allclose(bars.opts["height"], 2 * wiz.model.session.lut.stage_pose_sigma[:, 3])
     _wait_autosave(wiz, qtbot)
     back = load_session(tmp_path / "s.ptps.h5")
-    assert (back.model, back.stage_sigma_um, back.level_bias, back.footprint) == ("smooth", 0.4, False, False)
+    assert (back.model, back.stage_sigma_um, back.level_bias, back.footprint, back.refine_stage) == (
+        "smooth", 0.4, False, False, True)
+    assert np.array_equal(back.lut.stage_pose, wiz.model.session.lut.stage_pose)
     other = _fresh_wizard(qtbot)
     assert run_job(qtbot, other.open_session(tmp_path / "s.ptps.h5")) == "finished"
     assert other.page_by_key["calibrate"].fit_settings() == {
-        "model": "smooth", "degree": 1, "stage_sigma_um": 0.4, "level_bias": False, "footprint": False}
+        "model": "smooth", "degree": 1, "stage_sigma_um": 0.4, "level_bias": False, "footprint": False,
+        "refine_stage": True}
+    assert other.page_by_key["calibrate"].stage_pose.table.rowCount() == k
+    # Fitted again without the refinement: the panel goes.
+    other.page_by_key["calibrate"].configure("poly", 1, "all")
+    assert run_job(qtbot, other.page_by_key["calibrate"].fit()) == "finished"
+    assert other.page_by_key["calibrate"].stage_pose.isHidden()
     src.close()
 
 
