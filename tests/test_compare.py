@@ -33,6 +33,7 @@ from ptpcore.pinhole import PinholeModel, dlt_initial_guess, opencv_calibrate
 from ptpcore.run import collect_samples
 from ptpcore.simulate import VirtualRig, scaled_preset, simulate_dataset
 from ptpcore.fit import fit_smooth_lut
+from ptpcore.rig import rig_from_toml, rig_to_toml
 
 WIDTH = 320
 
@@ -531,6 +532,20 @@ def test_cli_compare(tmp_path, capsys):
                  "--force", "-q"]) == 0
     d = json.loads(out.read_text())
     assert d["config"]["methods"] == ["ptp", "3dstc"] and "smooth" not in d["references"]["truth"]
+    # A declared flatness and --refine-stage: both in the report's corrections and its summary (issue 14).
+    toml = (data / "rig.toml").read_text()
+    flat = rig_from_toml(toml)
+    flat = replace(flat, lcd=replace(flat.lcd, flatness_u_px=(0.0, float(flat.lcd.width)),
+                                     flatness_v_px=(0.0, float(flat.lcd.height)), flatness_um=((0.0, 4.0), (4.0, 8.0))))
+    (data / "rig.toml").write_text(rig_to_toml(flat))
+    assert main(["compare", str(data), "--out", str(out), "--points", "300", "--degree", "1", "--no-smooth",
+                 "--refine-stage", "--force"]) == 0
+    d = json.loads(out.read_text())
+    assert d["corrections"]["flatness"]["max_um"] > d["corrections"]["flatness"]["median_um"] > 0
+    assert d["corrections"]["stage_refinement"]["max_um"] > 0
+    text = capsys.readouterr().out
+    assert "panel flatness 0 .. 8 µm" in text and "stage pose refined over" in text
+    (data / "rig.toml").write_text(toml)
     (data / "truth.h5").unlink()
     assert main(["compare", str(data), "--out", str(out), "--points", "300", "--split", "loo", "--model", "poly",
                  "--degree", "2", "--rational", "--force", "-q"]) == 0

@@ -420,7 +420,7 @@ def cmd_compare(args) -> int:
     from ptpcore.evaluate import compare, format_summary
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.errors import DatasetError
-    from ptpcore.fit.glass import correct_samples
+    from ptpcore.fit.corrected import correct_all
     from ptpcore.run.pipeline import collect_samples
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
 
@@ -436,7 +436,8 @@ def cmd_compare(args) -> int:
     bar = progress_bar(args)
     try:
         samples = collect_samples(source, progress=bar)
-        samples, _applied = correct_samples(samples, source.rig)  # the cover glass, before any fit
+        # The cover glass, a measured flatness and (--refine-stage) the stage pose, before any fit.
+        samples = correct_all(samples, source.rig, refine=args.refine_stage)[0]
         result = compare(samples, source.rig, truth=truth, seed=args.seed, split=args.split,
                          n_points=args.points, rational=args.rational, model=args.model, degree=args.degree,
                          with_smooth=args.smooth, progress=bar)
@@ -600,6 +601,8 @@ def _add_compare(sub) -> None:
     cm.add_argument("--split", default="alternate", choices=["alternate", "loo"],
                     help="hold out every second position (default) or leave one position out")
     cm.add_argument("--rational", action="store_true", help="3DSTC also fits the rational k4..k6")
+    cm.add_argument("--refine-stage", action="store_true",
+                    help="estimate each position's stage pose and correct the samples before every method's fit")
     cm.add_argument("--model", default="auto", choices=["auto", *MODELS],
                     help="plain PTP LUT model; auto: poly of the degree 1-3 most accurate at positions held out of"
                          " each calibration (default auto)")

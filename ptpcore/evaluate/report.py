@@ -191,8 +191,8 @@ class CompareResult:
         was left out, or fitted without smoothing).
     corrections : dict
         What was removed from the samples before every method's fit
-        (``SampleStack.corrections``: the cover glass with its median and max
-        per-pixel shift, µm).
+        (``SampleStack.corrections``: the cover glass, a measured flatness and
+        a refined stage pose, each with its median and max per-pixel shift, µm).
     """
 
     split: str
