@@ -20,7 +20,7 @@ from ptpcore.run import collect_samples
 
 def _decode(rig, settings, unrounded, monkeypatch):
     if unrounded:
-        def continuous(lcd, design, direction, period, step, n_steps, z_mm):
+        def continuous(lcd, design, direction, period, step, n_steps, z_mm, display=None):
             n = lcd.width if direction == "x" else lcd.height
             return np.clip(fringe_values(np.arange(n), design, direction, period, step, n_steps, z_mm), 0, 255)
 

@@ -11,7 +11,11 @@
 2. at the first position it captures, an exposure check photographs the
    brightest and the darkest level the patterns use (uniform screens) and
    judges saturated and too-dark pixels (:func:`check_exposure`); a failing
-   verdict stops before the long run unless accepted;
+   verdict stops before the long run unless accepted; with
+   ``measure_display`` a ramp of uniform levels follows, the camera's mean
+   response per level becomes the dataset's ``[display]`` curve
+   (:func:`measure_display_response`) and every pattern is generated through
+   its inverse (:func:`ptpcore.decode.patterns.display_inverse`);
 3. per position: move, read the stage (the reading is what ``rig.toml``
    records, and what the patterns' carrier uses), record it, then for every
    pattern show, settle, grab (dropped frames are asked for again) and write
@@ -46,7 +50,7 @@ from ptpcore.capture.devices import describe
 from ptpcore.capture.devices.camera import FrameError
 from ptpcore.errors import CaptureError, ConfigError, DeviceError, PtpError
 from ptpcore.decode.patterns import fringe_profile
-from ptpcore.rig.rigfile import FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
+from ptpcore.rig.rigfile import Display, FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
 
 __all__ = [
     "STATE_FILE",
@@ -57,6 +61,9 @@ __all__ = [
     "display_levels",
     "exposure_report",
     "check_exposure",
+    "measure_display_response",
+    "display_from_means",
+    "DISPLAY_RAMP",
     "capture",
     "capture_state",
     "pattern_image",
@@ -249,11 +256,70 @@ def check_exposure(rig: Rig, camera, display, *, limits: ExposureLimits = Exposu
     return exposure_report(frames[0], frames[1], rig.camera.max_level, limits, exposure_us, (lo, hi))
 
 
+DISPLAY_RAMP = tuple(range(0, 256, 16)) + (255,)
+"""The uniform levels :func:`measure_display_response` shows (17: every 16th and full white)."""
+
+
+def display_from_means(levels, means) -> Display:
+    """A ``[display]`` response from the camera's mean level at each displayed level.
+
+    The camera is linear: ``(mean - mean[0]) / (mean[-1] - mean[0])`` is the
+    display's relative luminance (offset and gain cancel), made monotone
+    (a running maximum: noise at nearly equal levels).
+
+    Raises
+    ------
+    CaptureError
+        The brightest level is not brighter than the darkest (the camera does not see the LCD).
+    """
+    m = np.asarray(means, dtype=float)
+    if not m[-1] > m[0]:
+        raise CaptureError(f"display response: the camera reads {m[-1]:.1f} at level {levels[-1]} and"
+                           f" {m[0]:.1f} at level {levels[0]}: it does not see the LCD light up")
+    rel = np.maximum.accumulate((m - m[0]) / (m[-1] - m[0]))
+    return Display(tuple(float(v) for v in levels), tuple(float(v) for v in np.clip(rel, 0.0, 1.0)))
+
+
+def measure_display_response(rig: Rig, camera, display, *, levels=DISPLAY_RAMP, retries: int = 2,
+                             ) -> tuple[Display, np.ndarray, int]:
+    """Show a ramp of uniform levels and measure the camera's mean response to each.
+
+    The devices must be open; the stage stays where it is. The mean is taken
+    over the pixels that see the LCD (full white minus black above half its
+    99th percentile) and are not saturated at full white.
+
+    Returns
+    -------
+    display : Display
+        ``[display]`` levels and relative luminance (:func:`display_from_means`).
+    means : (L,) float64
+        The camera's mean level at each displayed level (grey levels).
+    n_pixels : int
+        Camera pixels averaged.
+
+    Raises
+    ------
+    DeviceError, CaptureError
+    """
+    frames = []
+    for level in levels:
+        _call(display, "show", _uniform(rig, int(level)))
+        _call(display, "settle")
+        frames.append(_check_frame(_grab(camera, f"the display response (level {level})", retries), rig,
+                                   camera).astype(np.float64))
+    diff = frames[-1] - frames[0]
+    seen = (diff > 0.5 * np.percentile(diff, 99)) & (frames[-1] < rig.camera.max_level)
+    if not seen.any():
+        raise CaptureError("display response: no camera pixel sees the LCD light up without saturating")
+    means = np.array([f[seen].mean() for f in frames])
+    return display_from_means(levels, means), means, int(seen.sum())
+
+
 # --------------------------------------------------------------------------- helpers
 
 def pattern_image(rig: Rig, direction: str, period: int, step: int, n_steps: int, z_mm: float) -> np.ndarray:
     """The LCD image ``(lcd.height, lcd.width)`` uint8 of one pattern (a read-only broadcast view)."""
-    prof = fringe_profile(rig.lcd, rig.fringes, direction, period, step, n_steps, z_mm)
+    prof = fringe_profile(rig.lcd, rig.fringes, direction, period, step, n_steps, z_mm, rig.display)
     shape = (rig.lcd.height, rig.lcd.width)
     return np.broadcast_to(prof[None, :] if direction == "x" else prof[:, None], shape)
 
@@ -374,6 +440,9 @@ class CaptureResult:
     kept : list of int
         Positions already complete (resume), verified and kept.
     exposure : ExposureReport or None
+    display_means : (L,) float64 or None
+        The camera's mean level at each level of the display ramp (``measure_display``),
+        whose curve is ``rig.display``.
     """
 
     folder: Path
@@ -381,12 +450,14 @@ class CaptureResult:
     captured: list
     kept: list
     exposure: ExposureReport | None = None
+    display_means: np.ndarray | None = None
 
 
 def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
             exposure_us: float | None = None, check: bool = True, accept_exposure: bool = False,
             limits: ExposureLimits = ExposureLimits(), retries: int = 2, home: bool = True,
             position_tolerance_mm: float | None = None, image_ext: str = ".png", meta: dict | None = None,
+            measure_display: bool = False,
             progress: Progress | None = None, on_frame: Callable | None = None,
             on_exposure: Callable[[ExposureReport], None] | None = None,
             on_position: Callable[[int, str], None] | None = None) -> CaptureResult:
@@ -420,6 +491,12 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     meta : dict, optional
         Anything JSON can hold that a resumed capture must match (e.g. the
         simulator settings); stored in the state file.
+    measure_display : bool
+        At the first position, after the exposure check, measure the display's
+        response (:func:`measure_display_response`), write it to ``rig.toml``'s
+        ``[display]`` and show every pattern through its inverse (the rig's own
+        ``[display]``, when it has one, is replaced). A resumed capture keeps the
+        response it measured (stored in the state file).
     progress : callable, optional
         ``progress(fraction, message)``; may raise :class:`Cancelled` (the
         capture stops, resumable).
@@ -478,19 +555,24 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
         return CaptureResult(out, load_rig(out), [], list(range(n_pos)), None)
 
     kept = _verify_kept_positions(out, rig, state, report, on_position) if resume else []
+    if state.get("display"):  # measured when the capture started: its patterns went through it
+        rig = replace(rig, display=Display(tuple(state["display"]["levels"]), tuple(state["display"]["luminance"])))
     run = _CaptureRun(out, rig, camera, stage, display, state, image_ext, retries, report, on_frame, on_position)
+    run.measure_display = bool(measure_display) and not state.get("display") and not kept
+    if state.get("display", {}).get("camera_means"):
+        run.display_means = np.asarray(state["display"]["camera_means"], dtype=float)
     todo = [k for k in range(n_pos) if k not in kept]
     state["devices"] = {"camera": describe(camera), "stage": describe(stage), "display": describe(display)}
     exposure = run.run(todo, z_plan, position_tolerance_mm, home, exposure_us,
                        (limits, accept_exposure, on_exposure) if check else None)
 
     readings = [p["z_mm"] for p in state["positions"]]
-    final = rig.with_z(readings)
+    final = run.rig.with_z(readings)
     save_rig(final, out / "rig.toml")
     state["complete"] = True
     _write_state(out, state)
     report(1.0, "capture complete")
-    return CaptureResult(out, final, run.captured, kept, exposure)
+    return CaptureResult(out, final, run.captured, kept, exposure, run.display_means)
 
 
 def _verify_kept_positions(out: Path, rig: Rig, state: dict, report, on_position) -> list[int]:
@@ -532,6 +614,8 @@ class _CaptureRun:
         self.captured: list[int] = []
         self.done_frames = 0
         self.total = 1
+        self.measure_display = False
+        self.display_means: np.ndarray | None = None
 
     def saved_note(self) -> str:
         """What is saved so far, for every error message."""
@@ -564,6 +648,8 @@ class _CaptureRun:
                 z = self.move_to(k, z_plan[k], tolerance_mm)
                 if i == 0 and exposure_check is not None:
                     exposure = self.check_exposure_at(z, exposure_us, *exposure_check)
+                if i == 0 and self.measure_display:
+                    self.measure_display_at()
                 self.capture_position(k, z)
         except DeviceError as exc:
             raise type(exc)(f"{exc} — {self.saved_note()}") from exc
@@ -603,6 +689,16 @@ class _CaptureRun:
         if not exposure.ok and not accept:
             raise ExposureError(f"exposure check at z = {z:g} mm: {exposure.message}")
         return exposure
+
+    def measure_display_at(self) -> None:
+        """The display response at the first position captured: into the rig and the state."""
+        self.report(self.done_frames / self.total, "measuring the display's response (a ramp of uniform levels)")
+        resp, self.display_means, n_pix = measure_display_response(self.rig, self.camera, self.display,
+                                                                   retries=self.retries)
+        self.rig = replace(self.rig, display=resp)
+        self.state["display"] = {"levels": list(resp.levels), "luminance": list(resp.luminance),
+                                 "camera_means": [float(v) for v in self.display_means], "camera_pixels": n_pix}
+        _write_state(self.out, self.state)
 
     def capture_position(self, k: int, z: float) -> None:
         """Show every pattern at position ``k`` (stage reading ``z``), grab and write each frame."""

@@ -97,7 +97,7 @@ def cmd_capture(args) -> int:
         result = capture(out, rig, camera, stage, display, resume=args.resume, exposure_us=exposure_us,
                          check=not args.no_check, accept_exposure=args.ignore_exposure, limits=limits,
                          image_ext=".tif" if args.tiff else ".png", meta=meta, progress=bar,
-                         on_exposure=on_exposure)
+                         on_exposure=on_exposure, measure_display=args.measure_display)
     except (Cancelled, KeyboardInterrupt):
         st = capture_state(out)
         if st is not None:
@@ -113,6 +113,10 @@ def cmd_capture(args) -> int:
     print(f"captured {len(result.captured)} of {n} positions{kept}"
           f" ({rig.camera.width}x{rig.camera.height}, {rig.fringes.frames_per_position} frames each,"
           f" simulated camera '{args.preset}' seed {args.seed}, {stage_kind} stage) to {out}")
+    if result.rig.display is not None and args.measure_display:
+        d = result.rig.display
+        print("display response ([display] of rig.toml; the patterns went through its inverse): "
+              + ", ".join(f"{lv:g}: {lum:.4f}" for lv, lum in zip(d.levels, d.luminance)))
     return 0
 
 
@@ -144,6 +148,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--settle-ms", type=nonneg_float, metavar="MS", help="wait after each pattern change (default 0)")
     p.add_argument("--ignore-exposure", action="store_true", help="capture even if the exposure check fails")
     p.add_argument("--no-check", action="store_true", help="skip the exposure check")
+    p.add_argument("--measure-display", action="store_true",
+                   help="measure the display's response at the first position (a ramp of uniform levels), store it"
+                        " as rig.toml's [display] and show every pattern through its inverse")
     p.add_argument("--resume", action="store_true", help="continue the partial capture in --out")
     p.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -4,6 +4,10 @@ A pattern varies along one LCD axis only, so the engine works with 1-D
 profiles (one value per LCD column for direction ``x``, per row for ``y``);
 :func:`fringe_image` expands a profile to the full LCD image when a screen or
 a preview needs it.
+
+The displayed levels compensate the display's response: a measured one
+(``[display]``, :func:`display_inverse`, measured by ``ptp capture``) when the
+rig has it, else ``[fringes] gamma``.
 """
 
 from __future__ import annotations
@@ -13,12 +17,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ptpcore.rig.rigfile import FringeDesign, Lcd, Rig, format_period
+from ptpcore.rig.rigfile import Display, FringeDesign, Lcd, Rig, format_period
 
 __all__ = [
     "fringe_values",
     "fringe_profile",
     "fringe_image",
+    "display_response",
+    "display_inverse",
     "DesignItem",
     "DesignReport",
     "design_check",
@@ -58,27 +64,68 @@ def fringe_values(coord, design: FringeDesign, direction: str, period: float, st
     )
 
 
+def display_response(display: Display, levels) -> np.ndarray:
+    """The measured relative luminance at ``levels`` (0..255): monotone cubic (PCHIP) through the
+    ``[display]`` points, normalised to 0 at the lowest and 1 at the highest measured level."""
+    from scipy.interpolate import PchipInterpolator
+
+    lv = np.asarray(display.levels, dtype=float)
+    lum = np.asarray(display.luminance, dtype=float)
+    rel = (lum - lum[0]) / (lum[-1] - lum[0])
+    return PchipInterpolator(lv, rel, extrapolate=False)(np.clip(np.asarray(levels, dtype=float), lv[0], lv[-1]))
+
+
+def display_inverse(display: Display, g) -> np.ndarray:
+    """Continuous levels whose measured luminance is linear in ``g`` (0..255 -> the measured range).
+
+    Parameters
+    ----------
+    display : Display
+        ``[display]`` levels (strictly increasing) and luminance (increasing).
+    g : array_like
+        Wanted values on the linear scale, grey levels 0..255.
+
+    Returns
+    -------
+    ndarray, shape of ``g``: levels in ``[levels[0], levels[-1]]`` (unrounded).
+    """
+    lv = np.asarray(display.levels, dtype=float)
+    fine = np.linspace(lv[0], lv[-1], 4096)
+    rel = np.maximum.accumulate(display_response(display, fine))  # monotone: np.interp needs it
+    want = np.clip(np.asarray(g, dtype=float) / 255.0, 0.0, 1.0)
+    return np.interp(want, rel, fine)
+
+
 def fringe_profile(lcd: Lcd, design: FringeDesign, direction: str, period: int, step: int,
-                   n_steps: int, z_mm: float) -> np.ndarray:
+                   n_steps: int, z_mm: float, display: Display | None = None) -> np.ndarray:
     """The displayed integer levels along the pattern's axis.
+
+    Parameters
+    ----------
+    display : Display, optional
+        A measured response (``rig.display``): the levels go through its inverse
+        (:func:`display_inverse`) and ``design.gamma`` is ignored.
 
     Returns
     -------
     (lcd.width,) or (lcd.height,) uint8
-        Levels after gamma pre-compensation ``255*(g/255)**(1/gamma)`` and rounding.
+        Levels after the pre-compensation (``255*(g/255)**(1/gamma)``, or the
+        measured response's inverse) and rounding.
     """
     n = lcd.width if direction == "x" else lcd.height
     g = fringe_values(np.arange(n), design, direction, period, step, n_steps, z_mm)
     g = np.clip(g, 0.0, 255.0)
-    if design.gamma != 1.0:
+    if display is not None and len(display.levels) >= 2:
+        g = display_inverse(display, g)
+    elif design.gamma != 1.0:
         g = 255.0 * (g / 255.0) ** (1.0 / design.gamma)
     return np.clip(np.rint(g), 0, 255).astype(np.uint8)
 
 
 def fringe_image(lcd: Lcd, design: FringeDesign, direction: str, period: int, step: int,
-                 n_steps: int, z_mm: float) -> np.ndarray:
-    """The full LCD image ``(lcd.height, lcd.width)`` uint8 for one pattern."""
-    prof = fringe_profile(lcd, design, direction, period, step, n_steps, z_mm)
+                 n_steps: int, z_mm: float, display: Display | None = None) -> np.ndarray:
+    """The full LCD image ``(lcd.height, lcd.width)`` uint8 for one pattern (``display``: :func:`fringe_profile`)."""
+    prof = fringe_profile(lcd, design, direction, period, step, n_steps, z_mm, display)
     if direction == "x":
         return np.broadcast_to(prof[None, :], (lcd.height, lcd.width)).copy()
     return np.broadcast_to(prof[:, None], (lcd.height, lcd.width)).copy()

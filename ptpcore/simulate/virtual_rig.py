@@ -31,7 +31,7 @@ from ptpcore.errors import ConfigError
 from ptpcore.io.lutfile import write_hdf5_atomic
 from ptpcore.pinhole.lens import undistort_normalised
 from ptpcore.simulate.lcd_physics import LcdPhysics, draw_stage_poses, pose_matrix
-from ptpcore.decode.patterns import fringe_profile, fringe_values
+from ptpcore.decode.patterns import display_inverse, fringe_profile, fringe_values
 from ptpcore.rig.rigfile import Camera, FringeDesign, Lcd, Rig, Stage, save_rig
 
 __all__ = [
@@ -497,47 +497,73 @@ class VirtualRig:
         (H, W) uint8 (8-bit camera) or uint16 (9-16 bit, values not scaled)
         """
         rig, s = self.rig, self.settings
-        geo = self._geometry(k)
         z_read = rig.stage.z_mm[k]
         f = rig.fringes
+        if s.pixelated:  # through rig.display's inverse when the rig has a measured response
+            prof = fringe_profile(rig.lcd, f, direction, period, step, n_steps, z_read, rig.display)
+            return self.render_profile(k, direction, prof, (2, k, "xy".index(direction), period, step))
+        geo = self._geometry(k)
         h, w = rig.camera.shape
         m = self.margin
         h, w = h + 2 * m, w + 2 * m
         ss = s.supersample
-        if s.pixelated:
-            if s.dust:
-                raise ConfigError("dust on the LCD is simulated with pixelated = False only")
-            edges, across, n_along, n_across = geo[direction]
-            prof = fringe_profile(rig.lcd, f, direction, period, step, n_steps, z_read)
-            pad = 2
-            lum = np.zeros(n_along + 2 * pad)
-            lum[pad:-pad] = self._luminance(prof.astype(float))
-            running = np.concatenate([[0.0], np.cumsum(lum)])
-            # Antiderivative of the piecewise-constant profile at the pixel edges
-            # (LCD pixel i covers [i - 0.5, i + 0.5); the bezel is dark).
-            pos = np.clip(edges + 0.5 + pad, 0.0, lum.size - 1e-9)
-            idx = pos.astype(np.intp)
-            antider = running[idx] + lum[idx] * (pos - idx)
-            du = np.diff(edges, axis=-1)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                strip = np.diff(antider, axis=-1) / du
-            strip = np.where((across >= -0.5) & (across < n_across - 0.5) & np.isfinite(strip), strip, 0.0)
-            if direction == "x":
-                irr = strip.reshape(h, ss, w).mean(axis=1)
-            else:
-                irr = strip.reshape(w, ss, h).mean(axis=1).T
-        else:
-            u, v = geo["uv"]
-            inside = (u >= -0.5) & (u < rig.lcd.width - 0.5) & (v >= -0.5) & (v < rig.lcd.height - 0.5)
-            coord = u if direction == "x" else v
-            g = np.clip(fringe_values(coord, f, direction, period, step, n_steps, z_read), 0, 255)
-            if f.gamma != 1.0:
-                g = 255.0 * (g / 255.0) ** (1.0 / f.gamma)
-            lum = np.where(inside, self._luminance(g), 0.0)
-            if s.dust:
-                lum = lum * self.dust_transmission(u, v)
-            irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
+        u, v = geo["uv"]
+        inside = (u >= -0.5) & (u < rig.lcd.width - 0.5) & (v >= -0.5) & (v < rig.lcd.height - 0.5)
+        coord = u if direction == "x" else v
+        g = np.clip(fringe_values(coord, f, direction, period, step, n_steps, z_read), 0, 255)
+        if rig.display is not None and len(rig.display.levels) >= 2:
+            g = display_inverse(rig.display, g)
+        elif f.gamma != 1.0:
+            g = 255.0 * (g / 255.0) ** (1.0 / f.gamma)
+        lum = np.where(inside, self._luminance(g), 0.0)
+        if s.dust:
+            lum = lum * self.dust_transmission(u, v)
+        irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
         return self._expose(irr, self.blur_sigma(k), (2, k, "xy".index(direction), period, step))
+
+    def render_profile(self, k: int, direction: str, prof: np.ndarray, noise_key: tuple) -> np.ndarray:
+        """One camera frame of any 1-D LCD profile at position ``k``, each LCD pixel integrated exactly.
+
+        Parameters
+        ----------
+        k : int
+        direction : {"x", "y"}
+            ``prof`` varies along LCD columns (``x``) or rows (``y``).
+        prof : (lcd.width,) or (lcd.height,) uint8
+            Displayed levels.
+        noise_key : tuple of int
+            Selects the noise stream (:meth:`render` uses ``(2, k, ...)``).
+
+        Returns
+        -------
+        (H, W) uint8 or uint16, like :meth:`render` (needs ``pixelated`` settings).
+        """
+        rig, s = self.rig, self.settings
+        if not s.pixelated:
+            raise ConfigError("render_profile needs pixelated = True")
+        if s.dust:
+            raise ConfigError("dust on the LCD is simulated with pixelated = False only")
+        h, w = rig.camera.height + 2 * self.margin, rig.camera.width + 2 * self.margin
+        ss = s.supersample
+        edges, across, n_along, n_across = self._geometry(k)[direction]
+        pad = 2
+        lum = np.zeros(n_along + 2 * pad)
+        lum[pad:-pad] = self._luminance(np.asarray(prof).astype(float))
+        running = np.concatenate([[0.0], np.cumsum(lum)])
+        # Antiderivative of the piecewise-constant profile at the pixel edges
+        # (LCD pixel i covers [i - 0.5, i + 0.5); the bezel is dark).
+        pos = np.clip(edges + 0.5 + pad, 0.0, lum.size - 1e-9)
+        idx = pos.astype(np.intp)
+        antider = running[idx] + lum[idx] * (pos - idx)
+        du = np.diff(edges, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            strip = np.diff(antider, axis=-1) / du
+        strip = np.where((across >= -0.5) & (across < n_across - 0.5) & np.isfinite(strip), strip, 0.0)
+        if direction == "x":
+            irr = strip.reshape(h, ss, w).mean(axis=1)
+        else:
+            irr = strip.reshape(w, ss, h).mean(axis=1).T
+        return self._expose(irr, self.blur_sigma(k), tuple(noise_key))
 
     def dust_transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Transmission (0..1) of the dust disks of the settings at LCD points ``(u, v)``."""

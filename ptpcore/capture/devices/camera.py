@@ -154,6 +154,10 @@ class SimulatedCamera:
             if spec is not None:
                 d, _j, t, s, big_n = spec
                 return self.vr.render(k, d, t, s, big_n)
+            profile = self._profile(image)
+            if profile is not None:  # another 1-D pattern (e.g. through a measured display response)
+                self._other += 1
+                return self.vr.render_profile(k, profile[0], profile[1], (4, self._other))
         z_true = z if k is None else float(self.vr.z_true[k])
         self._other += 1
         return self.vr.render_image(image, z_true, noise_key=(3, self._other))
@@ -164,6 +168,17 @@ class SimulatedCamera:
         i = int(np.argmin(np.abs(zs - z)))
         return i if abs(zs[i] - z) <= 1e-9 * max(1.0, abs(z)) else None
 
+    def _profile(self, image: np.ndarray):
+        """``(direction, levels)`` of an image that varies along one LCD axis only (not uniform), else None."""
+        image = np.asarray(image)
+        if not self.vr.settings.pixelated or self.vr.settings.dust or image.dtype != np.uint8 or image.ndim != 2:
+            return None
+        if (image == image[:1]).all() and not (image == image[0, 0]).all():
+            return "x", np.ascontiguousarray(image[0])
+        if (image == image[:, :1]).all() and not (image == image[0, 0]).all():
+            return "y", np.ascontiguousarray(image[:, 0])
+        return None
+
     def _identify(self, image: np.ndarray, k: int):
         """The rig's fringe spec ``(dir, level, period, step, N)`` shown in ``image`` at position ``k``."""
         from ptpcore.decode.patterns import fringe_profile
@@ -173,7 +188,7 @@ class SimulatedCamera:
             table = {}
             for spec in rig.fringes.frames():
                 d, _j, t, s, big_n = spec
-                prof = fringe_profile(rig.lcd, rig.fringes, d, t, s, big_n, rig.stage.z_mm[k])
+                prof = fringe_profile(rig.lcd, rig.fringes, d, t, s, big_n, rig.stage.z_mm[k], rig.display)
                 table.setdefault((d, prof.tobytes()), spec)
             self._patterns = (k, table)
         table = self._patterns[1]
