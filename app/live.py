@@ -19,6 +19,8 @@ import threading
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+import pyqtgraph as pg
 from PySide6.QtCore import QObject, Qt, Signal, Slot
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDialog, QDialogButtonBox, QDoubleSpinBox, QFileDialog,
                                QFormLayout, QHBoxLayout, QLabel, QLineEdit, QPushButton, QVBoxLayout, QWidget)
@@ -33,6 +35,7 @@ from ptpcore.run import collect_samples
 from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
+from .widgets.maps import axis_label
 from .session import FramePreview, LiveSettings, PositionStatus
 from .worker import Job
 
@@ -189,7 +192,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
     simulated camera (else None); ``rig`` is the captured ``rig.toml`` (the
     stage readings as recorded). Partial results: ``("start", k)``,
     ``("captured", k)``, ``("kept", k)``, ``("frame", ...)``, ``("exposure", ok, message)``,
-    ``("position", status, decoded)``.
+    ``("position", status, decoded)``, ``("display", levels, luminance)`` (the measured response).
     """
     if session.dataset_folder is None:
         raise ConfigError("choose the folder the capture writes to")
@@ -207,9 +210,11 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
             ctx.emit({"capturing": ("start", k), "done": ("captured", k), "kept": ("kept", k)}[state])
 
         result = capture(folder, rig, camera, stage, display, resume=lv.resume, exposure_us=lv.exposure_us,
-                         accept_exposure=lv.accept_exposure, meta=meta,
+                         accept_exposure=lv.accept_exposure, meta=meta, measure_display=lv.measure_display,
                          progress=lambda f, m: ctx.progress(0.7 * f, m), on_frame=on_frame,
                          on_exposure=lambda r: ctx.emit(("exposure", r.ok, r.message)), on_position=on_position)
+        if result.rig.display is not None:
+            ctx.emit(("display", list(result.rig.display.levels), list(result.rig.display.luminance)))
         truth = None
         if sim:
             if not (folder / TRUTH_FILE).exists():
@@ -316,6 +321,22 @@ class LivePanel(QWidget):
         self.exposure_label = QLabel("Exposure check: runs at the first position, before the long run.")
         self.exposure_label.setWordWrap(True)
         form.addRow("", self.exposure_label)
+        self.display_check = QCheckBox("Measure the display's response and pre-compensate the patterns")
+        self.display_check.setToolTip("At the first position, after the exposure check: a ramp of 17 uniform levels,"
+                                      " the camera's mean at each gives the display's response (rig.toml"
+                                      " [display]); every pattern is then shown through its inverse, so the"
+                                      " fringes carry no harmonics above the noise (ptp capture --measure-display).")
+        form.addRow("", self.display_check)
+        self.display_plot = pg.PlotWidget()
+        self.display_plot.setTitle("Measured display response")
+        axis_label(self.display_plot, "left", "relative luminance")
+        axis_label(self.display_plot, "bottom", "level")
+        self.display_plot.setMaximumHeight(180)
+        self.display_plot.plot([0, 255], [0, 1], pen=pg.mkPen("#999999", style=Qt.DashLine))
+        self.display_curve = self.display_plot.plot(pen=pg.mkPen("#2b6cb0", width=2), symbol="o", symbolSize=5,
+                                                    symbolBrush="#2b6cb0")
+        self.display_plot.setVisible(False)
+        form.addRow("", self.display_plot)
 
         self.refresh_screens()
         self.folder_browse.clicked.connect(self._browse_folder)
@@ -327,7 +348,7 @@ class LivePanel(QWidget):
             w.editingFinished.connect(self._edited)
         for w in (self.exposure, self.settle):
             w.valueChanged.connect(self._edited)
-        for w in (self.resume_check, self.accept_check):
+        for w in (self.resume_check, self.accept_check, self.display_check):
             w.toggled.connect(self._edited)
         model.rigChanged.connect(self._show_warning)
         model.sourceChanged.connect(self.load)
@@ -360,6 +381,7 @@ class LivePanel(QWidget):
             self.camera_source.setText(lv.camera_source)
             self.exposure.setValue(lv.exposure_us or 0.0)
             self.accept_check.setChecked(lv.accept_exposure)
+            self.display_check.setChecked(lv.measure_display)
             self.stage_combo.setCurrentIndex(max(self.stage_combo.findData(lv.stage), 0))
             self.config_edit.setText(str(lv.config) if lv.config else "")
             self.screen_combo.setCurrentIndex(max(self.screen_combo.findData(lv.screen), 0))
@@ -416,7 +438,7 @@ class LivePanel(QWidget):
             exposure_us=self.exposure.value() or None, stage=self.stage_combo.currentData(),
             config=Path(cfg) if cfg else None, screen=self.screen_combo.currentData(),
             settle_ms=self.settle.value(), resume=self.resume_check.isChecked(),
-            accept_exposure=self.accept_check.isChecked())
+            accept_exposure=self.accept_check.isChecked(), measure_display=self.display_check.isChecked())
 
     def _edited(self, *_):
         if self._loading:
@@ -448,6 +470,11 @@ class LivePanel(QWidget):
         if path:
             self.config_edit.setText(path)
             self._edited()
+
+    def show_display(self, levels, luminance) -> None:
+        """Plot the measured display response (levels 0..255 -> relative luminance; dashed: linear)."""
+        self.display_curve.setData(np.asarray(levels, float), np.asarray(luminance, float))
+        self.display_plot.setVisible(True)
 
     def show_exposure(self, ok: bool, message: str) -> None:
         self.exposure_label.setText(f"Exposure check: {message}")

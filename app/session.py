@@ -102,6 +102,7 @@ class LiveSettings:
     settle_ms: float = 100.0
     resume: bool = False
     accept_exposure: bool = False
+    measure_display: bool = False  # the display's response (a ramp at the first position), patterns through its inverse
 
 
 @dataclass

@@ -271,6 +271,8 @@ class AcquirePage(StudioPage):
             self.live.show_exposure(payload[1], payload[2])
         elif kind == "warnings":
             self.jobs.show_warning("Warning: " + "\n".join(payload[1]))
+        elif kind == "display":
+            self.live.show_display(payload[1], payload[2])
         elif kind == "position":
             _, status, decoded = payload
             self.model.update_position(status)

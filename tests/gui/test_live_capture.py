@@ -197,3 +197,28 @@ def test_a_capture_through_the_lcd_window(qtbot, tmp_path):
     assert display.shown == 2 + 2 * rig.fringes.frames_per_position and display.window.serial == display.shown
     assert not display.window.isVisible()
     assert same_images(tmp_path / "sim", tmp_path / "cap")
+
+
+def test_live_capture_measures_the_display_response(wizard, qtbot, tmp_path):
+    """Issue 14: the Acquire page's switch measures the display's response; the curve is plotted and
+    the dataset's rig.toml carries it as [display]."""
+    acq = go_live(wizard, tmp_path / "cap")
+    s = wizard.model.session
+    assert not acq.live.display_plot.isVisibleTo(acq.live)
+    acq.live.display_check.setChecked(True)
+    assert s.live.measure_display
+    frames = []
+    job = acq.start()
+    job.partial.connect(lambda p: frames.append(p[0]))
+    assert run_job(qtbot, job) == "finished", acq.jobs.error.text()
+    assert "display" in frames
+    disp = load_rig(tmp_path / "cap").display
+    assert disp is not None and s.rig.display == disp
+    x, y = acq.live.display_curve.getData()
+    assert np.allclose(x, disp.levels) and np.allclose(y, disp.luminance)
+    assert acq.live.display_plot.isVisibleTo(acq.live)
+    # plumbing: the preset's display response is what was measured (its noise is checked in test_display_response)
+    g = s.sim_settings.display_gamma
+    black = s.sim_settings.lcd_black
+    true = (black + (1 - black) * (np.asarray(disp.levels) / 255) ** g - black) / (1 - black)
+    assert np.max(np.abs(np.asarray(disp.luminance) - true)) < 0.01
