@@ -203,3 +203,38 @@ def test_refined_stage_pose_widens_the_sigma_maps_by_its_propagated_sigma():
     assert np.all(mx[v] > 0) and np.all(np.isfinite(my[v]))
     rec = json.loads(res.lut.provenance["corrections"])["stage_refinement"]
     assert rec["max_um"] >= rec["median_um"] > 0
+
+
+def test_residuals_are_those_of_the_samples_as_fitted(tmp_path, capsys):
+    """`ptp calibrate --refine-stage` on the `real` rig: the summary's residual diagnostics use the samples
+    the LUT was fitted to (glass removed, stored pose applied), so the 100 um glass offset is not reported
+    as a residual."""
+    from ptpcore.cli import main
+    from ptpcore.evaluate.residuals import residual_field
+    from ptpcore.fit.corrected import samples_as_fitted
+    from ptpcore.io.lutfile import load_lut
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.run.pipeline import collect_samples
+
+    data = tmp_path / "real"
+    assert main(["simulate", str(data), "--preset", "real", "--width", "64", "--positions", "6", "-q"]) == 0
+    assert main(["calibrate", str(data), "--out", str(tmp_path / "r.lut.h5"), "--model", "poly", "--degree", "2",
+                 "--refine-stage", "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "stage pose refined over" in text and "cover glass 1.1 mm" in text
+    lut = load_lut(tmp_path / "r.lut.h5")
+    src = DatasetSource(data)
+    raw = collect_samples(src)
+    fitted = samples_as_fitted(raw, src.rig, lut)
+    assert fitted.corrections["stage_refinement"]["median_um"] > 0
+    worst = residual_field(lut, fitted, None).rms_um
+    raw_worst = residual_field(lut, raw, None).rms_um
+    # As decoded, the residuals hold the glass's per-pixel offset in quadrature (it is constant per
+    # pixel, along the ray's lateral direction): what the fitted samples' residuals lack is its RMS.
+    from ptpcore.fit.glass import correct_samples
+
+    shift = correct_samples(raw, src.rig)[1]["cover_glass"].shift_um
+    rms_shift = [np.sqrt(np.mean(shift[lut.valid & raw.valid[k]] ** 2)) for k in range(len(raw.z))]
+    assert np.allclose(np.sqrt(raw_worst ** 2 - worst ** 2), rms_shift, rtol=0.05)
+    line = next(t for t in text.splitlines() if "worst positions" in t)
+    assert abs(float(line.split("µm")[0].split()[-1]) - np.nanmax(worst)) < 1e-2

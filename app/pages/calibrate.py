@@ -11,8 +11,8 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QVBoxLayout)
 
 from ptpcore.fit import describe_lut
-from ptpcore.fit.corrected import fit_corrected
-from ptpcore.fit.glass import corrected_samples, describe_corrections
+from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
+from ptpcore.fit.glass import describe_corrections
 from ptpcore.fit.choice import ModelChoice
 from ptpcore.evaluate import pixel_series, reason_text
 from ptpcore.evaluate.residuals import residual_field
@@ -307,7 +307,7 @@ class CalibratePage(StudioPage):
             res = fit_corrected(samples, rig, model, degree, positions=positions, refine_stage=refine,
                                 progress=ctx.progress, stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
                                 footprint=fit["footprint"], robust=True)
-            self._corrected_cache = (samples, rig, res.samples)
+            self._corrected_cache = (samples, rig, res.lut, res.samples)
             return res.lut
 
         job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
@@ -316,11 +316,13 @@ class CalibratePage(StudioPage):
         return self.run_job(job)
 
     def _corrected(self, samples, rig):
-        """The samples every fit reads: with the corrections ``rig`` asks for (cached per stack and rig)."""
+        """The samples the session's LUT was fitted to: the corrections ``rig`` asks for and the LUT's stage
+        pose (cached per stack, rig and LUT)."""
+        lut = self.model.session.lut
         cached = getattr(self, "_corrected_cache", None)
-        if cached is None or cached[0] is not samples or cached[1] != rig:
-            cached = self._corrected_cache = (samples, rig, corrected_samples(samples, rig))
-        return cached[2]
+        if cached is None or cached[0] is not samples or cached[1] != rig or cached[2] is not lut:
+            cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
+        return cached[3]
 
     def _fitted(self, lut, positions, fit: dict) -> None:
         self.fitted = dict(fit)
@@ -370,7 +372,7 @@ class CalibratePage(StudioPage):
         self._show_choice(choice_of(lut))
         s = self.model.session
         self.stage_pose.set_pose(s.rig.stage.z_mm, lut.stage_pose, lut.stage_pose_sigma)
-        self.residual_field = (residual_field(lut, s.samples, s.lut_positions)
+        self.residual_field = (residual_field(lut, self._corrected(s.samples, s.rig), s.lut_positions)
                                if s.samples is not None and s.samples.shape == lut.shape else None)
         self.residuals.set_field(self.residual_field)
         # Start with the valid pixel nearest the sensor's centre.

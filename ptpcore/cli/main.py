@@ -108,8 +108,10 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         print("\n".join("  " + line for line in drift.lines()))
     if session.samples is not None:
         from ptpcore.evaluate.residuals import residual_field
+        from ptpcore.fit.corrected import samples_as_fitted
 
-        field = residual_field(session.lut, session.samples, session.positions)
+        fitted = samples_as_fitted(session.samples, session.rig, session.lut, session.positions)
+        field = residual_field(session.lut, fitted, session.positions)
         print("\n".join("  " + line for line in field.lines()))
     return 0
 
@@ -155,7 +157,8 @@ def _lut_summary(lut, path) -> str:
             arr = sig[v][np.isfinite(sig[v])] if sig is not None else np.zeros(0)
             if arr.size:
                 lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
-                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm (from the phase noise)")
+                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
+                             " (phase noise; stage pose and glass tolerances when given)")
     try:
         corrections = json.loads(lut.provenance.get("corrections", "{}"))
     except ValueError:

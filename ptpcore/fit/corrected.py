@@ -22,7 +22,7 @@ from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 
-__all__ = ["CorrectedFit", "fit_corrected", "correct_all"]
+__all__ = ["CorrectedFit", "fit_corrected", "correct_all", "samples_as_fitted"]
 
 
 @dataclass
@@ -70,6 +70,32 @@ def correct_all(samples: SampleStack, rig: Rig, positions=None, *, refine: bool 
         pose = refine_stage(samples, rig, n_pixels=1500, seed=seed)
         samples = apply_stage_pose(samples, rig, pose, slopes)
     return samples, applied, pose, slopes
+
+
+def samples_as_fitted(samples: SampleStack, rig: Rig, lut: Lut | None, positions=None) -> SampleStack:
+    """The samples a LUT was fitted to: the corrections ``rig.toml`` asks for, and the LUT's stored stage pose.
+
+    For residuals and per-pixel plots of a fitted (or reopened) LUT: the pose is
+    the one in ``lut.stage_pose`` (not estimated again).
+
+    Parameters
+    ----------
+    samples : SampleStack
+        As decoded.
+    rig : Rig
+    lut : Lut or None
+    positions : sequence of int, optional
+        Positions whose samples give each pixel's slope (default all).
+
+    Returns
+    -------
+    SampleStack
+    """
+    fixed, _applied = correct_samples(samples, rig, positions)
+    if lut is not None and lut.stage_pose is not None and len(lut.stage_pose) == len(samples.z):
+        sigma = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else lut.stage_pose * 0.0
+        fixed = apply_stage_pose(fixed, rig, StagePose(lut.stage_pose, sigma, 0.0, 0), pixel_slopes(fixed, positions))
+    return fixed
 
 
 def fit_corrected(samples: SampleStack, rig: Rig, model: str = "auto", degree: int = 3, positions=None, *,
