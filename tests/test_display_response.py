@@ -78,3 +78,25 @@ def test_capture_measures_the_response_and_its_inverse_removes_the_harmonics(tmp
             h2 = np.nanmedian(coherent_harmonic(frames, 2, 8)["amplitude"])
             noise = float(s.noise_dn(rig.camera, np.mean(frames)))
             assert (h2 < noise) == below, (folder.name, d, h2, noise)
+
+
+def test_a_resumed_capture_keeps_the_response_it_measured(tmp_path):
+    from ptpcore.errors import Cancelled
+
+    rig, s = scaled_preset("mild", 48, positions=3)
+    rig = replace(rig, fringes=replace(rig.fringes, gamma=1.0))
+    s = replace(s, display_gamma=GAMMA)
+
+    def stop(_f, message):
+        if message.startswith("position 2/"):
+            raise Cancelled("cancelled")
+
+    out = tmp_path / "cap"
+    with pytest.raises(Cancelled):
+        capture(out, rig, *simulated_devices(rig, s, 3), measure_display=True, progress=stop)
+    state = json.loads((out / STATE_FILE).read_text())
+    first = Display(tuple(state["display"]["levels"]), tuple(state["display"]["luminance"]))
+    result = capture(out, rig, *simulated_devices(rig, replace(s, display_gamma=2.0), 3), resume=True,
+                     measure_display=True)
+    assert result.kept == [0] and result.rig.display == first == load_rig(out).display  # not measured again
+    assert np.allclose(result.display_means, state["display"]["camera_means"])

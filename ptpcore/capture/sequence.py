@@ -555,12 +555,8 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
         return CaptureResult(out, load_rig(out), [], list(range(n_pos)), None)
 
     kept = _verify_kept_positions(out, rig, state, report, on_position) if resume else []
-    if state.get("display"):  # measured when the capture started: its patterns went through it
-        rig = replace(rig, display=Display(tuple(state["display"]["levels"]), tuple(state["display"]["luminance"])))
     run = _CaptureRun(out, rig, camera, stage, display, state, image_ext, retries, report, on_frame, on_position)
-    run.measure_display = bool(measure_display) and not state.get("display") and not kept
-    if state.get("display", {}).get("camera_means"):
-        run.display_means = np.asarray(state["display"]["camera_means"], dtype=float)
+    run.display_from_state(measure_display and not kept)
     todo = [k for k in range(n_pos) if k not in kept]
     state["devices"] = {"camera": describe(camera), "stage": describe(stage), "display": describe(display)}
     exposure = run.run(todo, z_plan, position_tolerance_mm, home, exposure_us,
@@ -689,6 +685,16 @@ class _CaptureRun:
         if not exposure.ok and not accept:
             raise ExposureError(f"exposure check at z = {z:g} mm: {exposure.message}")
         return exposure
+
+    def display_from_state(self, measure: bool) -> None:
+        """A response measured when the capture started (its patterns went through it), else measure it
+        at the first position when ``measure``."""
+        d = self.state.get("display")
+        if d:
+            self.rig = replace(self.rig, display=Display(tuple(d["levels"]), tuple(d["luminance"])))
+            if d.get("camera_means"):
+                self.display_means = np.asarray(d["camera_means"], dtype=float)
+        self.measure_display = bool(measure) and not d
 
     def measure_display_at(self) -> None:
         """The display response at the first position captured: into the rig and the state."""
