@@ -690,6 +690,13 @@ class SmoothInfo:
         Factor applied to the predicted sample noise (see :func:`sigma_scale`).
     excess_sigma_mm : float
         Model error beyond the noise, measured by cross-validation.
+    model_sigma_mm : float
+        RMS over the valid pixels of the model-error term in the sigma maps
+        (what the smoothing and the global model cannot follow), from the
+        leave-one-position-out residuals (:func:`_leave_one_out`); 0 where the data do not resolve it.
+    model_limit_mm : float
+        The smallest model error the leave-one-out resolves (2 standard errors,
+        RMS over the regions): below it the term is left out.
     """
 
     pinhole: PinholeModel
@@ -698,6 +705,8 @@ class SmoothInfo:
     cv_rms_mm: np.ndarray
     noise_scale: float = 1.0
     excess_sigma_mm: float = 0.0
+    model_sigma_mm: float = 0.0
+    model_limit_mm: float = 0.0
 
 
 def _sigma_scale_from(rms_x, rms_y, n: np.ndarray, mean_var: np.ndarray, degree: int) -> float:
@@ -845,28 +854,35 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     fits.pz_min[~valid] = np.nan
     fits.pz_max[~valid] = np.nan
     q = _residual_maps(samples, rig, sel, z, run.t, coef, rays, level_bias, footprint)
-    run = rays = None
-    sig = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, stage_var)
+    cv_bin_used = run.b
+    run = None
+    noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
+    fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
+               for a in "xy"}
+    loo, merr = _leave_one_out(_LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, cv_bin_used,
+                                          level_bias, footprint, noise_scale), valid, fit_var,
+                                lambda f, m: report(0.92 + 0.07 * f, m))
+    rays = None
+    sig = {a: np.sqrt(fit_var[a] + merr.var[a]).astype(np.float32) for a in "xy"}
     for a in "xy":
         coef[a][:, ~valid] = np.nan
         sig[a][~valid] = np.nan
         q[a][~valid] = np.nan
+        loo[a][~valid] = np.nan
     lut = Lut(
         kind="poly", degree=degree, z_center=zc, z_scale=zs, z_min=float(z.min()), z_max=float(z.max()),
         x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
         n_positions=np.where(valid, fits.n_pos, 0).astype(np.uint16),
         pixel_z_min=fits.pz_min, pixel_z_max=fits.pz_max,
         rms_x=q["x"], rms_y=q["y"],
-        # The smooth fit barely moves when one position is left out: its
-        # leave-one-out error is its residual against the held-out sample.
-        loo_x=q["x"].copy(), loo_y=q["y"].copy(),
+        loo_x=loo["x"], loo_y=loo["y"],
         sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
         extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
     )
     report(1.0, "smooth LUT fitted")
     return lut, SmoothInfo(model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
-                           float(np.sqrt(excess_var)))
+                           float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
 
 
 @dataclass
@@ -921,7 +937,7 @@ class _SmoothPass:
     """
 
     def __init__(self, samples: SampleStack, rig: Rig, sel, z: np.ndarray, z_norm, rays, degree: int,
-                 scales_px, cv_bin, level_bias: bool, footprint: bool):
+                 scales_px, cv_bin, level_bias: bool, footprint: bool, cross_validate: bool = True):
         self.samples, self.rig, self.sel, self.z, self.rays = samples, rig, sel, z, rays
         self.level_bias, self.footprint = level_bias, footprint
         self.zc, self.zs = z_norm
@@ -932,8 +948,8 @@ class _SmoothPass:
         self.scales = np.asarray(scales_px, dtype=float)
         self.cv_degree = min(degree, k // 2 - 1)
         self.dc = self.cv_degree + 1
-        self.folds = [np.arange(k) % 2 == f for f in (0, 1)] if self.cv_degree >= 1 else []
-        if not self.folds:
+        self.folds = [np.arange(k) % 2 == f for f in (0, 1)] if self.cv_degree >= 1 and cross_validate else []
+        if not self.folds and cross_validate:
             warnings.warn(f"smooth LUT: {k} calibration positions are too few to cross-validate the smoothing"
                           " scale (need 4); the correction is not smoothed", RuntimeWarning, stacklevel=3)
         b = self.b = int(cv_bin) if cv_bin else _bin_factor(self.shape)
@@ -1192,6 +1208,183 @@ def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.nda
 
     _run_blocks(quality, _row_blocks(h, w))
     return q
+
+
+MODEL_ERROR_REGIONS = 1
+"""Regions along the image's longer side over which the model-error term of the smooth LUT's
+sigma maps is measured (square regions; the term is interpolated bilinearly between their centres).
+One: the term is a small excess over the sample noise, so its standard error per region grows as the
+square root of the number of regions; on the presets at 96 x 72 px four regions per side leave a
+2-standard-error limit of 3.1 um (realistic) against a model error of 2.3 um."""
+
+
+@dataclass
+class _LooSetup:
+    """What the smooth LUT was fitted with, for its leave-one-position-out refits."""
+
+    samples: SampleStack
+    rig: Rig
+    sel: np.ndarray
+    z: np.ndarray
+    z_norm: tuple
+    rays: tuple
+    degree: int
+    scale: float
+    cv_bin: int
+    level_bias: bool
+    footprint: bool
+    noise_scale: float
+
+
+@dataclass
+class _ModelError:
+    """The model-error term of the smooth LUT's sigma maps (see :func:`_model_error`).
+
+    Attributes
+    ----------
+    var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (0 where not resolved)
+    rms_mm : float
+        RMS of ``sqrt(var)`` over both axes and the pixels with samples.
+    limit_mm : float
+        RMS over regions and axes of the smallest resolvable model error (2 standard errors).
+    """
+
+    var: dict
+    rms_mm: float
+    limit_mm: float
+
+
+def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -> tuple[dict, _ModelError]:
+    """Leave-one-position-out of the smooth LUT, and the model error its residuals reveal.
+
+    For every calibration position ``k`` the smooth LUT is fitted again
+    without it (the global model, the normalisation in z and the smoothing
+    scale kept; every pixel's fit, its weights and the smoothing redone) and
+    its prediction at ``z_k`` compared with position ``k``'s corrected samples.
+    No sample of position ``k`` reaches that prediction, at any pixel, so a
+    per-position error common to all pixels (stage reading, a smooth pattern)
+    is not smoothed into it.
+
+    Parameters
+    ----------
+    setup : _LooSetup
+    valid : (H, W) bool
+        The smooth LUT's valid pixels.
+    fit_var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2
+        The LUT's predicted variance from the sample noise (and stage readings),
+        RMS over the calibrated range.
+    report : callable ``(fraction, message)``
+
+    Returns
+    -------
+    loo : dict ``"x"``, ``"y"`` -> (H, W) float32, mm
+        Per-pixel RMS over the positions of the leave-one-out residual.
+    model : _ModelError
+    """
+    s = setup
+    h, w = s.samples.shape
+    k_all = s.z.size
+    loo_sq = {a: np.zeros((h, w)) for a in "xy"}
+    count = np.zeros((h, w))
+    # Per pixel: sum of (r^2 - expected variance), sum of 2 expected^2 (variance of r^2), for both axes.
+    excess = {a: np.zeros((h, w)) for a in "xy"}
+    var_r2 = {a: np.zeros((h, w)) for a in "xy"}
+    n_model = np.zeros((h, w))
+    # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
+    grow = k_all / max(k_all - 1, 1)
+    for k in range(k_all):
+        report(k / k_all, f"leaving calibration position {k + 1} of {k_all} out")
+        coef = _refit_without(s, k)
+        # Only interior positions measure the model error: the LUT is used inside its calibrated
+        # range, and the fit without an end position extrapolates to it.
+        interior = s.z.min() < s.z[k] < s.z.max()
+        _accumulate_left_out(s, k, coef, valid, {a: fit_var[a] * grow for a in "xy"}, loo_sq, count,
+                             excess if interior else None, var_r2, n_model)
+        del coef
+    with np.errstate(all="ignore"):
+        loo = {a: np.where(count > 0, np.sqrt(loo_sq[a] / count), np.nan).astype(np.float32) for a in "xy"}
+    return loo, _model_error(excess, var_r2, n_model)
+
+
+def _refit_without(s: _LooSetup, k: int) -> dict:
+    """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) fitted without calibration position ``k``."""
+    keep = np.arange(s.z.size) != k
+    run = _SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
+                      s.cv_bin, s.level_bias, s.footprint, cross_validate=False)
+    run.fit_and_cross_validate_fine(lambda f, m: None)
+    return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)
+
+
+def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fit_var: dict, loo_sq: dict,
+                         count: np.ndarray, excess: dict | None, var_r2: dict, n_model: np.ndarray) -> None:
+    """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel sums.
+
+    ``loo_sq`` and ``count`` (the leave-one-out map) always; ``excess``, ``var_r2`` and
+    ``n_model`` (the model error, :func:`_model_error`) unless ``excess`` is None.
+    """
+    from ptpcore.io.fastio import read_block
+
+    h, w = s.samples.shape
+    pos = [int(s.sel[k])]
+    zk = s.z[k:k + 1]
+    tk = (zk[0] - s.z_norm[0]) / s.z_norm[1]
+    powers = tk ** np.arange(s.degree + 1)
+
+    def block(r0, r1):
+        a0, a1 = r0 * w, r1 * w
+        ok_s, sig, _, _ = _block_samples(s.samples, s.rig, pos, zk, r0, r1, None)
+        fb = (footprint_bias(s.rays, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
+                             read_block(s.samples.background, a0, a1, pos), r0, r1) if s.footprint else None)
+        sample_var = np.square(sig[0] * s.noise_scale)
+        for i_axis, a in enumerate("xy"):
+            pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
+            r = _corrected_absolute(s.samples, s.rig, i_axis, a0, a1, pos, zk, s.level_bias, fb)[0] - pred
+            ok = ok_s[0] & valid[r0:r1].reshape(-1) & np.isfinite(r)
+            expected = sample_var + fit_var[a][r0:r1].reshape(-1)
+            ok &= np.isfinite(expected)
+            r2 = np.where(ok, r * r, 0.0).reshape(r1 - r0, w)
+            loo_sq[a][r0:r1] += r2
+            if i_axis == 0:
+                count[r0:r1] += ok.reshape(r1 - r0, w)
+            if excess is None:
+                continue
+            excess[a][r0:r1] += np.where(ok, r * r - expected, 0.0).reshape(r1 - r0, w)
+            var_r2[a][r0:r1] += np.where(ok, 2.0 * expected * expected, 0.0).reshape(r1 - r0, w)
+            if i_axis == 0:
+                n_model[r0:r1] += ok.reshape(r1 - r0, w)
+
+    _run_blocks(block, _row_blocks(h, w))
+
+
+def _model_error(excess: dict, var_r2: dict, count: np.ndarray) -> _ModelError:
+    """The model-error variance per region from the leave-one-out residuals' excess over the noise.
+
+    A left-out sample's residual is its own noise, the left-out fit's noise
+    and the model error ``b`` (what the smoothing and the global model cannot
+    follow) at once: ``E[r^2] = sigma_sample^2 + sigma_fit^2 + b^2``. Per
+    region (:data:`MODEL_ERROR_REGIONS` along the longer side) the mean of
+    ``r^2 - sigma_sample^2 - sigma_fit^2`` estimates ``b^2``, with the standard
+    error ``sqrt(sum 2 (sigma_sample^2 + sigma_fit^2)^2) / n`` (Gaussian residuals).
+    It is kept where it exceeds 2 standard errors (the data resolve it) and
+    interpolated bilinearly between the regions' centres; elsewhere the model
+    error is below what the data can tell from the noise and left out.
+    """
+    h, w = count.shape
+    side = max(1, int(np.ceil(max(h, w) / MODEL_ERROR_REGIONS)))
+    n = _bin(count, side)
+    var, limits = {}, []
+    for a in "xy":
+        with np.errstate(all="ignore"):
+            b2 = _bin(excess[a], side) / n
+            se = np.sqrt(_bin(var_r2[a], side)) / n
+        resolved = (n > 0) & (b2 > 2.0 * se)
+        limits.append(np.where(n > 0, 2.0 * se, np.nan))
+        var[a] = np.maximum(_upsample(np.where(resolved, b2, 0.0), side, h, w), 0.0)
+    has = count > 0
+    rms = float(np.sqrt(np.mean([np.mean(var[a][has]) for a in "xy"]))) if has.any() else 0.0
+    lim = np.concatenate([x.ravel() for x in limits])
+    lim = lim[np.isfinite(lim)]
+    return _ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)
 
 
 def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, noise_scale: float,
