@@ -645,10 +645,12 @@ def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, ray
 
 
 def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed: int = 0,
-                   rig: Rig | None = None) -> PinholeModel:
+                   rig: Rig | None = None, full: bool = False):
     """Fit the pinhole + Brown model to a random subset of valid calibration samples.
 
     With ``rig``, the samples lose the display's level bias first (:mod:`ptpcore.decode.display`).
+    Returns the :class:`PinholeModel`, or with ``full`` the whole
+    :class:`ptpcore.pinhole.camera.PinholeFit` (with its parameter covariance).
     """
     rng = np.random.default_rng(seed)
     h, w = samples.shape
@@ -670,7 +672,8 @@ def global_pinhole(samples: SampleStack, positions, n_points: int = 20000, seed:
             y = _remove_level_bias(y[None], rig, "y", [samples.z[k]], _lcd_shift(samples, 1, pick))[0]
         pts.append(np.stack([x, y, np.full(pick.size, samples.z[k])], 1))
         pix.append(np.stack([c, r], 1).astype(float))
-    return fit_pinhole(np.concatenate(pts), np.concatenate(pix)).model
+    fit = fit_pinhole(np.concatenate(pts), np.concatenate(pix))
+    return fit if full else fit.model
 
 
 @dataclass
@@ -822,8 +825,9 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     _check_noise(samples)
     report = progress or (lambda f, m: None)
     report(0.0, "fitting the global camera model")
-    model = global_pinhole(samples, positions, n_points=global_points, seed=seed,
-                           rig=rig if level_bias else None)
+    gfit = global_pinhole(samples, positions, n_points=global_points, seed=seed,
+                          rig=rig if level_bias else None, full=True)
+    model = gfit.model
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
     zc, zs = _z_normalisation(z)
@@ -845,6 +849,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     scale, cv_score, excess_var = run.choose_scale(noise_scale)
 
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
+    leak_w = _smoothing_weights(fits, 2)
     coef = _smoothed_coefficients(fits, scale, run.b, rays, zc, zs)
     stage_var = _stage_variance(rays, rig, run.t, degree, stage_sigma_mm)
     d1 = degree + 1
@@ -858,8 +863,11 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     run = None
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
+    report(0.91, "propagating the global model's uncertainty")
+    leak = _global_leak_variance(gfit, rays, leak_w, scale, cv_bin_used, fits.pz_min, fits.pz_max, (zc, zs))
+    leak_w = None
     fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
-               for a in "xy"}
+               + np.nan_to_num(leak[a], nan=0.0) for a in "xy"}
     loo, merr = _leave_one_out(_LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, cv_bin_used,
                                           level_bias, footprint, noise_scale), valid, fit_var,
                                 lambda f, m: report(0.92 + 0.07 * f, m))
@@ -1385,6 +1393,79 @@ def _model_error(excess: dict, var_r2: dict, count: np.ndarray) -> _ModelError:
     lim = np.concatenate([x.ravel() for x in limits])
     lim = lim[np.isfinite(lim)]
     return _ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)
+
+
+def _smoothing_weights(fits: "_PixelFits", n: int) -> np.ndarray:
+    """The final smoothing's weights ``1 / var_j`` of the first ``n`` coefficient maps, (n, H, W) float64
+    (0 where a pixel has no fit), as :func:`_smoothed_coefficients` uses them (call it before: it
+    smooths ``fits.var`` in place)."""
+    out = np.zeros((n, *fits.var.shape[1:]))
+    for j in range(min(n, fits.var.shape[0])):
+        vj = fits.var[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[j] = np.where(np.isfinite(fits.fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
+    return out
+
+
+def _pinhole_from_params(names, values) -> PinholeModel:
+    """A :class:`PinholeModel` from :class:`PinholeFit`-ordered parameter values."""
+    v = dict(zip(names, values))
+    K = np.array([[v["fx"], 0.0, v["cx"]], [0.0, v["fy"], v["cy"]], [0.0, 0.0, 1.0]])
+    dist = [v[n] for n in names if n[0] in "kp"]
+    return PinholeModel(K=K, dist=np.asarray(dist), rvec=np.array([v["rx"], v["ry"], v["rz"]]),
+                        tvec=np.array([v["tx"], v["ty"], v["tz"]]))
+
+
+def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
+                          z_norm) -> dict:
+    """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
+
+    The correction is fitted to the samples minus the global model, so an error
+    ``dg`` of the global rays reaches the LUT as ``dg - S dg``, ``S`` the final
+    smoothing (locally linear: it follows ``dg`` only where ``dg`` is linear
+    over the smoothing scale). ``dg`` comes from the global fit's parameter
+    covariance (:func:`ptpcore.pinhole.camera.fit_pinhole`): along each of its
+    eigenvectors (1 sigma) the rays are recomputed, the change written as
+    coefficients in ``t`` (``x0 + sx z``), smoothed with the final smoothing's
+    weights, and the remainder's square averaged over the pixel's calibrated
+    range; the directions' contributions add.
+
+    Parameters
+    ----------
+    gfit : PinholeFit
+    rays : (x0, y0, sx, sy) (H, W) float64, the global model's rays
+    weights : (2, H, W) float64, the smoothing weights of coefficients 0 and 1 (:func:`_smoothing_weights`)
+    scale : float, px ; b : int, the cross-validation's bin side
+    pz_min, pz_max : (H, W) the pixels' calibrated range (mm)
+    z_norm : (zc, zs)
+
+    Returns
+    -------
+    dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (zeros without smoothing or covariance)
+    """
+    h, w = pz_min.shape
+    out = {a: np.zeros((h, w)) for a in "xy"}
+    cov = getattr(gfit, "covariance", None)
+    if scale <= 0 or cov is None or not np.all(np.isfinite(cov)):
+        return out
+    zc, zs = z_norm
+    fb = 1
+    while fb * 2 <= b and fb * 2 * 4 <= scale:
+        fb *= 2
+    with np.errstate(all="ignore"):
+        mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64), 2)
+    lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    for li, vi in zip(lam, vec.T):
+        if li <= 0:
+            continue
+        moved = _global_rays(_pinhole_from_params(gfit.param_names, gfit.param_values + np.sqrt(li) * vi), (h, w))
+        for a, (i0, i1) in (("x", (0, 2)), ("y", (1, 3))):
+            d0, d1 = moved[i0] - rays[i0], moved[i1] - rays[i1]
+            c = [d0 + d1 * zc, d1 * zs]  # the change as coefficients in t
+            left = [cj - _smooth_binned(np.nan_to_num(cj), weights[j], scale, fb, False)[0]
+                    for j, cj in enumerate(c)]
+            out[a] += np.nan_to_num(left[0] ** 2 * mom[0] + 2 * left[0] * left[1] * mom[1] + left[1] ** 2 * mom[2])
+    return out
 
 
 def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, noise_scale: float,
