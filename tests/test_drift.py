@@ -68,24 +68,38 @@ def test_repeat_source_maps_positions_after_the_sweep():
         RepeatSource(type("S", (), {"rig": scaled_preset("mild", 80)[0]})())
 
 
-def test_calibrate_reports_the_drift_of_a_repeated_position(tmp_path, capsys):
-    """A ptp-dataset/2 folder whose first position was captured again after the sweep (here: the same
-    images, so no drift at all): the summary and /provenance drift say so."""
-    import shutil
-
+def test_calibrate_reports_the_drift_of_the_simulators_repeat(tmp_path, capsys):
+    """``ptp simulate --repeat`` shows the first position again after the sweep (its own noise and stage
+    error, ptp-dataset/2 ``[stage] repeat_z_mm``): calibrate finds it within the predicted noise; with
+    ``--drift-um`` the camera moved sideways before the repeat: a named warning and the mean shift."""
     from ptpcore.cli import main
     from ptpcore.io import load_lut
+    from ptpcore.rig import load_rig
 
-    data = tmp_path / "data"
-    assert main(["simulate", str(data), "--preset", "mild", "--width", "80", "--positions", "5", "-q"]) == 0
-    text = (data / "rig.toml").read_text()
-    text = text.replace('format = "ptp-dataset/1"', 'format = "ptp-dataset/2"')
-    text = text.replace("[stage]\n", "[stage]\nrepeat_z_mm = [0.0]\n")
-    (data / "rig.toml").write_text(text)
-    shutil.copytree(data / "z000", data / "z005")
-    out = tmp_path / "a.lut.h5"
-    assert main(["calibrate", str(data), "--out", str(out), "--model", "poly", "--degree", "1", "-q"]) == 0
-    said = capsys.readouterr().out
-    assert "drift at z = 0 mm (position 1 again): RMS 0.000" in said and "DRIFT WARNING" not in said
-    d = json.loads(load_lut(out).provenance["drift"])
-    assert d["repeats"][0]["position"] == 0 and d["repeats"][0]["rms_um"] == 0 and not d["warnings"]
+    found = []
+    for name, extra in (("still", []), ("moved", ["--drift-um", "3", "0"])):
+        data = tmp_path / name
+        assert main(["simulate", str(data), "--preset", "mild", "--width", "80", "--positions", "5", "--repeat",
+                     *extra, "-q"]) == 0
+        rig = load_rig(data / "rig.toml")
+        assert rig.stage.repeat_z_mm == (0.0,) and rig.stage.n_positions == 5
+        assert (data / "z005").is_dir() and not (data / "z006").exists()
+        out = tmp_path / f"{name}.lut.h5"
+        assert main(["calibrate", str(data), "--out", str(out), "--model", "poly", "--degree", "1", "-q"]) == 0
+        found.append((capsys.readouterr().out, json.loads(load_lut(out).provenance["drift"])))
+    (said, d), (said_moved, d_moved) = found
+    r = d["repeats"][0]
+    assert "drift at z = 0 mm (position 1 again)" in said and "DRIFT WARNING" not in said and not d["warnings"]
+    assert r["position"] == 0 and 0.8 <= r["rms_um"] / r["predicted_rms_um"] <= 1.25, r
+    assert all(abs(m) < 5 * se for m, se in zip(r["mean_um"], r["mean_se_um"]))
+    # Moved 3 um in X (a tenth of a pixel's noise at 80 px): the mean drift finds it, X only.
+    rm = d_moved["repeats"][0]
+    assert d_moved["warnings"] and "DRIFT WARNING" in said_moved
+    assert abs(abs(rm["mean_um"][0]) - 3.0) < 5 * rm["mean_se_um"][0] and abs(rm["mean_um"][1]) < 5 * rm["mean_se_um"][1]
+
+
+def test_simulate_drift_needs_repeat(tmp_path):
+    from ptpcore.cli import main
+
+    assert main(["simulate", str(tmp_path / "d"), "--preset", "mild", "--width", "40", "--positions", "3",
+                 "--drift-um", "1", "0", "-q"]) == 2

@@ -27,6 +27,8 @@ from ptpcore.io.outputs import check_output_file, check_output_folder
 # --------------------------------------------------------------------------- commands
 
 def cmd_simulate(args) -> int:
+    from dataclasses import replace
+
     from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
 
     check_output_folder(args.out_dir, force=args.force)
@@ -35,13 +37,18 @@ def cmd_simulate(args) -> int:
         # Same field of view and lens with another sensor size (see scaled_preset).
         rig, settings = scaled_preset(args.preset, args.width or rig.camera.width, args.height,
                                       args.positions)
+    if args.drift_um is not None and not args.repeat:
+        raise ValueError("--drift-um moves the camera before the repeat position: give --repeat too")
+    if args.repeat:  # the first position again at the end (ptp-dataset/2 [stage] repeat_z_mm)
+        rig = replace(rig, stage=replace(rig.stage, repeat_z_mm=(rig.stage.z_mm[0],)))
+        settings = replace(settings, drift_um=tuple(args.drift_um or (0.0, 0.0)))
     bar = progress_bar(args)
     try:
         out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
                                image_ext=".tif" if args.tiff else ".png")
     finally:
         bar.close()
-    n = rig.stage.n_positions * rig.fringes.frames_per_position
+    n = (rig.stage.n_positions + len(rig.stage.repeat_z_mm)) * rig.fringes.frames_per_position
     print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
           f" and truth.h5 to {out}")
     return 0
@@ -507,6 +514,11 @@ def _add_simulate(sub) -> None:
     s.add_argument("--height", type=positive_int, help="camera height in pixels (default: keeps the aspect ratio)")
     s.add_argument("--positions", type=positive_int, help="number of stage positions (default: the preset's)")
     s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
+    s.add_argument("--repeat", action="store_true",
+                   help="show the first position again at the end (its own noise and stage error; rig.toml"
+                        " [stage] repeat_z_mm, ptp-dataset/2): calibrate reports the drift")
+    s.add_argument("--drift-um", nargs=2, type=float, metavar=("DX", "DY"),
+                   help="with --repeat: the camera moved sideways by DX, DY um (world X, Y) before the repeat")
     s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)

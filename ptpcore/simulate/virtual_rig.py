@@ -110,6 +110,9 @@ class SimSettings:
     roll_urad: float = 0.0
     runout_um: float = 0.0
     bow_um: float = 0.0
+    drift_um: tuple[float, float] = (0.0, 0.0)
+    """How far the camera moved sideways (world X, Y, um) between the sweep and its repeat positions
+    (``[stage] repeat_z_mm``): the drift they should find. The sweep itself is not affected."""
     dust: tuple[tuple[float, float, float, float], ...] = ()
     """Dark disks on the LCD: ``(u, v, diameter, transmission)`` (LCD px; 0..1). Rendered
     exactly only with ``pixelated = False`` (point-sampled footprints)."""
@@ -347,11 +350,21 @@ class VirtualRig:
         self.stage_pose = draw_stage_poses(np.random.default_rng([self.seed, 4]), z.size, settings.runout_um,
                                            settings.tilt_urad, settings.roll_urad)
         self.stage_pose[:, 2] = 1e3 * (self.z_true - z)
+        # Repeat positions (after the sweep, positions K, K+1, ...): their own stage error and pose
+        # (own streams: a rig without repeats renders bit for bit as before).
+        rep = np.asarray(rig.stage.repeat_z_mm, dtype=float)
+        self.readings = np.concatenate([z, rep])
+        rep_true = rep + np.random.default_rng([self.seed, 6]).normal(0.0, settings.stage_error_um * 1e-3, rep.size)
+        rep_pose = draw_stage_poses(np.random.default_rng([self.seed, 7]), rep.size, settings.runout_um,
+                                    settings.tilt_urad, settings.roll_urad)
+        rep_pose[:, 2] = 1e3 * (rep_true - rep)
+        self._z_all = np.concatenate([self.z_true, rep_true])
+        self._pose_all = np.concatenate([self.stage_pose, rep_pose])
         self.physics = LcdPhysics(settings.cover_glass_mm, settings.cover_glass_index, settings.bow_um * 1e-3,
                                   ((rig.lcd.width - 1) * rig.lcd.pitch_mm[0], (rig.lcd.height - 1) * rig.lcd.pitch_mm[1]))
         self._coords_cache: tuple[int, dict] | None = None
         # Render a margin around the sensor so blur at its edges sees real scene.
-        max_sigma = max(self.blur_sigma(k) for k in range(z.size))
+        max_sigma = max(self.blur_sigma(k) for k in range(self.readings.size))
         self.margin = int(np.ceil(4.0 * max_sigma)) + 1 if max_sigma > 0 else 0
 
     # ---- geometry -------------------------------------------------------
@@ -409,7 +422,7 @@ class VirtualRig:
 
     def _lcd_uv(self, k: int, cols: np.ndarray, rows: np.ndarray):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at position k."""
-        return self._lcd_uv_at(self.z_true[k], cols, rows, k)
+        return self._lcd_uv_at(self._z_all[k], cols, rows, k)
 
     def _lcd_uv_at(self, z: float, cols: np.ndarray, rows: np.ndarray, k: int | None = None):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at true height ``z`` (mm).
@@ -418,7 +431,9 @@ class VirtualRig:
         (run-out, tilt); the cover glass and the bow apply everywhere.
         """
         o, d = self.rays(cols, rows)
-        pose = self.stage_pose[k] if k is not None else np.zeros(6)
+        pose = self._pose_all[k] if k is not None else np.zeros(6)
+        if k is not None and k >= self.rig.stage.n_positions and any(self.settings.drift_um):
+            o = o + np.array([self.settings.drift_um[0], self.settings.drift_um[1], 0.0]) * 1e-3
         if not self.physics.trivial or np.any(pose[[0, 1, 3, 4, 5]] != 0):
             return self._lcd_uv_real(z, o, d, pose)
         t = (z - o[..., 2]) / d[..., 2]
@@ -482,7 +497,7 @@ class VirtualRig:
 
     def blur_sigma(self, k: int) -> float:
         """Gaussian defocus blur (camera px) at position ``k``."""
-        return self.blur_sigma_at(self.z_true[k])
+        return self.blur_sigma_at(self._z_all[k])
 
     def blur_sigma_at(self, z: float) -> float:
         """Gaussian defocus blur (camera px) with the LCD at true height ``z`` (mm)."""
@@ -497,7 +512,7 @@ class VirtualRig:
         (H, W) uint8 (8-bit camera) or uint16 (9-16 bit, values not scaled)
         """
         rig, s = self.rig, self.settings
-        z_read = rig.stage.z_mm[k]
+        z_read = self.readings[k]
         f = rig.fringes
         if s.pixelated:  # through rig.display's inverse when the rig has a measured response
             prof = fringe_profile(rig.lcd, f, direction, period, step, n_steps, z_read, rig.display)
@@ -698,7 +713,7 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
         rig = replace(rig, template=str(Path(rig.template).with_suffix(image_ext)))
     vr = VirtualRig(rig, settings, seed)
     save_truth(out / TRUTH_FILE, vr)
-    k_total = rig.stage.n_positions
+    k_total = rig.stage.n_positions + len(rig.stage.repeat_z_mm)  # the repeats after the sweep
     for k in range(k_total):
         if progress:
             progress(k / k_total, f"rendering position {k + 1}/{k_total}")
