@@ -16,6 +16,7 @@ from ptpcore.fit.glass import describe_corrections
 from ptpcore.fit.choice import ModelChoice
 from ptpcore.evaluate import pixel_series, reason_text
 from ptpcore.evaluate.residuals import residual_field
+from ptpcore.run.pipeline import repeat_drift
 
 from ..widgets.maps import HeatmapPanel, axis_label
 from ..widgets.residuals import ResidualPanel
@@ -23,7 +24,7 @@ from ..widgets.stagepose import StagePosePanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text"]
+__all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map"]
 
 MODELS = {"auto": "Auto: best at held-out positions",
           "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
@@ -74,6 +75,36 @@ def robust_text(lut) -> str:
         out += (f" <b>SUSPECT position {k + 1}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
                 " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
     return out
+
+
+def drift_text(lut) -> str:
+    """The drift of the sweep's repeat positions (``/provenance`` ``drift``) in words, warnings in bold
+    red first; empty without repeats."""
+    text = lut.provenance.get("drift") if lut.provenance else None
+    if not text:
+        return ""
+    try:
+        d = json.loads(text)
+    except ValueError:
+        return ""
+    out = "".join(f" <b style='color:#c53030'>DRIFT WARNING: {w}</b>" for w in d.get("warnings", []))
+    for r in d.get("repeats", []):
+        if r.get("position", -1) < 0 or r.get("rms_um") is None:
+            out += f" Drift at z = {r['z_mm']:g} mm: no sweep position at that reading, not judged."
+            continue
+        pred = r.get("predicted_rms_um")
+        m = r.get("mean_um") or [float("nan")] * 2
+        out += (f" Drift at z = {r['z_mm']:g} mm (position {r['position'] + 1} again): RMS {r['rms_um']:.3f} µm"
+                + (f" (noise predicts {pred:.3f} µm)" if pred is not None else "")
+                + f", mean ({m[0]:+.3f}, {m[1]:+.3f}) µm.")
+    return out
+
+
+def drift_map(drift, index: int = 0) -> np.ndarray | None:
+    """Per-pixel drift magnitude ``|d|`` (µm, (H, W), NaN where not compared) of repeat ``index``, or None."""
+    if drift is None or index >= drift.z.size or drift.matched[index] < 0:
+        return None
+    return np.hypot(drift.dx[index], drift.dy[index]) * 1e3
 
 
 class CalibratePage(StudioPage):
@@ -150,8 +181,8 @@ class CalibratePage(StudioPage):
         bl = QHBoxLayout()
         self.map_buttons = QButtonGroup(self)
         self.map_buttons.setExclusive(True)
-        self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y"]
-        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions used", "validity", "σ X", "σ Y"]
+        self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y", "drift"]
+        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions used", "validity", "σ X", "σ Y", "drift"]
         for i, (key, lab) in enumerate(zip(self._map_keys, labels)):
             b = QPushButton(lab)
             b.setCheckable(True)
@@ -163,6 +194,10 @@ class CalibratePage(StudioPage):
             b = self.map_buttons.button(self._map_keys.index(key))
             b.setToolTip("Predicted 1σ uncertainty of the LUT, propagated from each sample's phase noise")
             b.setVisible(False)
+        b = self.map_buttons.button(self._map_keys.index("drift"))  # shown when the sweep repeated a position
+        b.setToolTip("|repeat − sweep| per pixel at the position captured again after the sweep ([stage] repeat_z_mm)")
+        b.setVisible(False)
+        self.drift = None  # ptpcore.fit.drift.Drift of the LUT the session holds, when fitted here
         bl.addStretch(1)
         ml.addLayout(bl)
         self.heatmap = HeatmapPanel()
@@ -300,6 +335,9 @@ class CalibratePage(StudioPage):
         refine = fit["refine_stage"]
         stage_mm = fit["stage_sigma_um"] * 1e-3
         gen = self.model.generation
+        source = s.make_source() if rig.stage.repeat_z_mm else None
+        options = s.decode_options
+        drifts = {}
 
         def work(ctx):
             # The cover glass, flatness and (refine) stage pose leave the samples before the fit; the
@@ -308,10 +346,17 @@ class CalibratePage(StudioPage):
                                 progress=ctx.progress, stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
                                 footprint=fit["footprint"], robust=True)
             self._corrected_cache = (samples, rig, res.lut, res.samples)
-            return res.lut
+            lut = res.lut
+            if source is not None:  # the sweep's repeat positions: the drift in between
+                ctx.progress(0.99, "decoding the repeat positions (drift)")
+                drifts[id(lut)] = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
+                if drifts[id(lut)] is not None:
+                    lut.provenance["drift"] = drifts[id(lut)].to_json()
+            return lut
 
         job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
-        job.finished.connect(lambda lut: gen == self.model.generation and self._fitted(lut, positions, fit))
+        job.finished.connect(lambda lut: gen == self.model.generation
+                             and self._fitted(lut, positions, fit, drifts.get(id(lut))))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
 
@@ -324,8 +369,9 @@ class CalibratePage(StudioPage):
             cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
         return cached[3]
 
-    def _fitted(self, lut, positions, fit: dict) -> None:
+    def _fitted(self, lut, positions, fit: dict, drift=None) -> None:
         self.fitted = dict(fit)
+        self.drift = (lut, drift) if drift is not None else None
         self.model.set_lut(lut, positions)
 
     def lut_settings(self) -> dict:
@@ -348,7 +394,10 @@ class CalibratePage(StudioPage):
             self.update_complete()
             return
         self.maps = quality_maps(lut)
-        for key in ("sigma_x", "sigma_y"):
+        dmap = drift_map(self.drift[1]) if self.drift is not None and self.drift[0] is lut else None
+        if dmap is not None:
+            self.maps["drift"] = ("Drift: |repeat − sweep| per pixel", dmap, "µm", "viridis", False)
+        for key in ("sigma_x", "sigma_y", "drift"):
             self.map_buttons.button(self._map_keys.index(key)).setVisible(key in self.maps)
         if self.current_map not in self.maps:
             self.map_buttons.button(0).setChecked(True)
@@ -368,6 +417,7 @@ class CalibratePage(StudioPage):
                                          .corrections if self.model.session.samples is not None else {}):
             text += f" {line[0].upper()}{line[1:]}."
         text += robust_text(lut)
+        text += drift_text(lut)
         self.stats.setText(text)
         self._show_choice(choice_of(lut))
         s = self.model.session

@@ -128,12 +128,11 @@ def _sweep_drift(session):
     rig = session.rig
     if not rig.stage.repeat_z_mm or not session.dataset or session.samples is None:
         return None
-    from ptpcore.fit.drift import RepeatSource, sweep_drift
     from ptpcore.io.dataset import DatasetSource
-    from ptpcore.run.pipeline import collect_samples
+    from ptpcore.run.pipeline import repeat_drift
 
-    repeats = collect_samples(RepeatSource(DatasetSource(session.dataset)), options=session.options)
-    return sweep_drift(session.samples, repeats, rig, stage_sigma_mm=session.stage_sigma_um * 1e-3)
+    return repeat_drift(DatasetSource(session.dataset), session.samples, rig, options=session.options,
+                        stage_sigma_mm=session.stage_sigma_um * 1e-3)
 
 
 def _lut_summary(lut, path) -> str:

@@ -8,7 +8,7 @@ session files that save and resume the run stage by stage.
 May import :mod:`ptpcore.simulate` and everything below it.
 """
 
-from .pipeline import decode_position, world_xy, collect_samples, calibrate, SPILL_BYTES
+from .pipeline import decode_position, world_xy, collect_samples, calibrate, SPILL_BYTES, repeat_drift
 from .session import (SESSION_FORMAT, SESSION_VERSION, SESSION_SUFFIX, STAGES, Session, next_step,
     new_session, save_session, load_session, run_session)
 from .sanity import check_samples
@@ -19,6 +19,7 @@ __all__ = [
     "collect_samples",
     "calibrate",
     "SPILL_BYTES",
+    "repeat_drift",
     "SESSION_FORMAT",
     "SESSION_VERSION",
     "SESSION_SUFFIX",

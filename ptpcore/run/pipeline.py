@@ -41,7 +41,7 @@ from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, Wrappe
 from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, run_tiles, tile_workers
 from ptpcore.rig.rigfile import Rig, rig_to_toml
 
-__all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES"]
+__all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES", "repeat_drift"]
 
 Progress = Callable[[float, str], None]
 
@@ -646,3 +646,37 @@ def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOp
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=rig_to_toml(source.rig),
                   progress=sub(0.9, 1.0))
     return lut, samples
+
+
+def repeat_drift(source, samples: SampleStack, rig, *, options: DecodeOptions = DecodeOptions(),
+                 stage_sigma_mm: float = 0.0, progress: Progress | None = None):
+    """The drift of a sweep's repeat positions (``[stage] repeat_z_mm``), or None without them.
+
+    Decodes the repeats of ``source`` (positions K, K+1, ... after the sweep) and compares each
+    with its sweep position in ``samples`` (:func:`ptpcore.fit.drift.sweep_drift`). The command
+    line's ``calibrate`` and the wizard's Calibrate page both call this.
+
+    Parameters
+    ----------
+    source : FrameSource
+        The dataset (or simulator) the sweep ``samples`` came from.
+    samples : SampleStack
+        The decoded sweep, (K, H, W).
+    rig : Rig
+    options : DecodeOptions
+        As the sweep was decoded with.
+    stage_sigma_mm : float
+        The stage readings' 1-sigma error (mm).
+    progress : callable, optional
+
+    Returns
+    -------
+    ptpcore.fit.drift.Drift or None
+    """
+    if not rig.stage.repeat_z_mm:
+        return None
+    from ptpcore.fit.drift import RepeatSource, sweep_drift
+
+    repeats = collect_samples(RepeatSource(source), options=options, progress=progress)
+    return sweep_drift(samples, repeats, rig, stage_sigma_mm=stage_sigma_mm)
+

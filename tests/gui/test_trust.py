@@ -113,3 +113,31 @@ def test_calibrate_shows_residual_arrows_and_export_writes_them(wizard, qtbot, t
     for k in want.worst_positions[:N_RESIDUAL_PNGS]:
         assert f"residuals_position_{k + 1}.png" in names
         assert (tmp_path / "out" / f"residuals_position_{k + 1}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_calibrate_page_shows_the_drift_of_a_repeated_position(wizard, qtbot):
+    """A sweep that ends at its first position again ([stage] repeat_z_mm), the camera moved 2 um in X
+    before the repeat: the Calibrate page names the drift warning, gives the figures and maps |d|."""
+    import json
+
+    s = wizard.model.session
+    s.rig = replace(s.rig, stage=replace(s.rig.stage, repeat_z_mm=(s.rig.stage.z_mm[0],)))
+    s.sim_settings = replace(s.sim_settings, drift_um=(2.0, 0.0))
+    cal = _acquire(wizard, qtbot)
+    cal.configure("poly", 2, "all")
+    assert run_job(qtbot, cal.fit()) == "finished"
+    lut = wizard.model.session.lut
+    d = json.loads(lut.provenance["drift"])
+    r = d["repeats"][0]
+    assert r["position"] == 0 and d["warnings"] and abs(abs(r["mean_um"][0]) - 2.0) < 5 * r["mean_se_um"][0]
+    text = cal.stats.text()
+    assert "DRIFT WARNING" in text and "Drift at z = " in text and "position 1 again" in text
+    button = cal.map_buttons.button(cal._map_keys.index("drift"))
+    assert button.isVisibleTo(cal)
+    cal.show_map("drift")
+    shown = cal.heatmap.view.image.image
+    assert np.nanmedian(shown) > 0 and np.isfinite(shown).sum() > 0.5 * lut.valid.sum()
+    # Another fit without repeats hides the map again.
+    s.rig = replace(s.rig, stage=replace(s.rig.stage, repeat_z_mm=()))
+    assert run_job(qtbot, cal.fit()) == "finished"
+    assert "drift" not in wizard.model.session.lut.provenance and not button.isVisibleTo(cal)
