@@ -84,6 +84,24 @@ def test_cli_capture_calibrates_exactly_like_simulate(reference, tmp_path):
     assert (out / "truth.h5").is_file()
 
 
+def test_capture_can_end_the_sweep_at_its_first_position_again(tmp_path, capsys):
+    """``ptp capture --repeat-first`` visits the first position again after the sweep ([stage] repeat_z_mm):
+    bit for bit ``ptp simulate --repeat`` (the repeat has its own noise), and calibrate reports the drift."""
+    sim, cap = tmp_path / "sim", tmp_path / "cap"
+    assert cli.main(["simulate", str(sim), *ARGS, "--repeat", "-q"]) == 0
+    assert cli.main(["capture", "--out", str(cap), *ARGS, "--repeat-first", "-q"]) == 0
+    assert_same_images(sim, cap)
+    first = sorted((cap / "z000").iterdir())[0].name
+    assert not filecmp.cmp(cap / "z000" / first, cap / "z005" / first, shallow=False)  # its own noise
+    st = capture_state(cap)
+    assert st["complete"] and st["done"] == st["total"] == 6
+    capsys.readouterr()
+    assert cli.main(["calibrate", str(cap), "--out", str(tmp_path / "a.lut.h5"), "--model", "poly", "--degree", "1",
+                     "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "drift at z = 0 mm (position 1 again)" in said and "DRIFT WARNING" not in said
+
+
 @pytest.mark.parametrize("name", ["ideal", "realistic", "rough"])
 def test_every_preset_captures_bit_for_bit(name, tmp_path):
     rig, settings = small(name, positions=3, width=40)

@@ -64,6 +64,7 @@ __all__ = [
     "measure_display_response",
     "display_from_means",
     "DISPLAY_RAMP",
+    "with_repeat_of_first",
     "capture",
     "capture_state",
     "pattern_image",
@@ -468,7 +469,9 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     out_dir : path
         The dataset folder: new or empty, or (``resume=True``) a partial capture.
     rig : Rig
-        The plan: camera, LCD, fringes, and the stage heights ``z_mm`` to visit.
+        The plan: camera, LCD, fringes, and the stage heights ``z_mm`` to visit; with
+        ``[stage] repeat_z_mm`` (see :func:`with_repeat_of_first`) those heights are visited
+        again after the sweep (positions K, K+1, ...: they measure drift).
     camera, stage, display
         Unopened devices (:mod:`ptpcore.capture.devices`); opened here and closed at the end.
     resume : bool
@@ -532,8 +535,8 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     limits.validate()
     plan_toml = rig_to_toml(rig)
     meta = json.loads(json.dumps(meta or {}))
-    z_plan = [float(z) for z in rig.stage.z_mm]
-    n_pos = len(z_plan)
+    z_plan = [float(z) for z in rig.stage.z_mm] + [float(z) for z in rig.stage.repeat_z_mm]
+    n_sweep, n_pos = rig.stage.n_positions, len(z_plan)
     if position_tolerance_mm is None:
         position_tolerance_mm = 0.25 * min(abs(b - a) for a, b in zip(z_plan, z_plan[1:]))
 
@@ -563,12 +566,21 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
                        (limits, accept_exposure, on_exposure) if check else None)
 
     readings = [p["z_mm"] for p in state["positions"]]
-    final = run.rig.with_z(readings)
+    final = run.rig.with_z(readings[:n_sweep])
+    if n_pos > n_sweep:
+        final = replace(final, stage=replace(final.stage, repeat_z_mm=tuple(float(z) for z in readings[n_sweep:])))
     save_rig(final, out / "rig.toml")
     state["complete"] = True
     _write_state(out, state)
     report(1.0, "capture complete")
     return CaptureResult(out, final, run.captured, kept, exposure, run.display_means)
+
+
+def with_repeat_of_first(rig: Rig) -> Rig:
+    """The plan ``rig`` ending its sweep at its first position again (``[stage] repeat_z_mm``,
+    ptp-dataset/2): ``ptp calibrate`` compares the two captures of that height and reports the drift
+    (:mod:`ptpcore.fit.drift`)."""
+    return replace(rig, stage=replace(rig.stage, repeat_z_mm=(float(rig.stage.z_mm[0]),)))
 
 
 def _verify_kept_positions(out: Path, rig: Rig, state: dict, report, on_position) -> list[int]:
@@ -713,6 +725,9 @@ class _CaptureRun:
         _write_state(out, state)
         if self.on_position:
             self.on_position(k, "capturing")
+        hint = getattr(self.camera, "position_hint", None)  # simulated cameras: a repeat is another position
+        if callable(hint):
+            hint(k)
         for spec in self.rig.fringes.frames():
             self.capture_frame(k, z, spec)
         state["positions"][k] = {"state": "done", "z_mm": z}

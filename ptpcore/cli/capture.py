@@ -51,7 +51,7 @@ def _stage(kind: str, config, args):
 
 
 def cmd_capture(args) -> int:
-    from ptpcore.capture.sequence import ExposureLimits, capture, capture_state
+    from ptpcore.capture.sequence import ExposureLimits, capture, capture_state, with_repeat_of_first
     from ptpcore.capture.devices import SimulatedCamera, SimulatedDisplay, simulated_meta
     from ptpcore.capture.devices.config import load_capture_config
     from ptpcore.errors import Cancelled, ConfigError
@@ -73,6 +73,8 @@ def cmd_capture(args) -> int:
         rig, settings = scaled_preset(args.preset, args.width or rig.camera.width, args.height, args.positions)
     if args.rig:
         rig = load_rig(args.rig)
+    if args.repeat_first:  # end the sweep at its first position again: calibrate reports the drift
+        rig = with_repeat_of_first(rig)
     settle_ms = args.settle_ms if args.settle_ms is not None else (config.display.settle_ms if config else 0.0)
     exposure_us = args.exposure_us if args.exposure_us is not None else (config.camera.exposure_us if config
                                                                          else None)
@@ -152,6 +154,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="measure the display's response at the first position (a ramp of uniform levels), store it"
                         " as rig.toml's [display] and show every pattern through its inverse")
     p.add_argument("--resume", action="store_true", help="continue the partial capture in --out")
+    p.add_argument("--repeat-first", action="store_true",
+                   help="end the sweep at its first position again ([stage] repeat_z_mm): calibrate reports the"
+                        " drift in between")
     p.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_capture)

@@ -367,6 +367,10 @@ class VirtualRig:
         max_sigma = max(self.blur_sigma(k) for k in range(self.readings.size))
         self.margin = int(np.ceil(4.0 * max_sigma)) + 1 if max_sigma > 0 else 0
 
+    def true_height(self, k: int) -> float:
+        """The LCD's true height (mm) at position ``k``: the sweep's, then its repeats (``[stage] repeat_z_mm``)."""
+        return float(self._z_all[k])
+
     # ---- geometry -------------------------------------------------------
     def distortion_field(self, cols, rows) -> tuple[np.ndarray, np.ndarray]:
         """Non-parametric displacement (pixels) added after Brown distortion."""

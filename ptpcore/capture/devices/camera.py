@@ -158,12 +158,21 @@ class SimulatedCamera:
             if profile is not None:  # another 1-D pattern (e.g. through a measured display response)
                 self._other += 1
                 return self.vr.render_profile(k, profile[0], profile[1], (4, self._other))
-        z_true = z if k is None else float(self.vr.z_true[k])
+        z_true = z if k is None else float(self.vr.true_height(k))
         self._other += 1
         return self.vr.render_image(image, z_true, noise_key=(3, self._other))
 
+    def position_hint(self, k: int) -> None:
+        """The capture is at position ``k`` now (:func:`ptpcore.capture.capture` says so): a repeat of a
+        sweep position (``[stage] repeat_z_mm``) is told from it by its index, not its reading."""
+        self._hint = int(k)
+
     def _position_index(self, z: float) -> int | None:
         """The rig position whose stage reading is ``z`` (the stage is exactly there), if any."""
+        hint = getattr(self, "_hint", None)
+        readings = self.vr.readings
+        if hint is not None and 0 <= hint < readings.size and abs(readings[hint] - z) <= 1e-9 * max(1.0, abs(z)):
+            return hint
         zs = np.asarray(self.rig.stage.z_mm)
         i = int(np.argmin(np.abs(zs - z)))
         return i if abs(zs[i] - z) <= 1e-9 * max(1.0, abs(z)) else None
@@ -188,7 +197,7 @@ class SimulatedCamera:
             table = {}
             for spec in rig.fringes.frames():
                 d, _j, t, s, big_n = spec
-                prof = fringe_profile(rig.lcd, rig.fringes, d, t, s, big_n, rig.stage.z_mm[k], rig.display)
+                prof = fringe_profile(rig.lcd, rig.fringes, d, t, s, big_n, float(self.vr.readings[k]), rig.display)
                 table.setdefault((d, prof.tobytes()), spec)
             self._patterns = (k, table)
         table = self._patterns[1]
