@@ -73,3 +73,64 @@ def test_bad_input_exits_2(two_sweeps, tmp_path):
     assert main(["diff", str(pa), str(other)]) == 2
     assert main(["diff", str(pa), str(tmp_path / "missing.lut.h5")]) == 2
     assert main(["diff", str(pa), str(pa), "--max-fraction", "2"]) == 2
+
+
+@pytest.mark.slow
+def test_two_sweeps_of_one_rig_with_default_luts_are_consistent(tmp_path):
+    """Must show (issue 16): two sweeps of one rig (other noise seed, the second at the midpoints),
+    each calibrated with the default model (auto: the smooth LUT on this lens) and the stage's declared
+    1-sigma error, are consistent: exit 0 and RMS difference / predicted within [0.7, 1.4]."""
+    rig, s = scaled_preset("mild", 160)
+    z = np.asarray(rig.stage.z_mm)
+    zb = np.concatenate([[z[0]], z[:-1] + (z[1] - z[0]) / 2, [z[-1]]])
+    rig_b = replace(rig, stage=replace(rig.stage, z_mm=tuple(float(v) for v in zb)))
+    va, vb = VirtualRig(rig, s, 1), VirtualRig(rig_b, s, 1)
+    vb.seed = 101
+    paths = []
+    for name, v in (("a", va), ("b", vb)):
+        lut = fit_model(collect_samples(SimulatedSource(v)), v.rig, "auto", stage_sigma_mm=s.stage_error_um * 1e-3)
+        assert lut.extra_attrs["method"] == "smooth"
+        paths.append(tmp_path / f"{name}.lut.h5")
+        save_lut(lut, paths[-1])
+    out = tmp_path / "d.json"
+    assert main(["diff", str(paths[0]), str(paths[1]), "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    print(d)
+    assert d["verdict"] == "consistent" and 0.7 <= d["ratio"] <= 1.4
+
+
+def test_with_and_without_the_cover_glass_declared_the_luts_differ_by_the_refraction_offset(tmp_path):
+    """Must show (issue 16): one simulated rig behind 1.1 mm of cover glass (``real`` preset) calibrated with
+    the glass declared in rig.toml and without: exit 1, and the difference map is the simulator's exact
+    refraction offset ``t (tan theta - tan theta')`` along each pixel's ray, within 5 % (RMS over the pixels)."""
+    from ptpcore.rig import load_rig
+    from ptpcore.simulate.lcd_physics import refraction_offset_mm
+    from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
+
+    data = tmp_path / "data"
+    assert main(["simulate", str(data), "--preset", "real", "--width", "64", "--positions", "5", "-q"]) == 0
+    rig = load_rig(data / "rig.toml")
+    assert (rig.lcd.cover_glass_mm, rig.lcd.cover_glass_index) == (1.1, 1.52)
+    luts = []
+    for name in ("declared", "bare"):
+        if name == "bare":  # the same images, the glass left out of rig.toml
+            text = (data / "rig.toml").read_text()
+            (data / "rig.toml").write_text("\n".join(line for line in text.splitlines()
+                                                     if not line.startswith("cover_glass_")) + "\n")
+            assert load_rig(data / "rig.toml").lcd.cover_glass_mm == 0.0
+        luts.append(tmp_path / f"{name}.lut.h5")
+        assert main(["calibrate", str(data), "--out", str(luts[-1]), "--model", "poly", "--degree", "2", "-q"]) == 0
+    out = tmp_path / "d.json"
+    assert main(["diff", str(luts[0]), str(luts[1]), "--json", str(out)]) == 1
+    assert json.loads(out.read_text())["verdict"] == "differ"
+    r = diff_luts(load_lut(luts[0]), load_lut(luts[1]))
+    truth = load_truth(data / TRUTH_FILE)[0]
+    exact = refraction_offset_mm(np.hypot(truth.sx, truth.sy), 1.1, 1.52)
+    m = r.common
+    shown = np.hypot(r.signed_x, r.signed_y)  # the same shift at every height: its length
+    err_um, exact_um = 1e3 * np.sqrt(np.mean((shown[m] - exact[m]) ** 2)), 1e3 * np.sqrt(np.mean(exact[m] ** 2))
+    print(f"glass diff: {r.summary()}; |signed| - exact RMS {err_um:.3f} um of {exact_um:.3f} um")
+    assert err_um <= 0.05 * exact_um, (err_um, exact_um)
+    # ...and along each pixel's ray: the glass shows the pixel plane nearer the foot of the ray's normal.
+    along = (r.signed_x * truth.sx + r.signed_y * truth.sy) / np.hypot(truth.sx, truth.sy)
+    assert np.mean(np.abs(along[m]) >= 0.95 * shown[m]) > 0.95
