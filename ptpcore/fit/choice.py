@@ -194,7 +194,8 @@ def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level
 
     try:
         return fit_model(samples, rig, model, degree, positions=positions, progress=progress,
-                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
+                         uncertainty=False)  # judged by its predictions only
     except ValueError:
         return None
 

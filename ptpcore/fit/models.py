@@ -49,7 +49,8 @@ def check_positions_for_model(model: str, degree: int, n_positions: int, source:
 
 def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
               progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
-              level_bias: bool = True, footprint: bool = True, robust: bool = False) -> Lut:
+              level_bias: bool = True, footprint: bool = True, robust: bool = False,
+              uncertainty: bool = True) -> Lut:
     """Fit a LUT of any kind to decoded samples.
 
     Parameters
@@ -76,6 +77,10 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
     robust : bool
         Leave out the samples far outside their pixel's curve first (:func:`ptpcore.fit.robust.fit_robust`;
         ``n_rejected`` and ``provenance["robust"]`` on the LUT).
+    uncertainty : bool
+        ``smooth``: the honest sigma maps and the real leave-one-out
+        (:func:`ptpcore.fit.smooth.fit_smooth_lut`); off for fits judged only by
+        their predictions (auto's held-out candidates).
 
     Returns
     -------
@@ -100,10 +105,11 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
         from ptpcore.fit.smooth import fit_smooth_lut
 
         lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
-                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
+                                    uncertainty=uncertainty)
         return lut
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
-    if model == "poly" and samples.noise is not None and samples.modulation is not None:
+    if model == "poly" and uncertainty and samples.noise is not None and samples.modulation is not None:
         from ptpcore.fit.smooth import poly_sigma_maps
 
         lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm)

@@ -768,7 +768,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                    scales_px=(0.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0), stage_sigma_mm: float = 0.0,
                    level_bias: bool = True, footprint: bool = True, global_points: int = 100_000,
                    seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
-                   progress: Callable[[float, str], None] | None = None) -> tuple[Lut, SmoothInfo]:
+                   progress: Callable[[float, str], None] | None = None,
+                   uncertainty: bool = True) -> tuple[Lut, SmoothInfo]:
     """Fit the ``smooth`` LUT (see the module docstring).
 
     Parameters
@@ -810,6 +811,12 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         (4 at 5 MP). The final smoothing at a chosen scale of at least 4
         bins also runs on bins (of at most ``scale / 4`` px).
     progress : callable, optional
+    uncertainty : bool
+        Compute the honest sigma maps and the leave-one-position-out (the global
+        model's propagated error, :func:`_global_leak_variance`, and the K refits of
+        :func:`_leave_one_out`: about 1.5x the fit's own time). Off (a fit only
+        judged by its predictions, e.g. auto's held-out candidates): the sigma maps
+        hold the propagated noise alone and the leave-one-out maps are NaN.
 
     Returns
     -------
@@ -864,13 +871,18 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
     report(0.91, "propagating the global model's uncertainty")
-    leak = _global_leak_variance(gfit, rays, leak_w, scale, cv_bin_used, fits.pz_min, fits.pz_max, (zc, zs))
+    leak = (_global_leak_variance(gfit, rays, leak_w, scale, cv_bin_used, fits.pz_min, fits.pz_max, (zc, zs))
+            if uncertainty else {})
     leak_w = None
     fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
-               + np.nan_to_num(leak[a], nan=0.0) for a in "xy"}
-    loo, merr = _leave_one_out(_LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, cv_bin_used,
-                                          level_bias, footprint, noise_scale), valid, fit_var,
-                                lambda f, m: report(0.92 + 0.07 * f, m))
+               + np.nan_to_num(leak.get(a, 0.0), nan=0.0) for a in "xy"}
+    if uncertainty:
+        loo, merr = _leave_one_out(_LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, cv_bin_used,
+                                              level_bias, footprint, noise_scale), valid, fit_var,
+                                    lambda f, m: report(0.92 + 0.07 * f, m))
+    else:
+        loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
+        merr = _ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
     rays = None
     sig = {a: np.sqrt(fit_var[a] + merr.var[a]).astype(np.float32) for a in "xy"}
     for a in "xy":
@@ -1442,6 +1454,42 @@ def _pinhole_from_params(names, values) -> PinholeModel:
                         tvec=np.array([v["tx"], v["ty"], v["tz"]]))
 
 
+def _rays_at(model: PinholeModel, cols: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``x0, y0, sx, sy`` (len(rows), len(cols)) of ``model``'s rays at the grid of ``cols`` x ``rows`` (px)."""
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    a0, b0 = model.pixel_to_world_at_z(cc, rr, 0.0)
+    a1, b1 = model.pixel_to_world_at_z(cc, rr, 1.0)
+    return a0, b0, a1 - a0, b1 - b0
+
+
+def _upsample_grid(coarse: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """A map sampled at every ``step``-th pixel back to (h, w) by Catmull-Rom cubics (two matrices).
+
+    Node ``i`` sits at pixel ``(i - 1) * step``: one node before the image and two past its end,
+    so every pixel has its four nodes.
+    """
+    def weights(n: int, nc: int) -> np.ndarray:
+        pos = np.arange(n) / step + 1.0
+        i = np.floor(pos).astype(int)
+        f = pos - i
+        m = np.zeros((n, nc))
+        rows = np.arange(n)
+        for off, wt in ((-1, (-f ** 3 + 2 * f ** 2 - f) / 2), (0, (3 * f ** 3 - 5 * f ** 2 + 2) / 2),
+                        (1, (-3 * f ** 3 + 4 * f ** 2 + f) / 2), (2, (f ** 3 - f ** 2) / 2)):
+            m[rows, i + off] += wt
+        return m
+
+    hc, wc = coarse.shape
+    return weights(h, hc) @ coarse @ weights(w, wc).T
+
+
+LEAK_GRID_PX = 8
+"""Grid step (px) on which :func:`_global_leak_variance` recomputes the perturbed global rays."""
+
+LEAK_GROUP = 4
+"""Parameter directions whose change maps :func:`_global_leak_variance` smooths at once (8 maps)."""
+
+
 def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
                           z_norm) -> dict:
     """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
@@ -1481,16 +1529,28 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
     with np.errstate(all="ignore"):
         mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64), 2)
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
-    for li, vi in zip(lam, vec.T):
-        if li <= 0:
-            continue
-        moved = _global_rays(_pinhole_from_params(gfit.param_names, gfit.param_values + np.sqrt(li) * vi), (h, w))
-        for a, (i0, i1) in (("x", (0, 2)), ("y", (1, 3))):
-            d0, d1 = moved[i0] - rays[i0], moved[i1] - rays[i1]
-            c = [d0 + d1 * zc, d1 * zs]  # the change as coefficients in t
-            left = [cj - _smooth_binned(np.nan_to_num(cj), weights[j], scale, fb, False)[0]
-                    for j, cj in enumerate(c)]
-            out[a] += np.nan_to_num(left[0] ** 2 * mom[0] + 2 * left[0] * left[1] * mom[1] + left[1] ** 2 * mom[2])
+    # The change of a pinhole's rays is smooth over the image: computed on a grid of every
+    # LEAK_GRID_PX-th pixel and interpolated (cubic).
+    step = max(1, min(LEAK_GRID_PX, (min(h, w) - 1) // 4))
+    rows = np.arange(-step, h + 2 * step, step, dtype=float)[: (h - 1) // step + 4]
+    cols = np.arange(-step, w + 2 * step, step, dtype=float)[: (w - 1) // step + 4]
+    base = _rays_at(gfit.model, cols, rows)
+    dirs = [np.sqrt(li) * vi for li, vi in zip(lam, vec.T) if li > 0]
+    for g0 in range(0, len(dirs), LEAK_GROUP):  # a few directions' maps smoothed together (shared moments)
+        group = dirs[g0:g0 + LEAK_GROUP]
+        c = np.empty((2, 2 * len(group), h, w))  # [coefficient j][direction, axis]
+        for i, dv in enumerate(group):
+            moved = _rays_at(_pinhole_from_params(gfit.param_names, gfit.param_values + dv), cols, rows)
+            for ai, (i0, i1) in enumerate(((0, 2), (1, 3))):
+                d0, d1 = (_upsample_grid(moved[q] - base[q], step, h, w) for q in (i0, i1))
+                c[0, 2 * i + ai], c[1, 2 * i + ai] = d0 + d1 * zc, d1 * zs  # the change as coefficients in t
+        for j in range(2):
+            c[j] -= _smooth_binned(np.nan_to_num(c[j]), weights[j], scale, fb, False)[0]
+        for i in range(len(group)):
+            for ai, a in enumerate("xy"):
+                l0, l1 = c[0, 2 * i + ai], c[1, 2 * i + ai]
+                out[a] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
+        del c
     return out
 
 
