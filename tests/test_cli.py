@@ -54,11 +54,19 @@ def test_calibrate_smooth_and_inspect(tmp_path, capsys):
     st = load_lut(staged)
     np.testing.assert_array_equal(st.x, lut.x)
     v = lut.valid
-    assert np.all(st.sigma_x[v] >= lut.sigma_x[v]) and np.mean(st.sigma_x[v]) > np.mean(lut.sigma_x[v])
+    # Here (rough lens, 80 px) the leave-one-out resolves a model error of about 10 um: the data fix the
+    # total, and a declared stage error explains part of that excess instead of adding to it
+    # (fit/smooth._model_error); the plain LUT below shows it adding.
+    assert abs(np.mean(st.sigma_x[v] ** 2) / np.mean(lut.sigma_x[v] ** 2) - 1) < 0.01
     raw = tmp_path / "raw.lut.h5"
     assert main(["calibrate", str(data), "--out", str(raw), "--model", "smooth", "--degree", "1",
                  "--no-level-bias", "--no-footprint", "-q"]) == 0
     assert not np.array_equal(load_lut(raw).x, lut.x)
+    plain_st = tmp_path / "plain_staged.lut.h5"
+    assert main(["calibrate", str(data), "--out", str(plain_st), "--model", "poly", "--degree", "1",
+                 "--stage-sigma-um", "2", "-q"]) == 0
+    a, b = load_lut(plain), load_lut(plain_st)
+    assert np.all(b.sigma_x[a.valid] >= a.sigma_x[a.valid]) and np.mean(b.sigma_x[a.valid]) > np.mean(a.sigma_x[a.valid])
     capsys.readouterr()
     assert main(["calibrate", str(data), "--out", str(tmp_path / "bad.lut.h5"), "--stage-sigma-um", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
