@@ -358,8 +358,7 @@ class VirtualRig:
         rep_pose = draw_stage_poses(np.random.default_rng([self.seed, 7]), rep.size, settings.runout_um,
                                     settings.tilt_urad, settings.roll_urad)
         rep_pose[:, 2] = 1e3 * (rep_true - rep)
-        self._z_all = np.concatenate([self.z_true, rep_true])
-        self._pose_all = np.concatenate([self.stage_pose, rep_pose])
+        self.repeat_z_true, self.repeat_pose = rep_true, rep_pose
         self.physics = LcdPhysics(settings.cover_glass_mm, settings.cover_glass_index, settings.bow_um * 1e-3,
                                   ((rig.lcd.width - 1) * rig.lcd.pitch_mm[0], (rig.lcd.height - 1) * rig.lcd.pitch_mm[1]))
         self._coords_cache: tuple[int, dict] | None = None
@@ -369,7 +368,13 @@ class VirtualRig:
 
     def true_height(self, k: int) -> float:
         """The LCD's true height (mm) at position ``k``: the sweep's, then its repeats (``[stage] repeat_z_mm``)."""
-        return float(self._z_all[k])
+        n = self.z_true.size
+        return float(self.z_true[k] if k < n else self.repeat_z_true[k - n])
+
+    def _pose(self, k: int) -> np.ndarray:
+        """The carriage pose (6,) at position ``k`` (sweep, then repeats)."""
+        n = self.stage_pose.shape[0]
+        return self.stage_pose[k] if k < n else self.repeat_pose[k - n]
 
     # ---- geometry -------------------------------------------------------
     def distortion_field(self, cols, rows) -> tuple[np.ndarray, np.ndarray]:
@@ -426,7 +431,7 @@ class VirtualRig:
 
     def _lcd_uv(self, k: int, cols: np.ndarray, rows: np.ndarray):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at position k."""
-        return self._lcd_uv_at(self._z_all[k], cols, rows, k)
+        return self._lcd_uv_at(self.true_height(k), cols, rows, k)
 
     def _lcd_uv_at(self, z: float, cols: np.ndarray, rows: np.ndarray, k: int | None = None):
         """LCD coordinates (u, v), LCD px, where image points see the LCD at true height ``z`` (mm).
@@ -435,7 +440,7 @@ class VirtualRig:
         (run-out, tilt); the cover glass and the bow apply everywhere.
         """
         o, d = self.rays(cols, rows)
-        pose = self._pose_all[k] if k is not None else np.zeros(6)
+        pose = self._pose(k) if k is not None else np.zeros(6)
         if k is not None and k >= self.rig.stage.n_positions and any(self.settings.drift_um):
             o = o + np.array([self.settings.drift_um[0], self.settings.drift_um[1], 0.0]) * 1e-3
         if not self.physics.trivial or np.any(pose[[0, 1, 3, 4, 5]] != 0):
@@ -501,7 +506,7 @@ class VirtualRig:
 
     def blur_sigma(self, k: int) -> float:
         """Gaussian defocus blur (camera px) at position ``k``."""
-        return self.blur_sigma_at(self._z_all[k])
+        return self.blur_sigma_at(self.true_height(k))
 
     def blur_sigma_at(self, z: float) -> float:
         """Gaussian defocus blur (camera px) with the LCD at true height ``z`` (mm)."""
