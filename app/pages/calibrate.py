@@ -31,6 +31,10 @@ MODELS = {"auto": "Auto: best at held-out positions",
           "linear": "Linear interpolation of the table",
           "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
 DEGREE_MODELS = ("poly", "smooth")
+SIGMA_TIP = "Predicted 1σ uncertainty of the LUT (noise, global model, model error the leave-one-out resolves)"
+OPTIONAL_MAPS = {"sigma_x": SIGMA_TIP, "sigma_y": SIGMA_TIP,
+                 "drift": "|repeat − sweep| per pixel at the position captured again after the sweep"
+                          " ([stage] repeat_z_mm)"}
 CORRECTION_MODELS = ("smooth", "auto")  # the fits that apply the level-bias and footprint corrections
 
 
@@ -190,13 +194,9 @@ class CalibratePage(StudioPage):
             self.map_buttons.addButton(b, i)
             bl.addWidget(b)
         self.map_buttons.button(0).setChecked(True)
-        for key in ("sigma_x", "sigma_y"):  # shown when the LUT carries predicted uncertainty maps
-            b = self.map_buttons.button(self._map_keys.index(key))
-            b.setToolTip("Predicted 1σ uncertainty of the LUT, propagated from each sample's phase noise")
-            b.setVisible(False)
-        b = self.map_buttons.button(self._map_keys.index("drift"))  # shown when the sweep repeated a position
-        b.setToolTip("|repeat − sweep| per pixel at the position captured again after the sweep ([stage] repeat_z_mm)")
-        b.setVisible(False)
+        for key, tip in OPTIONAL_MAPS.items():  # shown when the LUT has them
+            self.map_buttons.button(self._map_keys.index(key)).setToolTip(tip)
+            self.map_buttons.button(self._map_keys.index(key)).setVisible(False)
         self.drift = None  # ptpcore.fit.drift.Drift of the LUT the session holds, when fitted here
         bl.addStretch(1)
         ml.addLayout(bl)

@@ -565,15 +565,20 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     exposure = run.run(todo, z_plan, position_tolerance_mm, home, exposure_us,
                        (limits, accept_exposure, on_exposure) if check else None)
 
-    readings = [p["z_mm"] for p in state["positions"]]
-    final = run.rig.with_z(readings[:n_sweep])
-    if n_pos > n_sweep:
-        final = replace(final, stage=replace(final.stage, repeat_z_mm=tuple(float(z) for z in readings[n_sweep:])))
+    final = _with_readings(run.rig, [p["z_mm"] for p in state["positions"]], n_sweep)
     save_rig(final, out / "rig.toml")
     state["complete"] = True
     _write_state(out, state)
     report(1.0, "capture complete")
     return CaptureResult(out, final, run.captured, kept, exposure, run.display_means)
+
+
+def _with_readings(rig: Rig, readings: list, n_sweep: int) -> Rig:
+    """``rig`` with the captured stage readings: the sweep's, then its repeats' (``[stage] repeat_z_mm``)."""
+    out = rig.with_z(readings[:n_sweep])
+    if len(readings) > n_sweep:
+        out = replace(out, stage=replace(out.stage, repeat_z_mm=tuple(float(z) for z in readings[n_sweep:])))
+    return out
 
 
 def with_repeat_of_first(rig: Rig) -> Rig:

@@ -812,11 +812,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         bins also runs on bins (of at most ``scale / 4`` px).
     progress : callable, optional
     uncertainty : bool
-        Compute the honest sigma maps and the leave-one-position-out (the global
-        model's propagated error, :func:`_global_leak_variance`, and the K refits of
-        :func:`_leave_one_out`: about 1.5x the fit's own time). Off (a fit only
-        judged by its predictions, e.g. auto's held-out candidates): the sigma maps
-        hold the propagated noise alone and the leave-one-out maps are NaN.
+        The full sigma maps and the real leave-one-out (:func:`_uncertainty`, ~1.8x the fit's time);
+        off for fits judged only by their predictions (auto's candidates): noise-only sigma, NaN LOO.
 
     Returns
     -------
@@ -834,7 +831,6 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report(0.0, "fitting the global camera model")
     gfit = global_pinhole(samples, positions, n_points=global_points, seed=seed,
                           rig=rig if level_bias else None, full=True)
-    model = gfit.model
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
     zc, zs = _z_normalisation(z)
@@ -844,7 +840,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     rms_x = np.where(plain.valid, plain.rms_x, np.float32(np.nan))
     rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
     del plain
-    rays = _global_rays(model, samples.shape)
+    rays = _global_rays(gfit.model, samples.shape)
 
     run = _SmoothPass(samples, rig, sel, z, (zc, zs), rays, degree, scales_px, cv_bin, level_bias, footprint)
     report(0.05, "fitting every pixel and cross-validating")
@@ -863,28 +859,13 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
     # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
     valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= d1)
-    fits.pz_min[~valid] = np.nan
-    fits.pz_max[~valid] = np.nan
+    fits.pz_min[~valid] = fits.pz_max[~valid] = np.nan
     q = _residual_maps(samples, rig, sel, z, run.t, coef, rays, level_bias, footprint)
-    cv_bin_used = run.b
+    setup = _LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, run.b, level_bias, footprint, noise_scale)
     run = None
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
-    report(0.91, "propagating the global model's uncertainty")
-    leak = (_global_leak_variance(gfit, rays, leak_w, scale, cv_bin_used, fits.pz_min, fits.pz_max, (zc, zs))
-            if uncertainty else {})
-    leak_w = None
-    fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
-               + np.nan_to_num(leak.get(a, 0.0), nan=0.0) for a in "xy"}
-    if uncertainty:
-        loo, merr = _leave_one_out(_LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, cv_bin_used,
-                                              level_bias, footprint, noise_scale), valid, fit_var,
-                                    lambda f, m: report(0.92 + 0.07 * f, m))
-    else:
-        loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
-        merr = _ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
-    rays = None
-    sig = {a: np.sqrt(fit_var[a] + merr.var[a]).astype(np.float32) for a in "xy"}
+    sig, loo, merr = _uncertainty(setup, gfit, leak_w, fits, valid, noise, stage_var, uncertainty, report)
     for a in "xy":
         coef[a][:, ~valid] = np.nan
         sig[a][~valid] = np.nan
@@ -895,13 +876,12 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
         n_positions=np.where(valid, fits.n_pos, 0).astype(np.uint16),
         pixel_z_min=fits.pz_min, pixel_z_max=fits.pz_max,
-        rms_x=q["x"], rms_y=q["y"],
-        loo_x=loo["x"], loo_y=loo["y"],
+        rms_x=q["x"], rms_y=q["y"], loo_x=loo["x"], loo_y=loo["y"],
         sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
         extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
     )
     report(1.0, "smooth LUT fitted")
-    return lut, SmoothInfo(model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
+    return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
                            float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
 
 
@@ -1272,6 +1252,36 @@ class _ModelError:
     var: dict
     rms_mm: float
     limit_mm: float
+
+
+def _uncertainty(setup: _LooSetup, gfit, leak_w: np.ndarray, fits: "_PixelFits", valid: np.ndarray,
+                 noise: np.ndarray, stage_var: dict, full: bool, report):
+    """The smooth LUT's sigma maps, leave-one-out maps and model-error term.
+
+    ``sigma^2 = noise^2 + stage + leak + model``: the propagated phase noise (``noise``,
+    (H, W) mm), the stage readings' term (``stage_var``, :func:`_stage_variance`), the global
+    model's error passed on by the smoothing (:func:`_global_leak_variance`) and the model
+    error the leave-one-out resolves (:func:`_leave_one_out`). Without ``full`` only the
+    first two, and NaN leave-one-out maps.
+
+    Returns
+    -------
+    sig, loo : dict ``"x"``, ``"y"`` -> (H, W) float32, mm ; model : _ModelError
+    """
+    s = setup
+    leak = {}
+    if full:
+        report(0.91, "propagating the global model's uncertainty")
+        leak = _global_leak_variance(gfit, s.rays, leak_w, s.scale, s.cv_bin, fits.pz_min, fits.pz_max, s.z_norm)
+    fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
+               + np.nan_to_num(leak.get(a, 0.0), nan=0.0) for a in "xy"}
+    if full:
+        loo, merr = _leave_one_out(s, valid, fit_var, lambda f, m: report(0.92 + 0.07 * f, m))
+    else:
+        loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
+        merr = _ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
+    sig = {a: np.sqrt(fit_var[a] + merr.var[a]).astype(np.float32) for a in "xy"}
+    return sig, loo, merr
 
 
 def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -> tuple[dict, _ModelError]:
