@@ -145,8 +145,9 @@ points (a 5 MP image: 4 x 4 bins), and the final smoothing at scales of at least
 the same binned grid (interpolated back bilinearly). Up to 640 x 480 everything is per pixel."""
 
 
-_STRIP_ROWS = 256
-"""Rows per strip of the per-pixel cross-validation on binned (large) images."""
+_STRIP_ROWS = 64
+"""Rows per strip of the per-pixel cross-validation on binned (large) images (the folds' maps
+hold a strip plus twice the halo: 30 float64 maps of 114 x 2448 px per fold at 5 MP, degree 3)."""
 
 
 def _bin_factor(shape) -> int:
@@ -157,6 +158,18 @@ def _bin_factor(shape) -> int:
 def _row_blocks(h: int, w: int, mult: int = 1) -> list[tuple[int, int]]:
     """Row ranges of about :data:`_BLOCK_PIXELS` pixels, each a multiple of ``mult`` rows (but the last)."""
     rows = max(mult, (_BLOCK_PIXELS // max(w, 1)) // mult * mult)
+    return [(r, min(h, r + rows)) for r in range(0, h, rows)]
+
+
+_BLOCK_SAMPLES = 5 * _BLOCK_PIXELS
+"""Samples (positions x pixels) per block of the passes over the samples: their ``(K, n)``
+float64 temporaries keep one size whatever the number of positions K (up to 5 positions,
+blocks of :data:`_BLOCK_PIXELS` pixels; fewer pixels above)."""
+
+
+def _sample_blocks(h: int, w: int, k: int) -> list[tuple[int, int]]:
+    """Row ranges of about ``_BLOCK_SAMPLES / max(k, 5)`` pixels (at least one row) for ``(K, n)`` sample blocks."""
+    rows = max(1, (_BLOCK_SAMPLES // max(k, 5)) // max(w, 1))
     return [(r, min(h, r + rows)) for r in range(0, h, rows)]
 
 
@@ -944,7 +957,7 @@ class _SmoothPass:
         self.fine = np.flatnonzero(scales < 4 * b) if b > 1 else np.arange(scales.size)
         self.coarse = np.flatnonzero(scales >= 4 * b) if b > 1 else np.arange(0)
         self.halo = 0 if b == 1 else int(np.ceil(3.0 * max(scales[self.fine].max(initial=0.0), 0.0))) + 1
-        self.strip = h if b == 1 else max(b, (max(_STRIP_ROWS, 8 * self.halo) // b) * b)
+        self.strip = h if b == 1 else max(b, (_STRIP_ROWS // b) * b)
         # Sums over test samples, per scale: sum w (v.c - r)^2, samples, sum w.
         self.q_sum = np.zeros(scales.size)
         self.n_sum = np.zeros(scales.size)
@@ -1039,24 +1052,36 @@ class _SmoothPass:
             self.w_sum[acc_index] += np.sum(m[0])
 
     def fit_and_cross_validate_fine(self, report) -> None:
-        """The pass over the samples, strip by strip: pixel fits, fine scales scored, coarse stats binned."""
+        """The pass over the samples, strip by strip: pixel fits, fine scales scored, coarse stats binned.
+
+        The folds' maps are a window sliding down the image: a strip's rows plus a halo above and
+        below (which only feeds the folds' smoothing); every row is read and fitted once, and the
+        rows the next strip shares with this one are moved to the window's top.
+        """
         h, w = self.shape
+        halo, k = self.halo, self.sel.size
         strips = [(r, min(h, r + self.strip)) for r in range(0, h, self.strip)]
+        window = [self.fold_maps(min(h, self.strip + 2 * halo)) for _ in self.folds]
+        a0 = done = 0  # the window holds image rows [a0, done)
         for i_strip, (r0, r1) in enumerate(strips):
-            a0, a1 = max(0, r0 - self.halo), min(h, r1 + self.halo)
-            fmaps = [self.fold_maps(a1 - a0) for _ in self.folds]
-            # Halo rows (above and below the strip) only feed the folds' smoothing.
-            jobs = [(p0 + g0, p1 + g0, fin) for g0, g1, fin in ((a0, r0, False), (r0, r1, True), (r1, a1, False))
-                    if g1 > g0 for p0, p1 in _row_blocks(g1 - g0, w)]
-            _run_blocks(lambda p0, p1, fin: self.block(p0, p1, a0, fmaps, fin), jobs)
+            n0, a1 = max(0, r0 - halo), min(h, r1 + halo)
+            if n0 > a0:
+                for st in window:
+                    for arr in st.values():
+                        arr[..., :done - n0, :] = arr[..., n0 - a0:done - a0, :]
+                a0 = n0
+            jobs = [(p0 + done, p1 + done) for p0, p1 in _sample_blocks(a1 - done, w, k)]
+            _run_blocks(lambda p0, p1: self.block(p0, p1, a0, window, True), jobs)
+            done = a1
             inner = slice(r0 - a0, r1 - a0)
-            for fi, st in enumerate(fmaps):
+            for fi, full in enumerate(window):
+                st = {name: arr[..., :a1 - a0, :] for name, arr in full.items()}
                 self._score_fine(st, inner, a0, a1, r0, r1,
                                  lambda sc: report(0.05 + 0.7 * i_strip / len(strips),
                                                    f"cross-validating smoothing scale {sc:g} px"))
                 if self.coarse.size:
                     self._bin_strip(self.binned[fi], st, inner, r0, r1)
-            fmaps = None
+        window = None
 
     def _score_fine(self, st: dict, inner: slice, a0: int, a1: int, r0: int, r1: int, announce) -> None:
         w, dc = self.shape[1], self.dc
@@ -1190,7 +1215,7 @@ def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.nda
             with np.errstate(all="ignore"):
                 q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
 
-    _run_blocks(quality, _row_blocks(h, w))
+    _run_blocks(quality, _sample_blocks(h, w, len(sel)))
     return q
 
 
