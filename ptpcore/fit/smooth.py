@@ -849,16 +849,18 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     scale, cv_score, excess_var = run.choose_scale(noise_scale)
 
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
-    coef = _smoothed_coefficients(fits, scale, run.b, rays, zc, zs)
-    stage_var = _stage_variance(rays, rig, run.t, degree, stage_sigma_mm)
+    t, b = run.t, run.b
+    run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP) are not held while smoothing
+    coef, rays = _smoothed_coefficients(fits, scale, b, model, zc, zs)
+    stage_var = _stage_variance(rays, rig, t, degree, stage_sigma_mm)
     d1 = degree + 1
     # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
     # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
     valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= d1)
     fits.pz_min[~valid] = np.nan
     fits.pz_max[~valid] = np.nan
-    q = _residual_maps(samples, rig, sel, z, run.t, coef, rays, level_bias, footprint)
-    run = rays = None
+    q = _residual_maps(samples, rig, sel, z, t, coef, rays, level_bias, footprint)
+    rays = None
     sig = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, stage_var)
     fits.var = fits.own_var = fits.own_diag = None
     for a in "xy":
@@ -1152,11 +1154,14 @@ class _SmoothPass:
         return float(self.scales[best]), score_, excess_var
 
 
-def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float) -> dict:
+def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, model: PinholeModel, zc: float,
+                           zs: float) -> tuple[dict, tuple]:
     """The pixel fits smoothed at ``scale`` plus the global ray: ``{"x", "y"}`` (D+1, H, W) coefficients in t.
 
     Smooths ``fits.fit`` and ``fits.var`` in place (the final smoothing runs on bins of at
-    most the cross-validation's side and at most a quarter of the scale).
+    most the cross-validation's side and at most a quarter of the scale). The global rays
+    (:func:`_global_rays` of ``model``, the same maps as the pass's) are built after the
+    smoothing, so they are not held during it, and returned beside the coefficients.
     """
     fit, var = fits.fit, fits.var
     d1, h, w = var.shape
@@ -1167,9 +1172,10 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         vj = var[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
-        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j]), wj, scale, fb, True)
+        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, True)
         del wj
     coef = {"x": fit[0], "y": fit[1]}
+    rays = _global_rays(model, (h, w))
     gx0, gy0, gsx, gsy = rays
     # Global ray as a polynomial in t: X = x0 + sx * (zc + zs t).
     for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
@@ -1177,7 +1183,7 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         for r0, r1 in _row_blocks(h, w):
             c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
             c[1, r0:r1] += gs[r0:r1] * zs
-    return coef
+    return coef, rays
 
 
 def _stage_variance(rays, rig: Rig, t: np.ndarray, degree: int, stage_sigma_mm: float) -> dict:
