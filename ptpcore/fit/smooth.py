@@ -168,7 +168,11 @@ blocks of :data:`_BLOCK_PIXELS` pixels; fewer pixels above)."""
 
 
 def _sample_blocks(h: int, w: int, k: int) -> list[tuple[int, int]]:
-    """Row ranges of about ``_BLOCK_SAMPLES / max(k, 5)`` pixels (at least one row) for ``(K, n)`` sample blocks."""
+    """Row ranges of about ``_BLOCK_SAMPLES / max(k, 5)`` pixels for ``(K, n)`` sample blocks.
+
+    At least one row each; every pixel's numbers come from its own samples (and, for
+    :func:`footprint_bias`, the global rays of the rows next to it), whatever the block.
+    """
     rows = max(1, (_BLOCK_SAMPLES // max(k, 5)) // max(w, 1))
     return [(r, min(h, r + rows)) for r in range(0, h, rows)]
 
@@ -530,9 +534,10 @@ FOOTPRINT_M2_MAX_PX2 = 4.0
 def _laplacian(a: np.ndarray, r0: int, r1: int) -> np.ndarray:
     """Laplacian (per camera px^2) of rows ``[r0, r1)`` of a smooth (H, W) map.
 
-    Second differences at the image's edges repeat the nearest interior one.
+    Second differences at the image's edges repeat the nearest interior one (the block is widened
+    to three rows there, so a block of one edge row gives the whole image's value).
     """
-    lo, hi = max(r0 - 1, 0), min(r1 + 1, a.shape[0])
+    lo, hi = max(min(r0 - 1, a.shape[0] - 3), 0), min(max(r1 + 1, 3), a.shape[0])
     blk = a[lo:hi]
     d2 = np.zeros_like(blk)
     if blk.shape[1] >= 3:
@@ -851,6 +856,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
     t, b = run.t, run.b
     run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP) are not held while smoothing
+    fits.load("fit", "var")
     coef, rays = _smoothed_coefficients(fits, scale, b, model, zc, zs)
     stage_var = _stage_variance(rays, rig, t, degree, stage_sigma_mm)
     d1 = degree + 1
@@ -861,6 +867,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     fits.pz_max[~valid] = np.nan
     q = _residual_maps(samples, rig, sel, z, t, coef, rays, level_bias, footprint)
     rays = None
+    fits.load("own_var", "own_diag")
     sig = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, stage_var)
     fits.var = fits.own_var = fits.own_diag = None
     for a in "xy":
@@ -915,11 +922,82 @@ class _PixelFits:
     own_diag: np.ndarray
 
     @classmethod
-    def empty(cls, shape, d1: int) -> "_PixelFits":
+    def empty(cls, shape, d1: int, spill: bool = False) -> "_PixelFits":
+        """Uninitialised maps; with ``spill``, ``fit``, ``var``, ``own_var`` and ``own_diag`` are
+        :class:`_RowSpill` files (written by row ranges, :meth:`load` brings them back)."""
         h, w = shape
-        return cls(np.empty((2, d1, h, w)), np.empty((d1, h, w)), np.empty((h, w), np.int32),
+        big = _RowSpill if spill else (lambda s: np.empty(s))
+        return cls(big((2, d1, h, w)), big((d1, h, w)), np.empty((h, w), np.int32),
                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)),
-                   np.empty((h, w)), np.empty((h, w)))
+                   big((h, w)), big((h, w)))
+
+    def load(self, *names: str) -> None:
+        """Bring the spilled maps ``names`` back into memory (no-op for maps already there)."""
+        for name in names:
+            a = getattr(self, name)
+            if isinstance(a, _RowSpill):
+                setattr(self, name, a.load())
+
+
+_SPILL_FITS_PIXELS = CV_PIXELS
+"""Above this many pixels the smooth pass writes the pixel fits to a temporary file while it
+runs (at 5 MP and degree 3: 560 MB of float64 maps not held beside the folds' statistics)."""
+
+
+class _RowSpill:
+    """A float64 ``(*lead, H, W)`` array in a temporary file, written by row ranges.
+
+    Plain positional reads and writes (no memory map), so its pages stay out of the
+    process's resident memory; writes of disjoint rows may come from several threads.
+    The file is in ``PTP_SPILL_DIR`` (default the system's temporary folder) and
+    disappears when closed.
+    """
+
+    def __init__(self, shape):
+        import os
+        import tempfile
+
+        self.shape = tuple(int(n) for n in shape)
+        self._row_bytes = self.shape[-1] * 8
+        self._plane = self.shape[-2] * self._row_bytes
+        self._file = tempfile.TemporaryFile(prefix="ptp-fits-", dir=os.environ.get("PTP_SPILL_DIR") or None)
+        self._file.truncate(int(np.prod(self.shape)) * 8)
+
+    def __setitem__(self, key, values) -> None:
+        """``spill[i, ..., r0:r1] = values``: leading indices (int or ``:``), then a row slice."""
+        import itertools
+        import os
+
+        key = key if isinstance(key, tuple) else (key,)
+        lead, rows = key[:-1], key[-1]
+        nlead = len(self.shape) - 2
+        lead = lead + (slice(None),) * (nlead - len(lead))
+        r0, r1, _ = rows.indices(self.shape[-2])
+        ranges = [[k] if isinstance(k, (int, np.integer)) else range(*k.indices(n)) for k, n in zip(lead, self.shape)]
+        sel_shape = tuple(len(r) for k, r in zip(lead, ranges) if not isinstance(k, (int, np.integer)))
+        vals = np.broadcast_to(np.asarray(values, dtype=np.float64), sel_shape + (r1 - r0, self.shape[-1]))
+        vals = vals.reshape(-1, r1 - r0, self.shape[-1])
+        fd = self._file.fileno()
+        for i, idx in enumerate(itertools.product(*ranges)):
+            plane = int(np.ravel_multi_index(idx, self.shape[:-2])) if idx else 0
+            data = np.ascontiguousarray(vals[i]).data.cast("B")
+            off, done = plane * self._plane + r0 * self._row_bytes, 0
+            while done < len(data):
+                done += os.pwrite(fd, data[done:], off + done)
+
+    def load(self) -> np.ndarray:
+        """The whole array, read into memory; the file is closed."""
+        import os
+
+        out = np.empty(self.shape)
+        buf, fd, done = out.data.cast("B"), self._file.fileno(), 0
+        while done < len(buf):
+            n = os.preadv(fd, [buf[done:]], done)
+            if n <= 0:
+                raise OSError("the pixel fits' temporary file ended early")
+            done += n
+        self._file.close()
+        return out
 
 
 class _SmoothPass:
@@ -964,7 +1042,7 @@ class _SmoothPass:
         self.q_sum = np.zeros(scales.size)
         self.n_sum = np.zeros(scales.size)
         self.w_sum = np.zeros(scales.size)
-        self.fits = _PixelFits.empty(self.shape, self.d1)
+        self.fits = _PixelFits.empty(self.shape, self.d1, spill=h * w > _SPILL_FITS_PIXELS)
         dc, hc, wc = self.dc, self.hc, self.wc
         self.binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)),
                         "xbar": np.zeros((dc, hc, wc)), "ybar": np.zeros((dc, hc, wc)),
