@@ -947,7 +947,7 @@ runs (at 5 MP and degree 3: 560 MB of float64 maps not held beside the folds' st
 class _RowSpill:
     """A float64 ``(*lead, H, W)`` array in a temporary file, written by row ranges.
 
-    Plain positional reads and writes (no memory map), so its pages stay out of the
+    Plain file reads and writes (no memory map; one at a time, under a lock), so its pages stay out of the
     process's resident memory; writes of disjoint rows may come from several threads.
     The file is in ``PTP_SPILL_DIR`` (default the system's temporary folder) and
     disappears when closed.
@@ -956,17 +956,18 @@ class _RowSpill:
     def __init__(self, shape):
         import os
         import tempfile
+        import threading
 
         self.shape = tuple(int(n) for n in shape)
         self._row_bytes = self.shape[-1] * 8
         self._plane = self.shape[-2] * self._row_bytes
         self._file = tempfile.TemporaryFile(prefix="ptp-fits-", dir=os.environ.get("PTP_SPILL_DIR") or None)
         self._file.truncate(int(np.prod(self.shape)) * 8)
+        self._lock = threading.Lock()
 
     def __setitem__(self, key, values) -> None:
         """``spill[i, ..., r0:r1] = values``: leading indices (int or ``:``), then a row slice."""
         import itertools
-        import os
 
         key = key if isinstance(key, tuple) else (key,)
         lead, rows = key[:-1], key[-1]
@@ -977,26 +978,25 @@ class _RowSpill:
         sel_shape = tuple(len(r) for k, r in zip(lead, ranges) if not isinstance(k, (int, np.integer)))
         vals = np.broadcast_to(np.asarray(values, dtype=np.float64), sel_shape + (r1 - r0, self.shape[-1]))
         vals = vals.reshape(-1, r1 - r0, self.shape[-1])
-        fd = self._file.fileno()
         for i, idx in enumerate(itertools.product(*ranges)):
             plane = int(np.ravel_multi_index(idx, self.shape[:-2])) if idx else 0
-            data = np.ascontiguousarray(vals[i]).data.cast("B")
-            off, done = plane * self._plane + r0 * self._row_bytes, 0
-            while done < len(data):
-                done += os.pwrite(fd, data[done:], off + done)
+            data = np.ascontiguousarray(vals[i])
+            with self._lock:
+                self._file.seek(plane * self._plane + r0 * self._row_bytes)
+                self._file.write(data.data.cast("B"))
 
     def load(self) -> np.ndarray:
         """The whole array, read into memory; the file is closed."""
-        import os
-
         out = np.empty(self.shape)
-        buf, fd, done = out.data.cast("B"), self._file.fileno(), 0
-        while done < len(buf):
-            n = os.preadv(fd, [buf[done:]], done)
-            if n <= 0:
-                raise OSError("the pixel fits' temporary file ended early")
-            done += n
-        self._file.close()
+        buf, done = out.data.cast("B"), 0
+        with self._lock:
+            self._file.seek(0)
+            while done < len(buf):
+                n = self._file.readinto(buf[done:])
+                if not n:
+                    raise OSError("the pixel fits' temporary file ended early")
+                done += n
+            self._file.close()
         return out
 
 
