@@ -20,6 +20,10 @@ calibrate          ``ptp calibrate DIR --out F`` (the default model)
 calibrate-poly     ``ptp calibrate DIR --out F --model poly``
 calibrate-smooth   ``ptp calibrate DIR --out F --model smooth``
 compare            ``ptp compare DIR`` (PTP against 3DSTC on held-out heights)
+decode             ``ptp decode DIR --out F.decoded.h5`` (every position)
+wizard             the wizard's Acquire (decode) and Calibrate (default model) jobs on the folder,
+                   offscreen (:mod:`benchmarks.wizard_job`); its JSON line (each job's time and the
+                   event loop's longest stall) is in ``tail``
 """
 
 from __future__ import annotations
@@ -41,7 +45,10 @@ COMMANDS = {
     "calibrate-poly": ["calibrate", "{dir}", "--out", "{out}", "--model", "poly"],
     "calibrate-smooth": ["calibrate", "{dir}", "--out", "{out}", "--model", "smooth"],
     "compare": ["compare", "{dir}", "--out", "{out}.json", "-q"],
+    "decode": ["decode", "{dir}", "--out", "{out}.decoded.h5", "-q"],
 }
+MODULES = {"wizard": ["benchmarks.wizard_job", "{dir}"]}
+"""Commands that run a module of ours (``python -m``) instead of the ``ptp`` command line."""
 """Command name -> ``ptp`` arguments (``{dir}`` the dataset, ``{out}`` a LUT file in a temporary folder)."""
 
 
@@ -75,6 +82,8 @@ def run_child(argv: list[str], env: dict | None = None) -> dict:
 
 def command_argv(name: str, dataset: Path, out: Path) -> list[str]:
     """The fresh process's arguments for command ``name`` on ``dataset``, writing ``out``."""
+    if name in MODULES:
+        return [sys.executable, "-m"] + [a.format(dir=dataset, out=out) for a in MODULES[name]]
     return [sys.executable, "-c", CLI] + [a.format(dir=dataset, out=out) for a in COMMANDS[name]]
 
 
@@ -146,9 +155,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="write the result here too")
     args = ap.parse_args(argv)
     names = [n for n in args.commands.split(",") if n]
-    unknown = sorted(set(names) - set(COMMANDS))
+    unknown = sorted(set(names) - set(COMMANDS) - set(MODULES))
     if unknown:
-        ap.error(f"unknown commands {unknown}; choose from {sorted(COMMANDS)}")
+        ap.error(f"unknown commands {unknown}; choose from {sorted(COMMANDS) + sorted(MODULES)}")
     res = measure(args.dataset, names, args.repeat, args.floor_repeat, args.cold)
     text = json.dumps(res, indent=1)
     print(text)

@@ -30,3 +30,20 @@ def test_unknown_command_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         commands.main([str(tmp_path), "--commands", "calibrate,nonsense"])
     assert "nonsense" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_decode_and_the_wizards_jobs_run_in_fresh_processes(tmp_path):
+    """``ptp decode`` and the wizard's Acquire + Calibrate jobs (offscreen) in the command benchmark."""
+    import json
+
+    rig = synth.make_rig(0.02, 5, steps=(4, 4, 4))
+    data = synth.write_dataset(tmp_path / "tiny", rig)
+    res = commands.measure(data, ["decode", "wizard"], repeat=1, floor_repeat=1)
+    for name in ("decode", "wizard"):
+        r = res["commands"][name]
+        assert r["returncode"] == 0 and 30 < r["maxrss_mb"] < 2000 and r["cpu_s"] > 0, (name, r["tail"])
+    line = next(t for t in res["commands"]["wizard"]["tail"] if t.startswith("{"))
+    jobs = json.loads(line)
+    assert jobs["acquire"]["outcome"] == jobs["calibrate"]["outcome"] == "finished"
+    assert jobs["calibrate"]["ticks"] > 0 and jobs["calibrate"]["max_gap_ms"] > 0

@@ -73,3 +73,49 @@ def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
     want = _whole_image_smooth_sigma(fits, 30.0, 30.0, degree, 1.3)
     np.testing.assert_array_equal(got["x"], want)
     np.testing.assert_array_equal(got["y"], want)
+
+
+_LUT_MAPS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y", "sigma_x", "sigma_y")
+
+
+def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
+    """The smooth pass's memory layout (issue 15) does not change the LUT: the folds' maps as a window
+    of 8-row strips sliding down the image against one strip over the whole image, sample blocks of
+    one row against the default, and the pixel fits spilled to a file against held in memory. The
+    cross-validation scores are sums over strips: the same to rounding (1e-12 relative)."""
+    vr, samples = rough_rig
+    monkeypatch.setattr(smooth_mod, "_STRIP_ROWS", 10 ** 6)
+    ref, ref_info = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
+    monkeypatch.setattr(smooth_mod, "_STRIP_ROWS", 8)
+    monkeypatch.setattr(smooth_mod, "_BLOCK_SAMPLES", 1)
+    monkeypatch.setattr(smooth_mod, "_SPILL_FITS_PIXELS", 0)
+    got, info = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
+    for name in _LUT_MAPS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    assert info.scale_px == ref_info.scale_px
+    np.testing.assert_allclose(info.cv_rms_mm, ref_info.cv_rms_mm, rtol=1e-12)
+    assert info.excess_sigma_mm == pytest.approx(ref_info.excess_sigma_mm, rel=1e-9, abs=1e-15)
+
+
+def test_row_spill_round_trip():
+    """:class:`ptpcore.fit.smooth._RowSpill`: row ranges written with leading indices read back whole."""
+    rng = np.random.default_rng(0)
+    want = rng.standard_normal((2, 3, 7, 5))
+    spill = smooth_mod._RowSpill(want.shape)
+    for r0, r1 in ((0, 3), (3, 4), (4, 7)):
+        spill[0, :, r0:r1] = want[0, :, r0:r1]
+        spill[1, :, r0:r1] = want[1, :, r0:r1]
+    np.testing.assert_array_equal(spill.load(), want)
+    flat = smooth_mod._RowSpill((7, 5))
+    flat[0:7] = want[1, 2]
+    np.testing.assert_array_equal(flat.load(), want[1, 2])
+
+
+def test_laplacian_of_one_edge_row_is_the_whole_images():
+    """:func:`ptpcore.fit.smooth._laplacian` of one-row blocks (sample blocks at 12 MP and 31 positions
+    are one row) equals the whole image's, edge rows included."""
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((6, 5))
+    whole = smooth_mod._laplacian(a, 0, 6)
+    rows = np.concatenate([smooth_mod._laplacian(a, r, r + 1) for r in range(6)])
+    np.testing.assert_array_equal(rows, whole)

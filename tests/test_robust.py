@@ -99,3 +99,25 @@ def test_the_calibrate_page_names_a_suspect_position():
 
     text = robust_text(L())
     assert "120 samples left out" in text and "SUSPECT position 4" in text and "97 %" in text
+
+
+def test_without_outliers_of_a_spilled_stack_stays_spilled(rough_rig):
+    """Issue 15: a spilled stack's flagged copy of ``reasons`` goes to a spill file of its own (read
+    block by block, not held), with the same flags as the in-memory copy."""
+    from dataclasses import replace
+
+    from ptpcore.fit.robust import screen_samples, without_outliers
+    from ptpcore.io.fastio import SpillStore, read_block
+
+    vr, samples = rough_rig
+    rep = screen_samples(samples, vr.rig, positions=list(range(1, samples.z.size)))
+    rep.rejected[:, 10:12, 20:25] = True  # some flags for sure
+    store = SpillStore(samples.z.size, samples.shape, {"reasons": np.uint8}, {})
+    for k in range(samples.z.size):
+        store.write("reasons", k, np.asarray(samples.reasons[k]))
+    spilled = replace(samples, reasons=store.arrays()["reasons"])
+    want = without_outliers(samples, rep).reasons
+    got = without_outliers(spilled, rep).reasons
+    assert isinstance(got, np.memmap) and got is not spilled.reasons
+    h, w = samples.shape
+    np.testing.assert_array_equal(read_block(got, 0, h * w).reshape(want.shape), want)

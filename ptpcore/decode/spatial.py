@@ -24,7 +24,9 @@ ROBUST_SIGMA = 1.4826
 """Median absolute deviation -> standard deviation for normal data."""
 
 MIN_NEIGHBOURS = 8
-ROWS_PER_CHUNK = 64
+ROWS_PER_CHUNK = 16
+"""Rows per chunk: the 25 neighbours' stacks and their sorted copies are float64 (at 2448 px
+wide, 16 rows keep them near 8 MB each; every pixel's median is its own, whatever the chunk)."""
 
 
 def _nanmedian0(stack: np.ndarray) -> np.ndarray:
@@ -61,19 +63,16 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
     n_neighbours : (H, W) int16
     """
     h, w = coord.shape
-    c = np.where(valid, coord, np.nan).astype(np.float64)
-    gc = np.full((h, w), np.nan)
-    gr = np.full((h, w), np.nan)
+    pad = radius
+    # Each map lives inside its NaN-padded copy (one (H, W) float64 array each, not two).
+    cp, gcp, grp, rp = (np.full((h + 2 * pad, w + 2 * pad), np.nan) for _ in range(4))
+    c, gc, gr, resid = (a[pad:pad + h, pad:pad + w] for a in (cp, gcp, grp, rp))
+    c[...] = np.where(valid, coord, np.nan).astype(np.float64)
     if w > 2:
         gc[:, 1:-1] = 0.5 * (c[:, 2:] - c[:, :-2])
     if h > 2:
         gr[1:-1] = 0.5 * (c[2:] - c[:-2])
     offs = _offsets(radius, step)
-    pad = radius
-    cp = np.pad(c, pad, constant_values=np.nan)
-    gcp = np.pad(gc, pad, constant_values=np.nan)
-    grp = np.pad(gr, pad, constant_values=np.nan)
-    resid = np.full((h, w), np.nan)
     count = np.zeros((h, w), np.int16)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
@@ -93,7 +92,6 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
             count[r0:r1] = n
         # What a plane leaves of a curved map is smooth too: take the neighbours' residuals
         # (their median) off, so only what stands out from its surroundings remains.
-        rp = np.pad(resid, pad, constant_values=np.nan)
         out = np.full((h, w), np.nan)
         for r0 in range(0, h, ROWS_PER_CHUNK):
             r1 = min(h, r0 + ROWS_PER_CHUNK)

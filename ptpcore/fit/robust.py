@@ -277,7 +277,23 @@ def screen_samples(samples: SampleStack, rig: Rig, positions=None, *, k_sigma: f
 
 
 def without_outliers(samples: SampleStack, report: RobustReport) -> SampleStack:
-    """The stack with the rejected samples flagged :attr:`Reason.OUTLIER` (a copy of ``reasons`` only)."""
+    """The stack with the rejected samples flagged :attr:`Reason.OUTLIER` (a copy of ``reasons`` only).
+
+    A spilled stack's copy goes to a spill file of its own, a position at a time (at 5 MP x 21
+    positions the ``(K, H, W)`` uint8 copy and its temporaries are 210-315 MB).
+    """
+    if isinstance(samples.reasons, np.memmap):
+        from ptpcore.io.fastio import SpillStore
+
+        h, w = samples.shape
+        store = SpillStore(samples.z.size, (h, w), {"reasons": np.uint8}, {})
+        row_of = {int(k): i for i, k in enumerate(report.positions)}
+        for k in range(samples.z.size):
+            r = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w)
+            if k in row_of:
+                r[report.rejected[row_of[k]]] |= np.uint8(Reason.OUTLIER)
+            store.write("reasons", k, r)
+        return replace(samples, reasons=store.arrays()["reasons"])
     reasons = np.array(samples.reasons, copy=True)
     sub = reasons[report.positions]
     sub[report.rejected] |= np.uint8(Reason.OUTLIER)

@@ -145,8 +145,9 @@ points (a 5 MP image: 4 x 4 bins), and the final smoothing at scales of at least
 the same binned grid (interpolated back bilinearly). Up to 640 x 480 everything is per pixel."""
 
 
-_STRIP_ROWS = 256
-"""Rows per strip of the per-pixel cross-validation on binned (large) images."""
+_STRIP_ROWS = 64
+"""Rows per strip of the per-pixel cross-validation on binned (large) images (the folds' maps
+hold a strip plus twice the halo: 30 float64 maps of 114 x 2448 px per fold at 5 MP, degree 3)."""
 
 
 def _bin_factor(shape) -> int:
@@ -157,6 +158,22 @@ def _bin_factor(shape) -> int:
 def _row_blocks(h: int, w: int, mult: int = 1) -> list[tuple[int, int]]:
     """Row ranges of about :data:`_BLOCK_PIXELS` pixels, each a multiple of ``mult`` rows (but the last)."""
     rows = max(mult, (_BLOCK_PIXELS // max(w, 1)) // mult * mult)
+    return [(r, min(h, r + rows)) for r in range(0, h, rows)]
+
+
+_BLOCK_SAMPLES = 5 * _BLOCK_PIXELS
+"""Samples (positions x pixels) per block of the passes over the samples: their ``(K, n)``
+float64 temporaries keep one size whatever the number of positions K (up to 5 positions,
+blocks of :data:`_BLOCK_PIXELS` pixels; fewer pixels above)."""
+
+
+def _sample_blocks(h: int, w: int, k: int) -> list[tuple[int, int]]:
+    """Row ranges of about ``_BLOCK_SAMPLES / max(k, 5)`` pixels for ``(K, n)`` sample blocks.
+
+    At least one row each; every pixel's numbers come from its own samples (and, for
+    :func:`footprint_bias`, the global rays of the rows next to it), whatever the block.
+    """
+    rows = max(1, (_BLOCK_SAMPLES // max(k, 5)) // max(w, 1))
     return [(r, min(h, r + rows)) for r in range(0, h, rows)]
 
 
@@ -517,9 +534,10 @@ FOOTPRINT_M2_MAX_PX2 = 4.0
 def _laplacian(a: np.ndarray, r0: int, r1: int) -> np.ndarray:
     """Laplacian (per camera px^2) of rows ``[r0, r1)`` of a smooth (H, W) map.
 
-    Second differences at the image's edges repeat the nearest interior one.
+    Second differences at the image's edges repeat the nearest interior one (the block is widened
+    to three rows there, so a block of one edge row gives the whole image's value).
     """
-    lo, hi = max(r0 - 1, 0), min(r1 + 1, a.shape[0])
+    lo, hi = max(min(r0 - 1, a.shape[0] - 3), 0), min(max(r1 + 1, 3), a.shape[0])
     blk = a[lo:hi]
     d2 = np.zeros_like(blk)
     if blk.shape[1] >= 3:
@@ -852,17 +870,22 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     scale, cv_score, excess_var = run.choose_scale(noise_scale)
 
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
-    leak_w = _smoothing_weights(fits, 2)
-    coef = _smoothed_coefficients(fits, scale, run.b, rays, zc, zs)
-    stage_var = _stage_variance(rays, rig, run.t, degree, stage_sigma_mm)
+    t, b = run.t, run.b
+    run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP) are not held while smoothing
+    fits.load("fit", "var")
+    leak_w = _smoothing_weights(fits, 2)  # before the smoothing changes fits.var in place
+    coef, rays = _smoothed_coefficients(fits, scale, b, lambda: _global_rays(gfit.model, samples.shape), zc, zs)
+    stage_var = _stage_variance(rays, rig, t, degree, stage_sigma_mm)
     d1 = degree + 1
     # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
     # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
     valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= d1)
-    fits.pz_min[~valid] = fits.pz_max[~valid] = np.nan
-    q = _residual_maps(samples, rig, sel, z, run.t, coef, rays, level_bias, footprint)
-    setup = _LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, run.b, level_bias, footprint, noise_scale)
-    run = None
+    fits.pz_min[~valid] = np.nan
+    fits.pz_max[~valid] = np.nan
+    q = _residual_maps(samples, rig, sel, z, t, coef, rays, level_bias, footprint)
+    setup = _LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, b, level_bias, footprint, noise_scale)
+    rays = None
+    fits.load("own_var", "own_diag")
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
     sig, loo, merr = _uncertainty(setup, gfit, leak_w, fits, valid, noise, stage_var, uncertainty, report)
@@ -916,11 +939,82 @@ class _PixelFits:
     own_diag: np.ndarray
 
     @classmethod
-    def empty(cls, shape, d1: int) -> "_PixelFits":
+    def empty(cls, shape, d1: int, spill: bool = False) -> "_PixelFits":
+        """Uninitialised maps; with ``spill``, ``fit``, ``var``, ``own_var`` and ``own_diag`` are
+        :class:`_RowSpill` files (written by row ranges, :meth:`load` brings them back)."""
         h, w = shape
-        return cls(np.empty((2, d1, h, w)), np.empty((d1, h, w)), np.empty((h, w), np.int32),
+        big = _RowSpill if spill else (lambda s: np.empty(s))
+        return cls(big((2, d1, h, w)), big((d1, h, w)), np.empty((h, w), np.int32),
                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)),
-                   np.empty((h, w)), np.empty((h, w)))
+                   big((h, w)), big((h, w)))
+
+    def load(self, *names: str) -> None:
+        """Bring the spilled maps ``names`` back into memory (no-op for maps already there)."""
+        for name in names:
+            a = getattr(self, name)
+            if isinstance(a, _RowSpill):
+                setattr(self, name, a.load())
+
+
+_SPILL_FITS_PIXELS = CV_PIXELS
+"""Above this many pixels the smooth pass writes the pixel fits to a temporary file while it
+runs (at 5 MP and degree 3: 560 MB of float64 maps not held beside the folds' statistics)."""
+
+
+class _RowSpill:
+    """A float64 ``(*lead, H, W)`` array in a temporary file, written by row ranges.
+
+    Plain file reads and writes (no memory map; one at a time, under a lock), so its pages stay out of the
+    process's resident memory; writes of disjoint rows may come from several threads.
+    The file is in ``PTP_SPILL_DIR`` (default the system's temporary folder) and
+    disappears when closed.
+    """
+
+    def __init__(self, shape):
+        import os
+        import tempfile
+        import threading
+
+        self.shape = tuple(int(n) for n in shape)
+        self._row_bytes = self.shape[-1] * 8
+        self._plane = self.shape[-2] * self._row_bytes
+        self._file = tempfile.TemporaryFile(prefix="ptp-fits-", dir=os.environ.get("PTP_SPILL_DIR") or None)
+        self._file.truncate(int(np.prod(self.shape)) * 8)
+        self._lock = threading.Lock()
+
+    def __setitem__(self, key, values) -> None:
+        """``spill[i, ..., r0:r1] = values``: leading indices (int or ``:``), then a row slice."""
+        import itertools
+
+        key = key if isinstance(key, tuple) else (key,)
+        lead, rows = key[:-1], key[-1]
+        nlead = len(self.shape) - 2
+        lead = lead + (slice(None),) * (nlead - len(lead))
+        r0, r1, _ = rows.indices(self.shape[-2])
+        ranges = [[k] if isinstance(k, (int, np.integer)) else range(*k.indices(n)) for k, n in zip(lead, self.shape)]
+        sel_shape = tuple(len(r) for k, r in zip(lead, ranges) if not isinstance(k, (int, np.integer)))
+        vals = np.broadcast_to(np.asarray(values, dtype=np.float64), sel_shape + (r1 - r0, self.shape[-1]))
+        vals = vals.reshape(-1, r1 - r0, self.shape[-1])
+        for i, idx in enumerate(itertools.product(*ranges)):
+            plane = int(np.ravel_multi_index(idx, self.shape[:-2])) if idx else 0
+            data = np.ascontiguousarray(vals[i])
+            with self._lock:
+                self._file.seek(plane * self._plane + r0 * self._row_bytes)
+                self._file.write(data.data.cast("B"))
+
+    def load(self) -> np.ndarray:
+        """The whole array, read into memory; the file is closed."""
+        out = np.empty(self.shape)
+        buf, done = out.data.cast("B"), 0
+        with self._lock:
+            self._file.seek(0)
+            while done < len(buf):
+                n = self._file.readinto(buf[done:])
+                if not n:
+                    raise OSError("the pixel fits' temporary file ended early")
+                done += n
+            self._file.close()
+        return out
 
 
 class _SmoothPass:
@@ -960,12 +1054,12 @@ class _SmoothPass:
         self.fine = np.flatnonzero(scales < 4 * b) if b > 1 else np.arange(scales.size)
         self.coarse = np.flatnonzero(scales >= 4 * b) if b > 1 else np.arange(0)
         self.halo = 0 if b == 1 else int(np.ceil(3.0 * max(scales[self.fine].max(initial=0.0), 0.0))) + 1
-        self.strip = h if b == 1 else max(b, (max(_STRIP_ROWS, 8 * self.halo) // b) * b)
+        self.strip = h if b == 1 else max(b, (_STRIP_ROWS // b) * b)
         # Sums over test samples, per scale: sum w (v.c - r)^2, samples, sum w.
         self.q_sum = np.zeros(scales.size)
         self.n_sum = np.zeros(scales.size)
         self.w_sum = np.zeros(scales.size)
-        self.fits = _PixelFits.empty(self.shape, self.d1)
+        self.fits = _PixelFits.empty(self.shape, self.d1, spill=h * w > _SPILL_FITS_PIXELS)
         dc, hc, wc = self.dc, self.hc, self.wc
         self.binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)),
                         "xbar": np.zeros((dc, hc, wc)), "ybar": np.zeros((dc, hc, wc)),
@@ -1055,24 +1149,36 @@ class _SmoothPass:
             self.w_sum[acc_index] += np.sum(m[0])
 
     def fit_and_cross_validate_fine(self, report) -> None:
-        """The pass over the samples, strip by strip: pixel fits, fine scales scored, coarse stats binned."""
+        """The pass over the samples, strip by strip: pixel fits, fine scales scored, coarse stats binned.
+
+        The folds' maps are a window sliding down the image: a strip's rows plus a halo above and
+        below (which only feeds the folds' smoothing); every row is read and fitted once, and the
+        rows the next strip shares with this one are moved to the window's top.
+        """
         h, w = self.shape
+        halo, k = self.halo, self.sel.size
         strips = [(r, min(h, r + self.strip)) for r in range(0, h, self.strip)]
+        window = [self.fold_maps(min(h, self.strip + 2 * halo)) for _ in self.folds]
+        a0 = done = 0  # the window holds image rows [a0, done)
         for i_strip, (r0, r1) in enumerate(strips):
-            a0, a1 = max(0, r0 - self.halo), min(h, r1 + self.halo)
-            fmaps = [self.fold_maps(a1 - a0) for _ in self.folds]
-            # Halo rows (above and below the strip) only feed the folds' smoothing.
-            jobs = [(p0 + g0, p1 + g0, fin) for g0, g1, fin in ((a0, r0, False), (r0, r1, True), (r1, a1, False))
-                    if g1 > g0 for p0, p1 in _row_blocks(g1 - g0, w)]
-            _run_blocks(lambda p0, p1, fin: self.block(p0, p1, a0, fmaps, fin), jobs)
+            n0, a1 = max(0, r0 - halo), min(h, r1 + halo)
+            if n0 > a0:
+                for st in window:
+                    for arr in st.values():
+                        arr[..., :done - n0, :] = arr[..., n0 - a0:done - a0, :]
+                a0 = n0
+            jobs = [(p0 + done, p1 + done) for p0, p1 in _sample_blocks(a1 - done, w, k)]
+            _run_blocks(lambda p0, p1: self.block(p0, p1, a0, window, True), jobs)
+            done = a1
             inner = slice(r0 - a0, r1 - a0)
-            for fi, st in enumerate(fmaps):
+            for fi, full in enumerate(window):
+                st = {name: arr[..., :a1 - a0, :] for name, arr in full.items()}
                 self._score_fine(st, inner, a0, a1, r0, r1,
                                  lambda sc: report(0.05 + 0.7 * i_strip / len(strips),
                                                    f"cross-validating smoothing scale {sc:g} px"))
                 if self.coarse.size:
                     self._bin_strip(self.binned[fi], st, inner, r0, r1)
-            fmaps = None
+        window = None
 
     def _score_fine(self, st: dict, inner: slice, a0: int, a1: int, r0: int, r1: int, announce) -> None:
         w, dc = self.shape[1], self.dc
@@ -1143,12 +1249,17 @@ class _SmoothPass:
         return float(self.scales[best]), score_, excess_var
 
 
-def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float) -> dict:
-    """The pixel fits smoothed at ``scale`` plus the global ray: ``{"x", "y"}`` (D+1, H, W) coefficients in t.
+def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float) -> tuple[dict, tuple]:
+    """The pixel fits smoothed at ``scale`` plus the global ray: ``{"x", "y"}`` (D+1, H, W) coefficients in t,
+    and the global rays used.
 
     Smooths ``fits.fit`` and ``fits.var`` in place (the final smoothing runs on bins of at
-    most the cross-validation's side and at most a quarter of the scale).
+    most the cross-validation's side and at most a quarter of the scale); spilled maps are
+    brought back first. ``rays`` is a callable returning the global rays
+    (:func:`_global_rays`) or the rays themselves: a callable is called after the
+    smoothing, so that the rays are not held during it (160 MB at 5 MP).
     """
+    fits.load("fit", "var")
     fit, var = fits.fit, fits.var
     d1, h, w = var.shape
     fb = 1
@@ -1158,9 +1269,10 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         vj = var[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
-        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j]), wj, scale, fb, True)
+        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, True)
         del wj
     coef = {"x": fit[0], "y": fit[1]}
+    rays = rays() if callable(rays) else rays
     gx0, gy0, gsx, gsy = rays
     # Global ray as a polynomial in t: X = x0 + sx * (zc + zs t).
     for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
@@ -1168,7 +1280,7 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         for r0, r1 in _row_blocks(h, w):
             c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
             c[1, r0:r1] += gs[r0:r1] * zs
-    return coef
+    return coef, rays
 
 
 def _stage_variance(rays, rig: Rig, t: np.ndarray, degree: int, stage_sigma_mm: float) -> dict:
@@ -1206,7 +1318,7 @@ def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.nda
             with np.errstate(all="ignore"):
                 q[a][r0:r1] = np.sqrt(_nanmean0(r * r)).astype(np.float32).reshape(r1 - r0, w)
 
-    _run_blocks(quality, _row_blocks(h, w))
+    _run_blocks(quality, _sample_blocks(h, w, len(sel)))
     return q
 
 
@@ -1342,7 +1454,7 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
     run = _SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
                       s.cv_bin, s.level_bias, s.footprint, cross_validate=False)
     run.fit_and_cross_validate_fine(lambda f, m: None)
-    return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)
+    return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)[0]
 
 
 def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fit_var: dict, loo_sq: dict,
