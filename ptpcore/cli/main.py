@@ -35,13 +35,18 @@ def cmd_simulate(args) -> int:
         # Same field of view and lens with another sensor size (see scaled_preset).
         rig, settings = scaled_preset(args.preset, args.width or rig.camera.width, args.height,
                                       args.positions)
+    if args.gray:
+        from ptpcore.decode.patterns import gray_code_rig
+        rig = gray_code_rig(rig, args.gray, inverse=args.gray_inverse, references=args.references)
+    elif args.gray_inverse or args.references:
+        raise PtpError("--gray-inverse and --references go with --gray LEVELS")
     bar = progress_bar(args)
     try:
         out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
                                image_ext=".tif" if args.tiff else ".png")
     finally:
         bar.close()
-    n = rig.stage.n_positions * rig.fringes.frames_per_position
+    n = rig.stage.n_positions * (rig.fringes.frames_per_position + 2 * rig.has_references)
     print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
           f" and truth.h5 to {out}")
     return 0
@@ -503,6 +508,12 @@ def _add_simulate(sub) -> None:
     s.add_argument("--height", type=positive_int, help="camera height in pixels (default: keeps the aspect ratio)")
     s.add_argument("--positions", type=positive_int, help="number of stage positions (default: the preset's)")
     s.add_argument("--tiff", action="store_true", help="write TIFF instead of PNG")
+    s.add_argument("--gray", type=positive_int, metavar="LEVELS",
+                   help="Gray-code unwrapping (ptp-dataset/2, unwrap = \"gray\"): keep the finest LEVELS periods,"
+                        " and as many Gray-code bits as cover the LCD")
+    s.add_argument("--gray-inverse", action="store_true", help="with --gray: each Gray-code frame followed by its inverse")
+    s.add_argument("--references", action="store_true",
+                   help="with --gray: all-white and all-black frames at every position (threshold, clipping check)")
     s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
