@@ -179,3 +179,20 @@ def test_capture_of_a_gray_code_rig_equals_simulate(tmp_path):
     assert any("_G00_1" in str(p) for p in sim) and any("white" in str(p) for p in sim)
     for p in sim:
         assert (tmp_path / "sim" / p).read_bytes() == (tmp_path / "cap" / p).read_bytes(), p
+
+
+def test_ptp_decode_warns_about_measured_display_harmonics(tmp_path, capfd):
+    """A display response far from the gamma pre-compensation: `ptp decode` says so, with the design
+    check's advice, from the harmonics measured at the first position (the Fringes page shows the same)."""
+    from ptpcore.simulate import simulate_dataset
+
+    rig, settings = scaled_preset("realistic", 160, positions=2)
+    rig = replace(rig, fringes=replace(rig.fringes, steps=(8, 8, 8, 8), gamma=2.2))
+    bad = replace(settings, display_gamma=1.3, pixelated=False, supersample=1)
+    for name, s, expect in (("bad", bad, True), ("good", settings, False)):
+        ds = simulate_dataset(tmp_path / name, rig, s, seed=3)
+        capfd.readouterr()
+        assert main(["decode", str(ds), "--out", str(tmp_path / f"{name}.decoded.h5"), "--positions", "0",
+                     "-q"]) == 0
+        err = capfd.readouterr().err
+        assert ("harmonics" in err and "more steps" in err) == expect, err

@@ -36,6 +36,20 @@ class DecodeRun:
     valid_fraction: dict = field(default_factory=dict)  # (k, d) -> fraction
 
 
+def _harmonics_warning(rig, pos) -> str | None:
+    """The design check's display-harmonics verdict on the harmonics measured at ``pos``
+    (:func:`ptpcore.decode.harmonics.measured_harmonics`), or None when they are below the noise."""
+    from ptpcore.decode.harmonics import measured_harmonics
+    from ptpcore.decode.patterns import design_check
+
+    m = measured_harmonics(pos.info.get("noise_samples") or {})
+    if m is None:
+        return None
+    report = design_check(rig, modulation_dn=m.modulation_dn, noise_dn=m.noise_dn, harmonic_dn=m.harmonic_dn)
+    bad = [i.message for i in report.items if i.name == "display harmonics" and not i.ok]
+    return bad[0] if bad else None
+
+
 def direction_reasons(rig, pos, options: DecodeOptions = DecodeOptions()) -> dict:
     """The invalid-pixel reasons of each direction of a decoded position, apart.
 
@@ -123,6 +137,10 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
             run.noise_sources[(k, d)] = pos.info.get("noise_source", {}).get(d)
         if check_conventions and (not checked or any(run.valid_fraction[(k, d)] < min_fraction
                                                      for d in f.directions)):
+            if not checked:
+                harmonics = _harmonics_warning(rig, pos)
+                if harmonics:
+                    run.warnings.append(f"position {k} (z = {rig.stage.z_mm[k]:g} mm): {harmonics}")
             checked = True
             findings = convention_check(rig, pos, options)
             if findings:
