@@ -130,10 +130,12 @@ def test_white_and_black_frames_flag_clipping():
     black-clipping reasons where they do, and nowhere else."""
     rig, settings = scaled_preset("realistic", 160, positions=3)
     g = gray_code_rig(rig, references=True)
-    # The white frame (the fringes' brightest level) just saturates the brightest pixels...
-    settings = replace(settings, exposure=1.0, vignetting=0.3)
-    vr = VirtualRig(g, settings, 5)
+    # The white frame (the fringes' brightest level) saturates the brightest third of the pixels...
     k = 1
+    white = VirtualRig(g, settings, 5).reference_frames(k)["white"].astype(float)
+    lit = white[white > 0.2 * white.max()]
+    settings = replace(settings, exposure=settings.exposure * g.camera.max_level / np.percentile(lit, 67))
+    vr = VirtualRig(g, settings, 5)
     refs = vr.reference_frames(k)
     white_sat = refs["white"] >= g.camera.max_level
     assert 0.05 < white_sat.mean() < 0.6
@@ -143,7 +145,10 @@ def test_white_and_black_frames_flag_clipping():
     # ... and is the only new source of the flag: the phase frames flag a subset of those pixels.
     assert not np.any(sat & ~white_sat & ~_phase_saturated(vr, k))
     # A black frame clipped at 0 (a region with a black offset): flagged there.
-    settings = replace(settings, exposure=0.85, vignetting=0.25, black_offset=(40, 30, 80, 60, 400.0))
+    settings = replace(settings, exposure=0.85 * settings.exposure)
+    black = VirtualRig(g, settings, 5).reference_frames(k)["black"].astype(float)
+    offset = float(black[30:60, 40:80].max()) + 20.0  # a region whose black falls below the sensor's 0
+    settings = replace(settings, black_offset=(40, 30, 80, 60, offset))
     vr = VirtualRig(g, settings, 5)
     refs = vr.reference_frames(k)
     black0 = refs["black"] <= 0
