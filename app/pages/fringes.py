@@ -100,12 +100,6 @@ class FringesPage(StudioPage):
         self.sign.addItems(["+1", "-1"])
         self.sign.setToolTip("shift_sign: the direction the phase steps run in (x, and y unless 'Shift sign y' says"
                              " otherwise)")
-        self.origin_y = QLineEdit()
-        self.origin_y.setPlaceholderText("as x")
-        self.origin_y.setToolTip("phase_origin_rad of the y patterns when it differs from x ([fringes.y]), radians")
-        self.sign_y = QComboBox()
-        self.sign_y.addItems(["as x", "+1", "-1"])
-        self.sign_y.setToolTip("shift_sign of the y patterns when it differs from x ([fringes.y])")
         self.unwrap = QComboBox()
         self.unwrap.addItems(["periods", "gray"])
         self.unwrap.setToolTip("Temporal unwrapping by the period list, or by Gray-code images")
@@ -113,11 +107,7 @@ class FringesPage(StudioPage):
         self.gray_bits.setRange(0, 24)
         self.gray_bits.setToolTip("Gray-code bits counting cycles of the coarsest period (x, and y unless"
                                   " 'Gray-code bits y' says otherwise)")
-        self.gray_bits_y = QSpinBox()
-        self.gray_bits_y.setRange(-1, 24)
-        self.gray_bits_y.setSpecialValueText("as x")
-        self.gray_bits_y.setValue(-1)
-        self.gray_bits_y.setToolTip("Gray-code bits of the y patterns when they differ from x ([fringes.y])")
+        self._y_convention_widgets()
         self.gray_inverse = QCheckBox("each bit followed by its inverse")
         form.addRow("Directions", dirs)
         form.addRow("Periods (px)", self.periods)
@@ -201,18 +191,7 @@ class FringesPage(StudioPage):
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#2b6cb0", width=1.5), stepMode=None)
         pl.addWidget(self.profile, 1)
         grid.addWidget(prev_box, 0, 1, 2, 1)
-
-        # ---- frames named one by one (an imported dataset's [[images.frames]]), read-only
-        self.frames_box = QGroupBox("Frames named one by one ([[images.frames]], read-only; kept as they are)")
-        fl = QVBoxLayout(self.frames_box)
-        self.frames_table = QTableWidget(0, 4)
-        self.frames_table.setHorizontalHeaderLabels(["Position", "Direction", "Frame", "File"])
-        self.frames_table.verticalHeader().hide()
-        self.frames_table.horizontalHeader().setSectionResizeMode(3, QHeaderView.Stretch)
-        self.frames_table.setEditTriggers(QTableWidget.NoEditTriggers)
-        self.frames_table.setMaximumHeight(160)
-        fl.addWidget(self.frames_table)
-        grid.addWidget(self.frames_box, 2, 0, 1, 2)
+        grid.addWidget(self._frames_panel(), 2, 0, 1, 2)
 
         for w in (self.dir_x, self.dir_y):
             w.toggled.connect(self._edited)
@@ -232,6 +211,33 @@ class FringesPage(StudioPage):
         if hasattr(model, "decodedChanged"):
             model.decodedChanged.connect(self._decoded_arrived)
         self._show_rig()
+
+    def _y_convention_widgets(self) -> None:
+        """The ``[fringes.y]`` overrides of phase origin, shift sign and Gray bits ("as x" when empty)."""
+        self.origin_y = QLineEdit()
+        self.origin_y.setPlaceholderText("as x")
+        self.origin_y.setToolTip("phase_origin_rad of the y patterns when it differs from x ([fringes.y]), radians")
+        self.sign_y = QComboBox()
+        self.sign_y.addItems(["as x", "+1", "-1"])
+        self.sign_y.setToolTip("shift_sign of the y patterns when it differs from x ([fringes.y])")
+        self.gray_bits_y = QSpinBox()
+        self.gray_bits_y.setRange(-1, 24)
+        self.gray_bits_y.setSpecialValueText("as x")
+        self.gray_bits_y.setValue(-1)
+        self.gray_bits_y.setToolTip("Gray-code bits of the y patterns when they differ from x ([fringes.y])")
+
+    def _frames_panel(self) -> QGroupBox:
+        """The read-only list of an imported dataset's ``[[images.frames]]``."""
+        self.frames_box = QGroupBox("Frames named one by one ([[images.frames]], read-only; kept as they are)")
+        fl = QVBoxLayout(self.frames_box)
+        self.frames_table = QTableWidget(0, 4)
+        self.frames_table.setHorizontalHeaderLabels(["Position", "Direction", "Frame", "File"])
+        self.frames_table.verticalHeader().hide()
+        self.frames_table.horizontalHeader().setSectionResizeMode(3, QHeaderView.Stretch)
+        self.frames_table.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.frames_table.setMaximumHeight(160)
+        fl.addWidget(self.frames_table)
+        return self.frames_box
 
     def _decoded_arrived(self, *_):
         """A decoded position brings the display's measured harmonics to the design check."""
