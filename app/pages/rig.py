@@ -158,6 +158,11 @@ class RigPage(StudioPage):
         srow.addWidget(self.make_job_panel(), 1)
         sv.addLayout(srow)
         left.addWidget(ses)
+
+        # ---- ptp-dataset/2: real rigs (bit shift, flatness, display, repeats) and [decode]
+        self.v2 = RigV2Form(self)
+        self.v2.hide()  # its two boxes go into the columns
+        left.addWidget(self.v2.real_box)
         left.addStretch(1)
 
         # ---- camera and LCD
@@ -213,10 +218,7 @@ class RigPage(StudioPage):
         self.stage_summary.setObjectName("hint")
         sv.addWidget(self.stage_summary)
         right.addWidget(st)
-
-        # ---- ptp-dataset/2: real rigs (bit shift, flatness, display, repeats) and [decode]
-        self.v2 = RigV2Form()
-        right.addWidget(self.v2)
+        right.addWidget(self.v2.decode_box)
         right.addStretch(1)
 
         # ---- wiring

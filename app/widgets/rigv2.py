@@ -83,6 +83,8 @@ def _optional(text: str, what: str, kind=float):
 class RigV2Form(QWidget):
     """Two group boxes ("Real rig" and "Decoding thresholds") editing the ``/2`` keys of a rig.
 
+    ``real_box`` and ``decode_box`` may be placed apart in another layout (the Rig page does).
+
     Signals: ``edited()`` when the user finished changing a field.
     """
 
@@ -92,7 +94,7 @@ class RigV2Form(QWidget):
         super().__init__(parent)
         lay = QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
-        real = QGroupBox("Real rig (ptp-dataset/2; empty = not used)")
+        self.real_box = real = QGroupBox("Real rig (ptp-dataset/2; empty = not used)")
         rf = QFormLayout(real)
         self.bit_shift = QSpinBox()
         self.bit_shift.setRange(0, 15)
@@ -126,7 +128,7 @@ class RigV2Form(QWidget):
         rf.addRow("Repeated readings (mm)", self.repeat_z)
         lay.addWidget(real)
 
-        dec = QGroupBox("Decoding thresholds ([decode]; empty = engine default)")
+        self.decode_box = dec = QGroupBox("Decoding thresholds ([decode]; empty = engine default)")
         df = QFormLayout(dec)
         self.min_mod = QLineEdit()
         self.min_mod.setPlaceholderText(f"{_D.min_modulation:g}")
