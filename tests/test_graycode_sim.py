@@ -201,3 +201,26 @@ def test_ptp_decode_warns_about_measured_display_harmonics(tmp_path, capfd):
                      "-q"]) == 0
         err = capfd.readouterr().err
         assert ("harmonics" in err and "more steps" in err) == expect, err
+
+
+def test_repeat_source_passes_gray_and_reference_frames_on():
+    """Drift's repeats of a Gray-code dataset: their Gray-code and reference frames are the source's
+    at positions K, K+1, ... (like their phase frames)."""
+    from ptpcore.fit.drift import RepeatSource
+
+    rig, _ = scaled_preset("mild", 40, positions=3)
+    rig = replace(rig, stage=replace(rig.stage, repeat_z_mm=(0.0, 8.0)))
+
+    class Source:
+        def __init__(self):
+            self.rig = rig
+
+        def frames(self, k):
+            return k
+
+        def gray_frames(self, k):
+            return ("gray", k)
+
+    rep = RepeatSource(Source())
+    assert rep.frames(1) == 4 and rep.gray_frames(1) == ("gray", 4)
+    assert not hasattr(rep, "reference_frames")  # the source has none

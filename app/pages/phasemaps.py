@@ -43,6 +43,12 @@ class _CountingSource:
             self.ctx.progress(i / total, f"decoding position {k + 1}: frame {i + 1}/{total}")
             yield spec, img
 
+    def __getattr__(self, name: str):
+        # Gray-code and reference frames (ptp-dataset/2) straight from the source, when it has them.
+        if name in ("gray_frames", "reference_frames"):
+            return getattr(self.source, name)
+        raise AttributeError(name)
+
 
 class PhaseMapsPage(StudioPage):
     key = "phase"

@@ -38,3 +38,26 @@ def test_validity_per_direction(wizard, qtbot):
         np.testing.assert_allclose(ph.view.image.image, np.where(r == 0, pos.directions[d].coord, np.nan),
                                    equal_nan=True)
         assert np.isfinite(coord).any()
+
+
+def test_a_gray_code_design_acquires_and_decodes_in_the_wizard(wizard, qtbot):
+    """Unwrapping by a Gray code chosen on the Fringes page: the simulated acquisition and the
+    Phase maps page get the Gray-code frames through their frame sources."""
+    s = wizard.model.session
+    fr = wizard.page_by_key["fringes"]
+    fr.unwrap.setCurrentText("gray")
+    assert s.rig.fringes.unwrap == "gray" and s.rig.fringes.bits("x") >= 1 and fr.blocker() is None
+    wizard.next()
+    wizard.next()
+    acq = wizard.page_by_key["acquire"]
+    assert run_job(qtbot, acq.start()) == "finished"
+    assert s.samples is not None and np.mean(s.samples.reasons == 0) > 0.3
+    s.decoded.clear()
+    ph = wizard.page_by_key["phase"]
+    wizard.next()
+    ph.select(position=1, direction="y", kind="validity")
+    outcomes = []
+    while ph.jobs.busy:  # entering the page started position 1's decode, or another one it cancels
+        outcomes.append(run_job(qtbot, ph.jobs.job))
+    assert outcomes and outcomes[-1] == "finished", outcomes
+    assert 1 in s.decoded and np.mean(ph.reasons_of("y") == 0) > 0.3
