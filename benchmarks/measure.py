@@ -16,6 +16,8 @@ evaluate   LUT at a z map; floor: copy of the LUT's coefficient arrays
 read       floors only: every image with cv2.imread on all cores, and with plain file reads
 calibrate  the whole calibration from the folder (images -> LUT), nothing else in the process
 calibrate-vs-read  the calibration interleaved with both read floors (time and CPU time)
+spatial    the spatial-consistency check of one decoded position (both directions) against
+           the decode with it and without it (``DecodeOptions(spatial_k=None)``)
 """
 
 from __future__ import annotations
@@ -225,7 +227,30 @@ def task_calibrate_vs_read(folder, rig, repeat, positions):
             "valid_pixels": valid, "spill": os.environ.get("PTP_BENCH_SPILL", "auto")}
 
 
-TASKS = {"read": task_read, "decode": task_decode, "unwrap": task_unwrap, "fit": task_fit,
+def task_spatial(folder, rig, repeat, positions):
+    from ptpcore.decode import DecodeOptions
+    from ptpcore.decode.spatial import spatial_outliers
+    from ptpcore.run import decode_position
+
+    paths = image_paths(folder, rig, [0])[0]
+    stack = np.empty((len(paths), *rig.camera.shape), np.uint8 if rig.camera.bit_depth <= 8 else np.uint16)
+    with ThreadPoolExecutor(os.cpu_count()) as pool:
+        read_cv2(paths, stack, pool)
+    src = MemorySource(rig, stack, list(rig.fringes.frames()))
+    pos = decode_position(src, 0)  # loads the kernels; the maps the check is timed on
+    base = decode_position(src, 0, DecodeOptions(spatial_k=None)).reasons == 0
+    sigma = pos.info["sigma"]
+
+    def check():
+        return [spatial_outliers(pos.directions[d].coord, base, sigma.get(d), 5.0)[0] for d in rig.fringes.directions]
+
+    (t_dec, t_plain, t_sp), _ = best_of(repeat, lambda: decode_position(src, 0),
+                                        lambda: decode_position(src, 0, DecodeOptions(spatial_k=None)), check)
+    return {"decode_s": t_dec, "decode_without_spatial_s": t_plain, "spatial_s": t_sp,
+            "spatial_cpu_s": CPU[2], "spatial_share": t_sp / t_dec, "frames": len(paths)}
+
+
+TASKS = {"spatial": task_spatial, "read": task_read, "decode": task_decode, "unwrap": task_unwrap, "fit": task_fit,
          "evaluate": task_evaluate, "calibrate": task_calibrate, "calibrate-vs-read": task_calibrate_vs_read}
 
 

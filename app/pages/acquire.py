@@ -41,6 +41,12 @@ class TappedSource:
             self.preview(k, spec, img)
             yield spec, img
 
+    def __getattr__(self, name: str):
+        # Gray-code and reference frames (ptp-dataset/2) straight from the source, when it has them.
+        if name in ("gray_frames", "reference_frames"):
+            return getattr(self.source, name)
+        raise AttributeError(name)
+
 
 def acquisition_job(session, write_folder: Path | None = None) -> Job:
     """The acquisition as one job: (optionally write the simulated dataset,) decode every position.

@@ -13,6 +13,8 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
 from ptpcore.decode import design_check, fringe_image, fringe_profile
+from ptpcore.decode.harmonics import measured_harmonics
+from ptpcore.decode.patterns import GRAY_TEMPLATE, gray_bits_needed
 from ptpcore.rig import DirectionFringes, FringeDesign, format_period, rig_from_toml, rig_to_toml
 from ptpcore.evaluate import predicted_signal
 
@@ -34,6 +36,12 @@ def _dspin(lo, hi, value, decimals=2, step=1.0):
     s.setValue(value)
     s.setKeyboardTracking(False)
     return s
+
+
+def _gray_bits(f: FringeDesign, direction: str) -> int:
+    """``gray_bits`` of ``direction`` as written (also while unwrapping by periods, unlike ``f.bits``)."""
+    o = dict(f.per_direction).get(direction)
+    return int(o.gray_bits if o is not None and o.gray_bits is not None else f.gray_bits)
 
 
 def _slider(maximum: int) -> QSlider:
@@ -86,16 +94,20 @@ class FringesPage(StudioPage):
         self.steps_y.setPlaceholderText("as x")
         self.steps_y.setToolTip("Steps of the y periods when they differ from x ([fringes.y])")
         self.origin = _dspin(-7.0, 7.0, 0.0, 5, 0.1)
-        self.origin.setToolTip("phase_origin_rad: the phase every pattern starts at (e.g. 3.14159)")
+        self.origin.setToolTip("phase_origin_rad: the phase every pattern starts at (e.g. 3.14159);\n"
+                               "x, and y unless 'Phase origin y' says otherwise")
         self.sign = QComboBox()
         self.sign.addItems(["+1", "-1"])
-        self.sign.setToolTip("shift_sign: the direction the phase steps run in")
+        self.sign.setToolTip("shift_sign: the direction the phase steps run in (x, and y unless 'Shift sign y' says"
+                             " otherwise)")
         self.unwrap = QComboBox()
         self.unwrap.addItems(["periods", "gray"])
         self.unwrap.setToolTip("Temporal unwrapping by the period list, or by Gray-code images")
         self.gray_bits = QSpinBox()
         self.gray_bits.setRange(0, 24)
-        self.gray_bits.setToolTip("Gray-code bits counting cycles of the coarsest period (x; y the same)")
+        self.gray_bits.setToolTip("Gray-code bits counting cycles of the coarsest period (x, and y unless"
+                                  " 'Gray-code bits y' says otherwise)")
+        self._y_convention_widgets()
         self.gray_inverse = QCheckBox("each bit followed by its inverse")
         form.addRow("Directions", dirs)
         form.addRow("Periods (px)", self.periods)
@@ -103,9 +115,12 @@ class FringesPage(StudioPage):
         form.addRow("Periods y (px)", self.periods_y)
         form.addRow("Steps N y", self.steps_y)
         form.addRow("Phase origin (rad)", self.origin)
+        form.addRow("Phase origin y (rad)", self.origin_y)
         form.addRow("Shift sign", self.sign)
+        form.addRow("Shift sign y", self.sign_y)
         form.addRow("Unwrapping", self.unwrap)
         form.addRow("Gray-code bits", self.gray_bits)
+        form.addRow("Gray-code bits y", self.gray_bits_y)
         form.addRow("", self.gray_inverse)
         form.addRow("Offset (grey level)", self.offset)
         form.addRow("Amplitude (grey levels)", self.amplitude)
@@ -176,15 +191,16 @@ class FringesPage(StudioPage):
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#2b6cb0", width=1.5), stepMode=None)
         pl.addWidget(self.profile, 1)
         grid.addWidget(prev_box, 0, 1, 2, 1)
+        grid.addWidget(self._frames_panel(), 2, 0, 1, 2)
 
         for w in (self.dir_x, self.dir_y):
             w.toggled.connect(self._edited)
-        for w in (self.periods, self.steps, self.periods_y, self.steps_y):
+        for w in (self.periods, self.steps, self.periods_y, self.steps_y, self.origin_y):
             w.editingFinished.connect(self._edited)
         for w in (self.offset, self.amplitude, self.carrier_x, self.carrier_y, self.gamma, self.origin,
-                  self.gray_bits):
+                  self.gray_bits, self.gray_bits_y):
             w.valueChanged.connect(self._edited)
-        for w in (self.sign, self.unwrap):
+        for w in (self.sign, self.sign_y, self.unwrap):
             w.currentIndexChanged.connect(self._edited)
         self.gray_inverse.toggled.connect(self._edited)
         for w in (self.s_pos, self.s_level, self.s_step):
@@ -192,7 +208,41 @@ class FringesPage(StudioPage):
         self.s_dir.currentIndexChanged.connect(self._scrubbed)
         model.rigChanged.connect(self._show_rig)
         model.sourceChanged.connect(self._show_rig)
+        if hasattr(model, "decodedChanged"):
+            model.decodedChanged.connect(self._decoded_arrived)
         self._show_rig()
+
+    def _y_convention_widgets(self) -> None:
+        """The ``[fringes.y]`` overrides of phase origin, shift sign and Gray bits ("as x" when empty)."""
+        self.origin_y = QLineEdit()
+        self.origin_y.setPlaceholderText("as x")
+        self.origin_y.setToolTip("phase_origin_rad of the y patterns when it differs from x ([fringes.y]), radians")
+        self.sign_y = QComboBox()
+        self.sign_y.addItems(["as x", "+1", "-1"])
+        self.sign_y.setToolTip("shift_sign of the y patterns when it differs from x ([fringes.y])")
+        self.gray_bits_y = QSpinBox()
+        self.gray_bits_y.setRange(-1, 24)
+        self.gray_bits_y.setSpecialValueText("as x")
+        self.gray_bits_y.setValue(-1)
+        self.gray_bits_y.setToolTip("Gray-code bits of the y patterns when they differ from x ([fringes.y])")
+
+    def _frames_panel(self) -> QGroupBox:
+        """The read-only list of an imported dataset's ``[[images.frames]]``."""
+        self.frames_box = QGroupBox("Frames named one by one ([[images.frames]], read-only; kept as they are)")
+        fl = QVBoxLayout(self.frames_box)
+        self.frames_table = QTableWidget(0, 4)
+        self.frames_table.setHorizontalHeaderLabels(["Position", "Direction", "Frame", "File"])
+        self.frames_table.verticalHeader().hide()
+        self.frames_table.horizontalHeader().setSectionResizeMode(3, QHeaderView.Stretch)
+        self.frames_table.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.frames_table.setMaximumHeight(160)
+        fl.addWidget(self.frames_table)
+        return self.frames_box
+
+    def _decoded_arrived(self, *_):
+        """A decoded position brings the display's measured harmonics to the design check."""
+        if not self._loading:
+            self._refresh()
 
     # ---- model -> widgets -------------------------------------------------
     @property
@@ -214,10 +264,17 @@ class FringesPage(StudioPage):
             self.periods_y.setText("" if oy.periods_px is None else
                                    ", ".join(str(format_period(p)) for p in oy.periods_px))
             self.steps_y.setText("" if oy.steps is None else ", ".join(str(n) for n in oy.steps))
-            self.origin.setValue(f.phase_origin_rad)
-            self.sign.setCurrentIndex(0 if f.shift_sign == 1 else 1)
+            # x's values (y's where they differ): what the patterns of each direction use.
+            dx = "x" if "x" in f.directions else f.directions[0]
+            ox, sx, bx = f.origin(dx), f.sign(dx), _gray_bits(f, dx)
+            oy_, sy_, by_ = f.origin("y"), f.sign("y"), _gray_bits(f, "y")
+            self.origin.setValue(ox)
+            self.sign.setCurrentIndex(0 if sx == 1 else 1)
+            self.origin_y.setText("" if oy_ == ox else f"{oy_:.10g}")
+            self.sign_y.setCurrentIndex(0 if sy_ == sx else (1 if sy_ == 1 else 2))
             self.unwrap.setCurrentText(f.unwrap)
-            self.gray_bits.setValue(f.gray_bits)
+            self.gray_bits.setValue(bx)
+            self.gray_bits_y.setValue(-1 if by_ == bx else by_)
             self.gray_inverse.setChecked(f.gray_inverse)
             self.offset.setValue(f.offset)
             self.amplitude.setValue(f.amplitude)
@@ -226,8 +283,10 @@ class FringesPage(StudioPage):
             self.gamma.setValue(f.gamma)
             for w in (self.dir_x, self.dir_y, self.periods, self.steps, self.offset, self.amplitude,
                       self.carrier_x, self.carrier_y, self.gamma, self.periods_y, self.steps_y, self.origin,
-                      self.sign, self.unwrap, self.gray_bits, self.gray_inverse):
+                      self.sign, self.unwrap, self.gray_bits, self.gray_inverse, self.origin_y, self.sign_y,
+                      self.gray_bits_y):
                 w.setEnabled(self.editable)
+            self._show_frames(rig)
             cur_dir = self.s_dir.currentText()
             self.s_dir.clear()
             self.s_dir.addItems(list(f.directions))
@@ -240,6 +299,23 @@ class FringesPage(StudioPage):
         self._error = None
         self._refresh()
 
+    def _show_frames(self, rig) -> None:
+        """List the rig's ``[[images.frames]]`` (hidden when the images are named by templates)."""
+        frames = rig.frame_list
+        self.frames_box.setVisible(bool(frames))
+        self.frames_table.setRowCount(len(frames))
+        for i, e in enumerate(frames):
+            if e.reference is not None:
+                what = f"{e.reference} reference"
+            elif e.gray_bit is not None:
+                what = f"Gray-code bit {e.gray_bit}" + (" (inverse)" if e.inverse else "")
+            else:
+                what = f"period {e.period_index}, step {e.step}"
+            for c, text in enumerate((str(e.pos), e.dir or "", what, e.file)):
+                self.frames_table.setItem(i, c, QTableWidgetItem(text))
+        self.frames_box.setTitle(f"{len(frames)} frames named one by one ([[images.frames]], read-only;"
+                                 " kept as they are)")
+
     def dataset_changed(self) -> None:
         self._show_rig()  # the design and its check are the (new) dataset's
 
@@ -250,16 +326,36 @@ class FringesPage(StudioPage):
             f"{f.frames_per_position} frames per position, "
             f"{f.frames_per_position * rig.stage.n_positions} in all")
         s = self.model.session
-        if s.source_kind == "simulated":
+        measured = self.measured_harmonics()
+        if measured is not None:
+            k, m = measured
+            self.report = design_check(rig, modulation_dn=m.modulation_dn, noise_dn=m.noise_dn,
+                                       harmonic_dn=m.harmonic_dn)
+            basis = (f"measured at position {k + 1}: modulation {m.modulation_dn:.0f}, noise {m.noise_dn:.2g},"
+                     f" display harmonics {m.harmonic_dn:.2g} grey levels")
+        elif s.source_kind == "simulated":
             mod, noise = predicted_signal(rig, s.sim_settings)
             self.report = design_check(rig, modulation_dn=mod, noise_dn=noise)
             basis = f"predicted for the simulated rig: modulation {mod[0]:.0f}, noise {noise:.1f} grey levels"
         else:
             self.report = design_check(rig)
             basis = "default signal assumptions (half range modulation, 1 % noise)"
+        self._basis = basis
         self._show_report(basis)
         self._scrubbed()
         self.update_complete()
+
+    def measured_harmonics(self):
+        """``(k, MeasuredHarmonics)`` of the latest decoded position of this design, or None."""
+        decoded = getattr(self.model.session, "decoded", None) or {}
+        for k in reversed(list(decoded)):
+            pos = decoded[k]
+            samples = pos.info.get("noise_samples") if pos is not None else None
+            if samples:
+                m = measured_harmonics(samples)
+                if m is not None:
+                    return k, m
+        return None
 
     def _show_report(self, basis: str) -> None:
         rep = self.report
@@ -334,20 +430,39 @@ class FringesPage(StudioPage):
                 steps = steps * len(periods)
             per_direction = ()
             py_text, sy_text = self.periods_y.text().strip(), self.steps_y.text().strip()
-            if py_text or sy_text:
-                py = tuple(format_period(p) for p in parse_numbers(py_text, float)) if py_text else None
-                sy = parse_numbers(sy_text, int) if sy_text else None
-                if sy is not None and len(sy) == 1:
-                    sy = sy * len(py or periods)
-                elif sy is None and py is not None and len(py) != len(periods):
-                    sy = [steps[0]] * len(py)
-                per_direction = (("y", DirectionFringes(py, None if sy is None else tuple(sy))),)
+            py = tuple(format_period(p) for p in parse_numbers(py_text, float)) if py_text else None
+            sy = parse_numbers(sy_text, int) if sy_text else None
+            if sy is not None and len(sy) == 1:
+                sy = sy * len(py or periods)
+            elif sy is None and py is not None and len(py) != len(periods):
+                sy = [steps[0]] * len(py)
+            oy_text = self.origin_y.text().strip()
+            try:
+                oy = float(oy_text) if oy_text else None
+            except ValueError:
+                raise ValueError(f"phase origin y: '{oy_text}' is not a number") from None
+            sgn_y = (None, 1, -1)[self.sign_y.currentIndex()]
+            by = None if self.gray_bits_y.value() < 0 else self.gray_bits_y.value()
+            y = DirectionFringes(py, None if sy is None else tuple(sy), oy, sgn_y, by)
+            if y != DirectionFringes():
+                per_direction = (("y", y),)
             design = FringeDesign(directions, tuple(periods), tuple(steps), self.offset.value(),
                                   self.amplitude.value(), (self.carrier_x.value(), self.carrier_y.value()),
                                   self.gamma.value(), self.origin.value(), 1 if self.sign.currentIndex() == 0 else -1,
                                   self.unwrap.currentText(), self.gray_bits.value(), self.gray_inverse.isChecked(),
                                   per_direction)
             rig = replace(self.model.session.rig, fringes=design)
+            if design.unwrap == "gray":
+                # Gray-code frames need names; a first switch to Gray gets the bits that cover the LCD.
+                rig = replace(rig, gray_template=rig.gray_template or GRAY_TEMPLATE)
+                if design.gray_bits == 0:
+                    bits = max(gray_bits_needed(rig, d) for d in directions or ("x",))
+                    rig = replace(rig, fringes=replace(design, gray_bits=bits))
+                    self.gray_bits.blockSignals(True)
+                    self.gray_bits.setValue(bits)
+                    self.gray_bits.blockSignals(False)
+            else:
+                rig = replace(rig, gray_template=None)
             rig = rig_from_toml(rig_to_toml(rig), "fringes")
         except ValueError as exc:
             self._error = str(exc).replace("fringes: key 'fringes.", "'")

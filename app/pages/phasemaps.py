@@ -9,6 +9,7 @@ from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, Q
 from ptpcore.decode import REASON_NAMES
 from ptpcore.rig import format_period
 from ptpcore.run import decode_position
+from ptpcore.run.decoding import direction_reasons
 from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
     reason_text)
 
@@ -42,6 +43,12 @@ class _CountingSource:
             self.ctx.progress(i / total, f"decoding position {k + 1}: frame {i + 1}/{total}")
             yield spec, img
 
+    def __getattr__(self, name: str):
+        # Gray-code and reference frames (ptp-dataset/2) straight from the source, when it has them.
+        if name in ("gray_frames", "reference_frames"):
+            return getattr(self.source, name)
+        raise AttributeError(name)
+
 
 class PhaseMapsPage(StudioPage):
     key = "phase"
@@ -71,7 +78,7 @@ class PhaseMapsPage(StudioPage):
         cf.addRow(self.make_job_panel())
         left = QVBoxLayout()
         left.addWidget(ctl)
-        leg_box = QGroupBox("Validity legend (this position)")
+        leg_box = QGroupBox("Validity legend (this position and direction)")
         ll = QVBoxLayout(leg_box)
         self.legend = Legend()
         ll.addWidget(self.legend)
@@ -110,6 +117,7 @@ class PhaseMapsPage(StudioPage):
         self._roi_placed_for = None
 
         self.decoded = None
+        self._per_direction = (None, {})  # (position, {direction: reasons of that direction alone})
         self.current = None  # (k, d, kind, level)
         self.shown: np.ndarray | None = None  # the map shown, display units
         self.unit = ""
@@ -228,6 +236,13 @@ class PhaseMapsPage(StudioPage):
             self.jobs.show_error("; ".join(lines))
 
     # ---- drawing ------------------------------------------------------------------
+    def reasons_of(self, direction: str):
+        """(H, W) uint8: the invalid-pixel reasons of ``direction`` alone at the shown position."""
+        pos = self.decoded
+        if self._per_direction[0] is not pos:
+            self._per_direction = (pos, direction_reasons(self.model.session.rig, pos))
+        return self._per_direction[1][direction]
+
     def _show(self) -> None:
         pos = self.decoded
         if pos is None:
@@ -242,13 +257,15 @@ class PhaseMapsPage(StudioPage):
         period = format_period(periods[j])
         where = f"position {pos.index + 1} (z = {pos.z_mm:g} mm), direction {d}"
         self.current = (pos.index, d, kind, j)
-        self._reasons = pos.reasons
+        reasons = self.reasons_of(d)
+        self._reasons = reasons
         self.view.set_overlay(None)
         if kind == "validity":
-            self.view.set_rgba(reason_rgba(pos.reasons))
-            self.shown = pos.reasons
+            self.view.set_rgba(reason_rgba(reasons))
+            self.shown = reasons
             self.unit = ""
-            self.title.setText(f"Validity mask — {where} (both directions)")
+            both = float(np.mean(pos.reasons == 0))
+            self.title.setText(f"Validity mask — {where} alone ({100 * both:.1f} % valid in both directions)")
             self.view.bar.hide()
         else:
             self.view.bar.show()
@@ -258,8 +275,7 @@ class PhaseMapsPage(StudioPage):
                 label = f"Wrapped phase, T = {period} px"
             elif kind == "coord":
                 data, unit, cmap, levels = dec.coord, "LCD px", "viridis", None
-                valid = pos.reasons == 0
-                data = np.where(valid, dec.coord, np.nan)
+                data = np.where(reasons == 0, dec.coord, np.nan)
                 label = f"Unwrapped LCD coordinate {'u' if d == 'x' else 'v'} (carrier removed; invalid pixels blank)"
             elif kind == "modulation":
                 data, unit, cmap, levels = dec.wrapped[j].modulation, "grey levels", "CET-L3", None
@@ -271,7 +287,7 @@ class PhaseMapsPage(StudioPage):
             self.unit = unit
             self.view.set_map(data, levels=levels, cmap=cmap, label=unit)
             self.title.setText(f"{label} — {where}")
-        self._show_legend(pos.reasons)
+        self._show_legend(reasons)
         self._place_roi()
         self._update_profile()
 

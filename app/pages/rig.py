@@ -18,6 +18,7 @@ from ptpcore.simulate import PRESETS, preset
 from ..assets import default_rigs
 from ..sessionfile import read_session_file
 from ..widgets.confirm import confirm
+from ..widgets.rigv2 import RigV2Form
 from ..worker import Job
 from .base import StudioPage
 
@@ -161,6 +162,11 @@ class RigPage(StudioPage):
         srow.addWidget(self.make_job_panel(), 1)
         sv.addLayout(srow)
         left.addWidget(ses)
+
+        # ---- ptp-dataset/2: real rigs (bit shift, flatness, display, repeats) and [decode]
+        self.v2 = RigV2Form(self)
+        self.v2.hide()  # its two boxes go into the columns
+        left.addWidget(self.v2.real_box)
         left.addStretch(1)
 
         # ---- camera and LCD
@@ -216,6 +222,7 @@ class RigPage(StudioPage):
         self.stage_summary.setObjectName("hint")
         sv.addWidget(self.stage_summary)
         right.addWidget(st)
+        right.addWidget(self.v2.decode_box)
         right.addStretch(1)
 
         # ---- wiring
@@ -233,6 +240,7 @@ class RigPage(StudioPage):
                   self.glass_t, self.glass_n, self.z_start, self.z_step, self.z_count, self.skew_a, self.skew_b):
             w.valueChanged.connect(self._edited)
         self.z_list.editingFinished.connect(self._edited)
+        self.v2.edited.connect(self._edited)
         self.stage_group.idToggled.connect(lambda _i, on: on and self._edited())
         model.rigChanged.connect(self._show_rig)
         model.sourceChanged.connect(self._show_source)
@@ -290,7 +298,7 @@ class RigPage(StudioPage):
     def _rig_widgets(self):
         return (self.cam_w, self.cam_h, self.cam_bits, self.lcd_w, self.lcd_h, self.pitch_x, self.pitch_y,
                 self.glass_t, self.glass_n, self.stage_regular, self.stage_list, self.z_start, self.z_step, self.z_count, self.z_list,
-                self.skew_a, self.skew_b)
+                self.skew_a, self.skew_b, *self.v2.widgets())
 
     def _show_rig(self) -> None:
         rig = self.model.session.rig
@@ -318,6 +326,7 @@ class RigPage(StudioPage):
             (self.stage_regular if regular else self.stage_list).setChecked(True)
             self.skew_a.setValue(st.direction[0])
             self.skew_b.setValue(st.direction[1])
+            self.v2.show_rig(rig)
         finally:
             self._loading = False
         self._error = None
@@ -500,13 +509,15 @@ class RigPage(StudioPage):
             z = parse_numbers(self.z_list.text())
         rig = replace(
             old,
-            camera=Camera(self.cam_w.value(), self.cam_h.value(), self.cam_bits.value()),
+            camera=Camera(self.cam_w.value(), self.cam_h.value(), self.cam_bits.value(), old.camera.bit_shift),
             lcd=replace(old.lcd, width=self.lcd_w.value(), height=self.lcd_h.value(),
                         pitch_mm=(self.pitch_x.value(), self.pitch_y.value()),
                         cover_glass_mm=None if self.glass_t.value() < 0 else self.glass_t.value(),
                         cover_glass_index=self.glass_n.value()),
-            stage=Stage(tuple(float(v) for v in z), (self.skew_a.value(), self.skew_b.value(), 1.0)),
+            stage=Stage(tuple(float(v) for v in z), (self.skew_a.value(), self.skew_b.value(), 1.0),
+                        old.stage.repeat_z_mm),
         )
+        rig = self.v2.apply(rig)  # the ptp-dataset/2 keys of the form
         # The same validation as a rig.toml on disk, with the same messages.
         return rig_from_toml(rig_to_toml(rig), "rig")
 

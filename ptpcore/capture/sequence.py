@@ -49,7 +49,7 @@ from ptpcore.io.dataset import check_calibration_design, read_image
 from ptpcore.capture.devices import describe
 from ptpcore.capture.devices.camera import FrameError
 from ptpcore.errors import CaptureError, ConfigError, DeviceError, PtpError
-from ptpcore.decode.patterns import fringe_profile
+from ptpcore.decode.patterns import fringe_profile, gray_profile, reference_profile
 from ptpcore.rig.rigfile import Display, FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
 
 __all__ = [
@@ -68,6 +68,8 @@ __all__ = [
     "capture",
     "capture_state",
     "pattern_image",
+    "extra_frames",
+    "frames_per_position",
 ]
 
 STATE_FILE = "capture-state.json"
@@ -325,6 +327,37 @@ def pattern_image(rig: Rig, direction: str, period: int, step: int, n_steps: int
     return np.broadcast_to(prof[None, :] if direction == "x" else prof[:, None], shape)
 
 
+def extra_frames(rig: Rig, k: int, z_mm: float):
+    """The frames of position ``k`` besides the phase steps (ptp-dataset/2): Gray-code bits and
+    their inverses (``unwrap = "gray"``), then the white and black reference frames when the rig
+    names them.
+
+    Yields
+    ------
+    name : str
+        The frame's path relative to the dataset folder (``rig.gray_name`` / ``rig.reference_name``).
+    image : (lcd.height, lcd.width) uint8
+        What the LCD shows (a read-only broadcast view).
+    what : str
+        The frame in words, for progress and messages.
+    """
+    shape = (rig.lcd.height, rig.lcd.width)
+    for d, b, inv in rig.fringes.gray_frames():
+        prof = gray_profile(rig.lcd, rig.fringes, d, b, inv, z_mm)
+        yield (rig.gray_name(k, d, b, inv),
+               np.broadcast_to(prof[None, :] if d == "x" else prof[:, None], shape),
+               f"{d} Gray-code bit {b}{' inverse' if inv else ''}")
+    if rig.has_references:
+        for which in ("white", "black"):
+            yield (rig.reference_name(k, which),
+                   np.broadcast_to(reference_profile(rig.lcd, rig.fringes, which)[None, :], shape), f"{which} frame")
+
+
+def frames_per_position(rig: Rig) -> int:
+    """Frames captured at each position: phase steps, Gray-code frames and reference frames."""
+    return rig.fringes.frames_per_position + 2 * bool(rig.has_references)
+
+
 def _call(device, method: str, *args):
     """Call a device method; anything but our own errors becomes a DeviceError naming the device."""
     try:
@@ -531,6 +564,10 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
         raise ValueError(f"image_ext must be .png or .tif, got {image_ext!r}")
     if image_ext != Path(rig.template).suffix:
         rig = replace(rig, template=str(Path(rig.template).with_suffix(image_ext)))
+    for key in ("gray_template", "white_template", "black_template"):
+        t = getattr(rig, key)
+        if t is not None and Path(t).suffix != image_ext:
+            rig = replace(rig, **{key: str(Path(t).with_suffix(image_ext))})
     check_calibration_design(rig, "rig")
     limits.validate()
     plan_toml = rig_to_toml(rig)
@@ -645,7 +682,7 @@ class _CaptureRun:
         Returns the exposure check's report (None when not run). Device, exposure and
         folder errors are re-raised with :meth:`saved_note` appended.
         """
-        self.total = max(1, len(todo) * self.rig.fringes.frames_per_position)
+        self.total = max(1, len(todo) * frames_per_position(self.rig))
         exposure = None
         opened = []
         try:
@@ -735,6 +772,8 @@ class _CaptureRun:
             hint(k)
         for spec in self.rig.fringes.frames():
             self.capture_frame(k, z, spec)
+        for name, image, what in extra_frames(self.rig, k, z):
+            self.capture_image(k, z, name, image, what)
         state["positions"][k] = {"state": "done", "z_mm": z}
         _write_state(out, state)
         self.captured.append(k)
@@ -760,6 +799,21 @@ class _CaptureRun:
         self.done_frames += 1
         if self.on_frame:
             self.on_frame(k, spec, frame)
+
+
+    def capture_image(self, k: int, z: float, name: str, image: np.ndarray, what: str) -> None:
+        """One frame besides the phase steps (:func:`extra_frames`): show, settle, grab, check, write atomically."""
+        self.report(self.done_frames / self.total, f"position {k + 1}/{self.n_pos} (z = {z:g} mm): {what}")
+        _call(self.display, "show", image)
+        _call(self.display, "settle")
+        frame = _check_frame(_grab(self.camera, f"position {k + 1}, {what}", self.retries), self.rig, self.camera)
+        ok, buf = cv2.imencode(self.image_ext, frame)
+        if not ok:
+            raise OSError(f"could not encode the frame of position {k + 1} as {self.image_ext}")
+        path = self.out / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, buf.tobytes())
+        self.done_frames += 1
 
 
 def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict, n_pos: int) -> dict | None:
@@ -797,9 +851,11 @@ def _prepare_folder(out: Path, resume: bool, plan_toml: str, meta: dict, n_pos: 
 
 def _position_complete(out: Path, rig: Rig, k: int) -> bool:
     """Every image of position ``k`` exists and decodes to the camera's size and depth."""
-    for d, _j, t, s, big_n in rig.fringes.frames():
+    names = [rig.image_name(k, d, t, s, big_n) for d, _j, t, s, big_n in rig.fringes.frames()]
+    names += [name for name, _img, _what in extra_frames(rig, k, rig.stage.z_mm[k])]
+    for name in names:
         try:
-            read_image(out / rig.image_name(k, d, t, s, big_n), rig)
+            read_image(out / name, rig)
         except PtpError:
             return False
     return True

@@ -42,13 +42,19 @@ def cmd_simulate(args) -> int:
     if args.repeat:  # the first position again at the end (ptp-dataset/2 [stage] repeat_z_mm)
         rig = replace(rig, stage=replace(rig.stage, repeat_z_mm=(rig.stage.z_mm[0],)))
         settings = replace(settings, drift_um=tuple(args.drift_um or (0.0, 0.0)))
+    if args.gray:
+        from ptpcore.decode.patterns import gray_code_rig
+        rig = gray_code_rig(rig, args.gray, inverse=args.gray_inverse, references=args.references)
+    elif args.gray_inverse or args.references:
+        raise PtpError("--gray-inverse and --references go with --gray LEVELS")
     bar = progress_bar(args)
     try:
         out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
                                image_ext=".tif" if args.tiff else ".png")
     finally:
         bar.close()
-    n = (rig.stage.n_positions + len(rig.stage.repeat_z_mm)) * rig.fringes.frames_per_position
+    per_position = rig.fringes.frames_per_position + 2 * rig.has_references
+    n = (rig.stage.n_positions + len(rig.stage.repeat_z_mm)) * per_position
     print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
           f" and truth.h5 to {out}")
     return 0
@@ -518,6 +524,12 @@ def _add_simulate(sub) -> None:
                         " [stage] repeat_z_mm, ptp-dataset/2): calibrate reports the drift")
     s.add_argument("--drift-um", nargs=2, type=float, metavar=("DX", "DY"),
                    help="with --repeat: the camera moved sideways by DX, DY um (world X, Y) before the repeat")
+    s.add_argument("--gray", type=positive_int, metavar="LEVELS",
+                   help="Gray-code unwrapping (ptp-dataset/2, unwrap = \"gray\"): keep the finest LEVELS periods,"
+                        " and as many Gray-code bits as cover the LCD")
+    s.add_argument("--gray-inverse", action="store_true", help="with --gray: each Gray-code frame followed by its inverse")
+    s.add_argument("--references", action="store_true",
+                   help="with --gray: all-white and all-black frames at every position (threshold, clipping check)")
     s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)

@@ -105,9 +105,11 @@ def _edge_bit(m: np.ndarray, n_bits: int) -> np.ndarray:
 
 
 def _contrast_of(contrast: np.ndarray, bit: np.ndarray) -> np.ndarray:
-    """``contrast[bit]`` per pixel; +inf where ``bit`` is -1."""
+    """``contrast[bit]`` per pixel; where ``bit`` is -1 (no such edge: the first or last cell)
+    the clearest bit's contrast, so that the edge that does exist moves the pixel only when
+    its own bit is weakly decided."""
     got = np.take_along_axis(contrast, np.maximum(bit, 0)[None], axis=0)[0].astype(np.float64)
-    return np.where(bit >= 0, got, np.inf)
+    return np.where(bit >= 0, got, contrast.max(axis=0))
 
 
 def absolute_coarse_phase(phase0, index, contrast=None, modulation=None, tolerance: float = 0.25

@@ -20,9 +20,11 @@ or from the neighbourhood (:mod:`ptpcore.decode.spatial`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["noise_bins", "harmonic_noise_samples", "coherent_harmonic"]
+__all__ = ["noise_bins", "harmonic_noise_samples", "coherent_harmonic", "MeasuredHarmonics", "measured_harmonics"]
 
 
 def noise_bins(n_steps: int) -> list[int]:
@@ -138,3 +140,59 @@ def coherent_harmonic(frames, harmonic: int = 2, block: int = 8) -> dict:
         rel = np.abs(np.nanmean(zb, axis=(1, 3)))
         a1 = np.nanmedian(ab, axis=(1, 3))
     return {"relative": rel, "amplitude": (2.0 / n) * rel * a1}
+
+
+@dataclass(frozen=True)
+class MeasuredHarmonics:
+    """The display's harmonics against the camera noise, measured on decoded frames (grey levels).
+
+    Attributes
+    ----------
+    harmonic_dn : float
+        Median over the lit pixels of the largest harmonic's amplitude.
+    noise_dn : float
+        RMS camera noise there, harmonics taken out.
+    modulation_dn : float
+        Median fringe modulation B there.
+    n_pixels : int
+        Pixel pairs measured.
+    """
+
+    harmonic_dn: float
+    noise_dn: float
+    modulation_dn: float
+    n_pixels: int
+
+
+def measured_harmonics(noise_samples: dict) -> MeasuredHarmonics | None:
+    """Harmonics and noise of one decoded position, for the design check.
+
+    Parameters
+    ----------
+    noise_samples : dict
+        ``{direction: samples}``, each from :func:`harmonic_noise_samples` (a decoded
+        position's ``info["noise_samples"]``).
+
+    Returns
+    -------
+    MeasuredHarmonics or None
+        Over the lit pixels (modulation at least half its median over pixels with any), every
+        direction pooled; None without samples (all levels of 4 steps or fewer) or lit pixels.
+    """
+    harm, var, mod = [], [], []
+    for part in noise_samples.values():
+        if part is None:
+            continue
+        m = np.asarray(part["modulation"], float)
+        ok = np.isfinite(m) & (m > 0) & np.isfinite(part["var"]) & np.isfinite(part["harmonic"])
+        if not ok.any():
+            continue
+        ok &= m >= 0.5 * np.median(m[ok])
+        harm.append(np.asarray(part["harmonic"])[ok])
+        var.append(np.asarray(part["var"])[ok])
+        mod.append(m[ok])
+    if not harm or sum(h.size for h in harm) == 0:
+        return None
+    harm, var, mod = (np.concatenate(a) for a in (harm, var, mod))
+    return MeasuredHarmonics(float(np.median(harm)), float(np.sqrt(np.mean(var))), float(np.median(mod)),
+                             int(harm.size))

@@ -13,11 +13,11 @@ rig has it, else ``[fringes] gamma``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ptpcore.rig.rigfile import Display, FringeDesign, Lcd, Rig, format_period
+from ptpcore.rig.rigfile import Display, DirectionFringes, FringeDesign, Lcd, Rig, format_period
 
 __all__ = [
     "fringe_values",
@@ -30,7 +30,19 @@ __all__ = [
     "design_check",
     "convention_detectable",
     "phase_noise_rad",
+    "gray_values",
+    "gray_profile",
+    "reference_profile",
+    "gray_bits_needed",
+    "gray_code_rig",
+    "GRAY_TEMPLATE",
+    "WHITE_TEMPLATE",
+    "BLACK_TEMPLATE",
 ]
+
+GRAY_TEMPLATE = "z{pos:03d}/{dir}_G{bit:02d}_{inverse}.png"
+WHITE_TEMPLATE = "z{pos:03d}/white.png"
+BLACK_TEMPLATE = "z{pos:03d}/black.png"
 
 
 def fringe_values(coord, design: FringeDesign, direction: str, period: float, step: int,
@@ -129,6 +141,145 @@ def fringe_image(lcd: Lcd, design: FringeDesign, direction: str, period: int, st
     if direction == "x":
         return np.broadcast_to(prof[None, :], (lcd.height, lcd.width)).copy()
     return np.broadcast_to(prof[:, None], (lcd.height, lcd.width)).copy()
+
+
+def _precompensate(g: np.ndarray, design: FringeDesign) -> np.ndarray:
+    """Grey levels through the design's gamma pre-compensation, rounded to displayed uint8 levels."""
+    g = np.clip(g, 0.0, 255.0)
+    if design.gamma != 1.0:
+        g = 255.0 * (g / 255.0) ** (1.0 / design.gamma)
+    return np.clip(np.rint(g), 0, 255).astype(np.uint8)
+
+
+def gray_values(coord, design: FringeDesign, direction: str, bit: int, inverse: bool,
+                z_mm: float) -> np.ndarray:
+    """Continuous (uncompensated) value of one Gray-code pattern at LCD coordinates.
+
+    Bit ``bit`` (0 = most significant, of ``design.bits(direction)``) of the
+    binary-reflected Gray code of the cycle index ``m = floor((coord + s) / T_0)``
+    of the coarsest period ``T_0`` (``s``: the carrier displacement, so the code
+    moves with the fringes); cycles below 0 count as 0 and beyond the code's
+    range as its last. A set bit shows the fringes' brightest level
+    ``offset + amplitude``, a clear bit their darkest ``offset - amplitude``
+    (so a Gray-code frame clips the camera only where the fringes do); the
+    inverse frame swaps them.
+
+    Parameters
+    ----------
+    coord : array_like
+        LCD coordinate along the pattern's axis (``u`` for ``x``, ``v`` for ``y``), LCD px.
+    design : FringeDesign
+    direction : {"x", "y"}
+    bit : int
+    inverse : bool
+    z_mm : float
+        Stage reading (sets the carrier displacement).
+
+    Returns
+    -------
+    ndarray, same shape as ``coord``
+        Grey levels before gamma pre-compensation.
+    """
+    n_bits = design.bits(direction)
+    if not 0 <= bit < n_bits:
+        raise ValueError(f"Gray-code bit {bit} does not exist (direction {direction} has {n_bits} bits)")
+    t0 = float(design.periods(direction)[0])
+    s = design.carrier(direction) * z_mm
+    m = np.floor((np.asarray(coord, dtype=float) + s) / t0)
+    m = np.clip(m, 0, (1 << n_bits) - 1).astype(np.int64)
+    g = m ^ (m >> 1)
+    on = ((g >> (n_bits - 1 - bit)) & 1).astype(bool) != bool(inverse)
+    return np.where(on, design.offset + design.amplitude, design.offset - design.amplitude)
+
+
+def gray_profile(lcd: Lcd, design: FringeDesign, direction: str, bit: int, inverse: bool,
+                 z_mm: float) -> np.ndarray:
+    """The displayed levels of one Gray-code pattern along its axis.
+
+    Returns
+    -------
+    (lcd.width,) or (lcd.height,) uint8
+        :func:`gray_values` after gamma pre-compensation, like :func:`fringe_profile`.
+    """
+    n = lcd.width if direction == "x" else lcd.height
+    return _precompensate(gray_values(np.arange(n), design, direction, bit, inverse, z_mm), design)
+
+
+def reference_profile(lcd: Lcd, design: FringeDesign, which: str) -> np.ndarray:
+    """The displayed levels (along ``u``) of the ``"white"`` or ``"black"`` reference frame.
+
+    White is the fringes' brightest level ``offset + amplitude``, black their
+    darkest ``offset - amplitude`` (after gamma pre-compensation): where these
+    clip the camera, the fringes do too.
+
+    Returns
+    -------
+    (lcd.width,) uint8
+    """
+    if which not in ("white", "black"):
+        raise ValueError(f"reference frame must be 'white' or 'black', got {which!r}")
+    level = design.offset + (design.amplitude if which == "white" else -design.amplitude)
+    return _precompensate(np.full(lcd.width, level, float), design)
+
+
+def gray_bits_needed(rig: Rig, direction: str, coarsest_px: float | None = None) -> int:
+    """Fewest Gray-code bits whose cycles of the coarsest period cover ``u + s`` over the LCD
+    and every position's carrier shift (the design check's unambiguous range)."""
+    f = rig.fringes
+    t0 = float(coarsest_px if coarsest_px is not None else f.periods(direction)[0])
+    extent = rig.lcd.width if direction == "x" else rig.lcd.height
+    shifts = f.carrier(direction) * np.asarray(rig.stage.z_mm, float)
+    span_hi = extent - 0.5 + max(0.0, float(shifts.max()))
+    return max(1, int(math.ceil(math.log2(max(span_hi, 1.0) / t0 + 1e-9))))
+
+
+def gray_code_rig(rig: Rig, levels: int = 2, *, inverse: bool = False, references: bool = False) -> Rig:
+    """``rig`` with Gray-code unwrapping (``unwrap = "gray"``, ptp-dataset/2) instead of its coarse periods.
+
+    Keeps the finest ``levels`` periods and their steps (per direction); each
+    direction gets the fewest Gray-code bits covering the LCD and the carrier
+    (a per-direction ``gray_bits`` where they differ); the templates are
+    FORMATS.md's examples with the rig's image suffix.
+
+    Parameters
+    ----------
+    rig : Rig
+    levels : int
+        Phase-shifted periods kept (1 = the finest only).
+    inverse : bool
+        Each Gray-code frame followed by its inverse.
+    references : bool
+        All-white and all-black frames at every position.
+    """
+    f = rig.fringes
+    if levels < 1:
+        raise ValueError(f"levels must be at least 1, got {levels}")
+    per = {}
+    for d in f.directions:
+        per[d] = (tuple(f.periods(d)[-levels:]), tuple(f.steps_of(d)[-levels:]))
+    base = per[f.directions[0]]
+    probe = replace(rig, fringes=replace(f, periods_px=base[0], steps=base[1], per_direction=()))
+    bits = {d: gray_bits_needed(probe, d, per[d][0][0]) for d in f.directions}
+    first = f.directions[0]
+    kept = dict(f.per_direction)  # origin and sign of a direction stay as they were
+    overrides = []
+    for d in f.directions:
+        o = DirectionFringes(per[d][0] if per[d][0] != base[0] else None,
+                             per[d][1] if per[d][1] != base[1] else None,
+                             kept[d].phase_origin_rad if d in kept else None,
+                             kept[d].shift_sign if d in kept else None,
+                             bits[d] if bits[d] != bits[first] else None)
+        if o != DirectionFringes():
+            overrides.append((d, o))
+    overrides = tuple(overrides)
+    fringes = replace(f, periods_px=base[0], steps=base[1], unwrap="gray", gray_bits=bits[first],
+                      gray_inverse=bool(inverse), per_direction=overrides)
+    suffix = rig.template[rig.template.rfind("."):] if "." in rig.template else ".png"
+    out = replace(rig, fringes=fringes, gray_template=GRAY_TEMPLATE.replace(".png", suffix))
+    if references:
+        out = replace(out, white_template=WHITE_TEMPLATE.replace(".png", suffix),
+                      black_template=BLACK_TEMPLATE.replace(".png", suffix))
+    return out
 
 
 def phase_noise_rad(noise_dn, modulation_dn, n_steps: int):

@@ -63,6 +63,11 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
     n_neighbours : (H, W) int16
     """
     h, w = coord.shape
+    kern = _kernels()
+    if kern is not None:
+        fused = _residual_fused(kern, np.where(valid, coord, np.nan).astype(np.float64), radius, step)
+        if fused is not None:
+            return fused
     pad = radius
     # Each map lives inside its NaN-padded copy (one (H, W) float64 array each, not two).
     cp, gcp, grp, rp = (np.full((h + 2 * pad, w + 2 * pad), np.nan) for _ in range(4))
@@ -98,6 +103,45 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
             around = _nanmedian0(np.stack([rp[r0 + pad + dr:r1 + pad + dr, pad + dc:pad + dc + w]
                                            for dr, dc in offs]))
             out[r0:r1] = resid[r0:r1] - np.where(np.isfinite(around), around, 0.0)
+    return out, count
+
+
+def _kernels():
+    """:mod:`ptpcore.decode._spatial_kernel` when the numba kernels are on, else None."""
+    from ptpcore.decode.phase import fused_kernels
+
+    if fused_kernels() is None:
+        return None
+    from ptpcore.decode import _spatial_kernel
+
+    return _spatial_kernel
+
+
+def _residual_fused(kern, c: np.ndarray, radius: int, step: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`neighbourhood_residual` by the numba kernels, tile by tile (bit-equal); None for a
+    window other than the default 24 neighbours."""
+    from ptpcore.parallel import run_tiles
+
+    h, w = c.shape
+    gc = np.full((h, w), np.nan)
+    gr = np.full((h, w), np.nan)
+    if w > 2:
+        gc[:, 1:-1] = 0.5 * (c[:, 2:] - c[:, :-2])
+    if h > 2:
+        gr[1:-1] = 0.5 * (c[2:] - c[:-2])
+    offs = np.array(_offsets(radius, step), np.int64).reshape(-1, 2)
+    if offs.shape[0] != kern.NET24.max() + 1:  # the networks are for the default 24-neighbour window
+        return None
+    pad = radius
+    cp = np.pad(c, pad, constant_values=np.nan)
+    gcp = np.pad(gc, pad, constant_values=np.nan)
+    grp = np.pad(gr, pad, constant_values=np.nan)
+    resid = np.empty((h, w))
+    count = np.empty((h, w), np.int16)
+    run_tiles(lambda r0, r1: kern.residual_rows(cp, gcp, grp, offs, pad, MIN_NEIGHBOURS, r0, r1, resid, count), h, w)
+    rp = np.pad(resid, pad, constant_values=np.nan)
+    out = np.empty((h, w))
+    run_tiles(lambda r0, r1: kern.around_rows(rp, offs, pad, r0, r1, out), h, w)
     return out, count
 
 

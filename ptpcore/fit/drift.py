@@ -54,6 +54,13 @@ class RepeatSource:
     def frames(self, k: int):
         return self.source.frames(self.k0 + int(k))
 
+    def __getattr__(self, name: str):
+        # The Gray-code and reference frames of a repeat, when the source has them.
+        if name in ("gray_frames", "reference_frames"):
+            fn = getattr(self.source, name)
+            return lambda k: fn(self.k0 + int(k))
+        raise AttributeError(name)
+
 
 @dataclass
 class Drift:

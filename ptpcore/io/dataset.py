@@ -694,6 +694,14 @@ class SimulatedSource:
     def frames(self, k: int):
         return self.virtual_rig.frames(k)
 
+    def gray_frames(self, k: int) -> dict:
+        """``{(dir, bit, inverse): image}`` rendered for position ``k``."""
+        return self.virtual_rig.gray_frames(k)
+
+    def reference_frames(self, k: int) -> dict:
+        """``{"white": image, "black": image}`` rendered for position ``k`` (empty without them)."""
+        return self.virtual_rig.reference_frames(k)
+
 
 def open_source(folder) -> DatasetSource:
     """Open a dataset folder as a frame source."""

@@ -23,7 +23,7 @@ from ptpcore.io.decodedfile import Decoded
 from ptpcore.rig.rigfile import rig_to_toml
 from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, dominant_reason, position_report
 
-__all__ = ["DecodeRun", "decode_dataset"]
+__all__ = ["DecodeRun", "decode_dataset", "direction_reasons"]
 
 
 @dataclass
@@ -34,6 +34,50 @@ class DecodeRun:
     warnings: list = field(default_factory=list)
     noise_sources: dict = field(default_factory=dict)
     valid_fraction: dict = field(default_factory=dict)  # (k, d) -> fraction
+
+
+def _harmonics_warning(rig, pos) -> str | None:
+    """The design check's display-harmonics verdict on the harmonics measured at ``pos``
+    (:func:`ptpcore.decode.harmonics.measured_harmonics`), or None when they are below the noise."""
+    from ptpcore.decode.harmonics import measured_harmonics
+    from ptpcore.decode.patterns import design_check
+
+    m = measured_harmonics(pos.info.get("noise_samples") or {})
+    if m is None:
+        return None
+    report = design_check(rig, modulation_dn=m.modulation_dn, noise_dn=m.noise_dn, harmonic_dn=m.harmonic_dn)
+    bad = [i.message for i in report.items if i.name == "display harmonics" and not i.ok]
+    return bad[0] if bad else None
+
+
+def direction_reasons(rig, pos, options: DecodeOptions = DecodeOptions()) -> dict:
+    """The invalid-pixel reasons of each direction of a decoded position, apart.
+
+    A position's own ``reasons`` combine both directions (a sample needs both);
+    here each direction is classified alone, as ``ptp decode`` writes them.
+
+    Parameters
+    ----------
+    rig : Rig
+    pos : DecodedPosition
+        From :func:`ptpcore.run.pipeline.decode_position`.
+    options : DecodeOptions
+        Thresholds (the rig's ``[decode]`` ones where these are the defaults).
+
+    Returns
+    -------
+    dict
+        ``{direction: (H, W) uint8}``: :class:`ptpcore.decode.phase.Reason` bits, 0 where valid.
+    """
+    from ptpcore.run.pipeline import flag_more_reasons
+
+    options = options.for_rig(rig)
+    out = {}
+    for d, dec in pos.directions.items():
+        r = finish_position(rig, pos.index, {d: dec}, options).reasons
+        flag_more_reasons(rig, pos, options, r, directions=[d])
+        out[d] = r
+    return out
 
 
 def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOptions(),
@@ -49,7 +93,7 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
     ValueError
         A position that does not exist.
     """
-    from ptpcore.run.pipeline import decode_position, flag_more_reasons
+    from ptpcore.run.pipeline import decode_position
 
     rig = source.rig
     f = rig.fringes
@@ -74,13 +118,11 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
         if progress:
             progress(i / kk, f"decoding position {k + 1}/{k_total}")
         pos = decode_position(source, k, options)
+        per_direction = direction_reasons(rig, pos, options)
         for d in f.directions:
             di = "xy".index(d)
             dec = pos.directions[d]
-            # The reasons of this direction alone.
-            one = finish_position(rig, k, {d: dec}, options)
-            r = one.reasons
-            flag_more_reasons(rig, pos, options, r, directions=[d])
+            r = per_direction[d]
             reasons[i, di] = r
             fine = dec.wrapped[-1]
             mod[i, di] = fine.modulation
@@ -95,6 +137,10 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
             run.noise_sources[(k, d)] = pos.info.get("noise_source", {}).get(d)
         if check_conventions and (not checked or any(run.valid_fraction[(k, d)] < min_fraction
                                                      for d in f.directions)):
+            if not checked:
+                harmonics = _harmonics_warning(rig, pos)
+                if harmonics:
+                    run.warnings.append(f"position {k} (z = {rig.stage.z_mm[k]:g} mm): {harmonics}")
             checked = True
             findings = convention_check(rig, pos, options)
             if findings:

@@ -266,6 +266,7 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
         wrapped[(d, j)] = wp
     stack = None  # a set mapped from its files is unmapped once its phases are out
     levels = {d: [wrapped[(d, j)] for j in range(len(f.periods(d)))] for d in f.directions}
+    refs = _reference_frames(rig, k, source)
     pos = None
     if fused_kernels() is not None and f.unwrap == "periods" and options.unwrap_tolerance == 0.25:
         outs = None
@@ -282,7 +283,7 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
     if pos is None:
         z = rig.stage.z_mm[k]
         decoded = {}
-        gray = _gray_unwrap(rig, k, source, levels, options) if f.unwrap == "gray" else {}
+        gray = _gray_unwrap(rig, k, source, levels, options, refs) if f.unwrap == "gray" else {}
         for d in f.directions:
             out = None
             if buffers is not None:
@@ -301,6 +302,8 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
         pos = finish_position(rig, k, decoded, options, out=out)
     pos.info["noise_samples"] = {d: part for d, (_j, _n, part) in noise_parts.items()}
     pos.info["noise_levels"] = {d: (f.periods(d)[j], n) for d, (j, n, _p) in noise_parts.items()}
+    if refs:
+        pos.info["reference_clipping"] = reference_clipping(refs, rig.camera.max_level)
     flag_more_reasons(rig, pos, options, pos.reasons)
     return pos
 
@@ -310,14 +313,45 @@ def _noise_stride(rig: Rig) -> int:
     return max(1, int(np.sqrt(h * w / NOISE_PIXELS)))
 
 
-def _gray_unwrap(rig: Rig, k: int, source, levels: dict, options: DecodeOptions) -> dict:
-    """``{d: (absolute coarse phase, Gray-code failures)}`` from the Gray-code frames of position ``k``."""
+def _reference_frames(rig: Rig, k: int, source) -> dict:
+    """``{"white": image, "black": image}`` of position ``k`` when the dataset has them, else ``{}``."""
+    if not rig.has_references or source is None or not hasattr(source, "reference_frames"):
+        return {}
+    return source.reference_frames(k)
+
+
+def reference_clipping(refs: dict, max_level: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The clipping check of the reference frames (METHOD.md section 4).
+
+    Parameters
+    ----------
+    refs : dict
+        ``{"white": (H, W) image, "black": (H, W) image}``, either may be absent.
+    max_level : float
+        The camera's largest grey level.
+
+    Returns
+    -------
+    saturated, black : (H, W) bool or None
+        Where the white frame reaches ``max_level`` (the brightest fringes saturate
+        there too) and where the black frame is at 0 (the darkest are clipped).
+    """
+    white, black = refs.get("white"), refs.get("black")
+    sat = None if white is None else np.asarray(white) >= max_level
+    clipped = None if black is None else np.asarray(black) <= 0
+    return sat, clipped
+
+
+def _gray_unwrap(rig: Rig, k: int, source, levels: dict, options: DecodeOptions, refs: dict | None = None) -> dict:
+    """``{d: (absolute coarse phase, Gray-code failures)}`` from the Gray-code frames of position ``k``
+    (``refs``: its white and black frames, the bits' threshold when there are no inverse frames)."""
     from ptpcore.decode.graycode import absolute_coarse_phase, gray_index
 
     if source is None or not hasattr(source, "gray_frames"):
         raise ValueError("this frame source cannot give Gray-code frames")
     frames = source.gray_frames(k)
-    refs = source.reference_frames(k) if hasattr(source, "reference_frames") else {}
+    if refs is None:
+        refs = _reference_frames(rig, k, source)
     f = rig.fringes
     out = {}
     for d in f.directions:
@@ -336,7 +370,8 @@ def _gray_unwrap(rig: Rig, k: int, source, levels: dict, options: DecodeOptions)
 
 def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, reasons: np.ndarray,
                       directions=None) -> None:
-    """Black clipping, Gray-code failures and spatial consistency (METHOD.md section 4), into ``reasons``.
+    """Black clipping, Gray-code failures, the reference frames' clipping (``pos.info["reference_clipping"]``)
+    and spatial consistency (METHOD.md section 4), into ``reasons``.
 
     Also records in ``pos.info`` the predicted coordinate noise used (``sigma``)
     and where the noise came from (``noise_source``).
@@ -353,6 +388,11 @@ def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, re
                 _or(reasons, wp.black, Reason.BLACK_CLIPPED)
         if dec.gray_failed is not None:
             _or(reasons, dec.gray_failed, Reason.GRAY_CODE)
+    sat, clipped = pos.info.get("reference_clipping", (None, None))
+    if dirs and sat is not None:
+        _or(reasons, sat, Reason.SATURATED)
+    if dirs and clipped is not None:
+        _or(reasons, clipped, Reason.BLACK_CLIPPED)
     pos.info.setdefault("sigma", {})
     pos.info.setdefault("noise_source", {})
     if options.spatial_k is None:

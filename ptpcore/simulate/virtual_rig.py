@@ -31,7 +31,8 @@ from ptpcore.errors import ConfigError
 from ptpcore.io.lutfile import write_hdf5_atomic
 from ptpcore.pinhole.lens import undistort_normalised
 from ptpcore.simulate.lcd_physics import LcdPhysics, draw_stage_poses, pose_matrix
-from ptpcore.decode.patterns import display_inverse, fringe_profile, fringe_values
+from ptpcore.decode.patterns import (display_inverse, fringe_profile, fringe_values, gray_profile, gray_values,
+                                     reference_profile)
 from ptpcore.rig.rigfile import Camera, FringeDesign, Lcd, Rig, Stage, save_rig
 
 __all__ = [
@@ -520,12 +521,26 @@ class VirtualRig:
         -------
         (H, W) uint8 (8-bit camera) or uint16 (9-16 bit, values not scaled)
         """
-        rig, s = self.rig, self.settings
         z_read = self.readings[k]
+        f, lcd, display = self.rig.fringes, self.rig.lcd, self.rig.display
+        # Through rig.display's inverse when the rig has a measured response.
+        return self._render_pattern(
+            k, direction, lambda: fringe_profile(lcd, f, direction, period, step, n_steps, z_read, display),
+            lambda coord: fringe_values(coord, f, direction, period, step, n_steps, z_read),
+            (2, k, "xy".index(direction), period, step))
+
+    def _render_pattern(self, k: int, direction: str, profile, values, noise_key: tuple) -> np.ndarray:
+        """One camera frame of a pattern varying along ``direction``'s LCD axis.
+
+        ``profile()``: its displayed uint8 levels along the axis (pixelated
+        LCD, :meth:`render_profile`); ``values(coord)``: its continuous levels
+        before the display's inverse or the gamma pre-compensation (continuous
+        LCD). ``noise_key`` selects the noise stream.
+        """
+        rig, s = self.rig, self.settings
+        if s.pixelated:
+            return self.render_profile(k, direction, profile(), noise_key)
         f = rig.fringes
-        if s.pixelated:  # through rig.display's inverse when the rig has a measured response
-            prof = fringe_profile(rig.lcd, f, direction, period, step, n_steps, z_read, rig.display)
-            return self.render_profile(k, direction, prof, (2, k, "xy".index(direction), period, step))
         geo = self._geometry(k)
         h, w = rig.camera.shape
         m = self.margin
@@ -534,7 +549,7 @@ class VirtualRig:
         u, v = geo["uv"]
         inside = (u >= -0.5) & (u < rig.lcd.width - 0.5) & (v >= -0.5) & (v < rig.lcd.height - 0.5)
         coord = u if direction == "x" else v
-        g = np.clip(fringe_values(coord, f, direction, period, step, n_steps, z_read), 0, 255)
+        g = np.clip(values(coord), 0, 255)
         if rig.display is not None and len(rig.display.levels) >= 2:
             g = display_inverse(rig.display, g)
         elif f.gamma != 1.0:
@@ -543,7 +558,7 @@ class VirtualRig:
         if s.dust:
             lum = lum * self.dust_transmission(u, v)
         irr = lum.reshape(h, ss, w, ss).mean(axis=(1, 3))
-        return self._expose(irr, self.blur_sigma(k), (2, k, "xy".index(direction), period, step))
+        return self._expose(irr, self.blur_sigma(k), tuple(noise_key))
 
     def render_profile(self, k: int, direction: str, prof: np.ndarray, noise_key: tuple) -> np.ndarray:
         """One camera frame of any 1-D LCD profile at position ``k``, each LCD pixel integrated exactly.
@@ -588,6 +603,35 @@ class VirtualRig:
         else:
             irr = strip.reshape(w, ss, h).mean(axis=1).T
         return self._expose(irr, self.blur_sigma(k), tuple(noise_key))
+
+    def render_gray(self, k: int, direction: str, bit: int, inverse: bool = False) -> np.ndarray:
+        """One Gray-code camera frame (:func:`ptpcore.decode.patterns.gray_values`), like :meth:`render`."""
+        z_read = self.readings[k]
+        f = self.rig.fringes
+        return self._render_pattern(
+            k, direction, lambda: gray_profile(self.rig.lcd, f, direction, bit, inverse, z_read),
+            lambda coord: gray_values(coord, f, direction, bit, inverse, z_read),
+            (4, k, "xy".index(direction), bit, int(bool(inverse))))
+
+    def render_reference(self, k: int, which: str) -> np.ndarray:
+        """The ``"white"`` or ``"black"`` reference camera frame of position ``k``
+        (:func:`ptpcore.decode.patterns.reference_profile`), like :meth:`render`."""
+        f = self.rig.fringes
+        prof = reference_profile(self.rig.lcd, f, which)
+        level = f.offset + (f.amplitude if which == "white" else -f.amplitude)
+        return self._render_pattern(k, "x", lambda: prof, lambda coord: np.full(np.shape(coord), level),
+                                    (5, k, 0 if which == "white" else 1))
+
+    def gray_frames(self, k: int) -> dict:
+        """``{(dir, bit, inverse): image}``: the Gray-code frames of position ``k`` (empty unless
+        ``unwrap = "gray"``), as :meth:`ptpcore.io.dataset.DatasetSource.gray_frames`."""
+        return {(d, b, inv): self.render_gray(k, d, b, inv) for d, b, inv in self.rig.fringes.gray_frames()}
+
+    def reference_frames(self, k: int) -> dict:
+        """``{"white": image, "black": image}`` of position ``k`` when the rig has reference frames."""
+        if not self.rig.has_references:
+            return {}
+        return {which: self.render_reference(k, which) for which in ("white", "black")}
 
     def dust_transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Transmission (0..1) of the dust disks of the settings at LCD points ``(u, v)``."""
@@ -700,7 +744,11 @@ def settings_from_json(text: str) -> tuple[SimSettings, int]:
 def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
                      progress: Callable[[float, str], None] | None = None,
                      image_ext: str = ".png") -> Path:
-    """Render a whole ``ptp-dataset/1`` folder plus ``truth.h5``.
+    """Render a whole dataset folder plus ``truth.h5``.
+
+    ``ptp-dataset/1``, or ``/2`` when the rig uses a ``/2`` key; a Gray-code rig
+    (:func:`ptpcore.decode.patterns.gray_code_rig`) gets its Gray-code frames and,
+    with white and black templates, its reference frames.
 
     Parameters
     ----------
@@ -720,6 +768,10 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
     out.mkdir(parents=True, exist_ok=True)
     if image_ext != Path(rig.template).suffix:
         rig = replace(rig, template=str(Path(rig.template).with_suffix(image_ext)))
+    for key in ("gray_template", "white_template", "black_template"):
+        t = getattr(rig, key)
+        if t is not None and Path(t).suffix != image_ext:
+            rig = replace(rig, **{key: str(Path(t).with_suffix(image_ext))})
     vr = VirtualRig(rig, settings, seed)
     save_truth(out / TRUTH_FILE, vr)
     k_total = rig.stage.n_positions + len(rig.stage.repeat_z_mm)  # the repeats after the sweep
@@ -727,17 +779,24 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
         if progress:
             progress(k / k_total, f"rendering position {k + 1}/{k_total}")
         for (d, _j, t, n, big_n), img in vr.frames(k):
-            path = out / rig.image_name(k, d, t, n, big_n)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            ok, buf = cv2.imencode(image_ext, img)
-            if not ok:
-                raise OSError(f"{path}: could not encode image")
-            write_bytes_atomic(path, buf.tobytes())
+            _write_image(out / rig.image_name(k, d, t, n, big_n), img, image_ext)
+        for (d, b, inv), img in vr.gray_frames(k).items():
+            _write_image(out / rig.gray_name(k, d, b, inv), img, image_ext)
+        for which, img in vr.reference_frames(k).items():
+            _write_image(out / rig.reference_name(k, which), img, image_ext)
     # rig.toml last: a folder without it is visibly incomplete.
     save_rig(rig, out / "rig.toml")
     if progress:
         progress(1.0, "simulation done")
     return out
+
+
+def _write_image(path: Path, img: np.ndarray, image_ext: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, buf = cv2.imencode(image_ext, img)
+    if not ok:
+        raise OSError(f"{path}: could not encode image")
+    write_bytes_atomic(path, buf.tobytes())
 
 
 def save_truth(path, vr: VirtualRig) -> None:

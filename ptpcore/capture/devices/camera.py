@@ -151,6 +151,10 @@ class SimulatedCamera:
         k = self._position_index(z)
         if k is not None:
             spec = self._identify(image, k)
+            if spec is not None and spec[0] == "gray":
+                return self.vr.render_gray(k, *spec[1:])
+            if spec is not None and spec[0] == "ref":
+                return self.vr.render_reference(k, spec[1])
             if spec is not None:
                 d, _j, t, s, big_n = spec
                 return self.vr.render(k, d, t, s, big_n)
@@ -189,8 +193,10 @@ class SimulatedCamera:
         return None
 
     def _identify(self, image: np.ndarray, k: int):
-        """The rig's fringe spec ``(dir, level, period, step, N)`` shown in ``image`` at position ``k``."""
-        from ptpcore.decode.patterns import fringe_profile
+        """The rig's fringe spec ``(dir, level, period, step, N)`` shown in ``image`` at position ``k``;
+        ``("gray", dir, bit, inverse)`` for a Gray-code frame, ``("ref", "white" | "black")`` for a
+        reference frame."""
+        from ptpcore.decode.patterns import fringe_profile, gray_profile, reference_profile
 
         if self._patterns is None or self._patterns[0] != k:
             rig = self.rig
@@ -199,6 +205,12 @@ class SimulatedCamera:
                 d, _j, t, s, big_n = spec
                 prof = fringe_profile(rig.lcd, rig.fringes, d, t, s, big_n, float(self.vr.readings[k]), rig.display)
                 table.setdefault((d, prof.tobytes()), spec)
+            for d, b, inv in rig.fringes.gray_frames():
+                prof = gray_profile(rig.lcd, rig.fringes, d, b, inv, rig.stage.z_mm[k])
+                table.setdefault((d, prof.tobytes()), ("gray", d, b, inv))
+            if rig.has_references:
+                for which in ("white", "black"):
+                    table.setdefault(("x", reference_profile(rig.lcd, rig.fringes, which).tobytes()), ("ref", which))
             self._patterns = (k, table)
         table = self._patterns[1]
         image = np.asarray(image)

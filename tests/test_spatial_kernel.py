@@ -1,0 +1,47 @@
+"""The spatial-consistency check's numba kernels equal its numpy path bit for bit (issue 13)."""
+
+import numpy as np
+import pytest
+
+from ptpcore.decode import spatial
+from ptpcore.decode.phase import fused_kernels
+
+pytestmark = pytest.mark.skipif(fused_kernels() is None, reason="numba kernels off")
+
+
+def test_median_networks_select_the_middle_values():
+    from ptpcore.decode._spatial_kernel import NET24, NET25, SLOTS24, SLOTS25
+
+    rng = np.random.default_rng(0)
+    for net, slots, m in ((NET25, SLOTS25, 25), (NET24, SLOTS24, 24)):
+        v = np.concatenate([rng.random((m, 500)), rng.integers(0, 4, (m, 500)).astype(float)], axis=1)
+        s = np.sort(v, axis=0)
+        w = v.copy()
+        for a, b in net:
+            w[a], w[b] = np.minimum(w[a], w[b]), np.maximum(w[a], w[b])
+        assert np.array_equal(w[slots[0]], s[(m - 1) // 2]) and np.array_equal(w[slots[1]], s[m // 2])
+
+
+@pytest.mark.parametrize("holes", ["clustered", "scattered"])
+def test_kernels_equal_the_numpy_path(monkeypatch, holes):
+    rng = np.random.default_rng(3)
+    h, w = 150, 211
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    coord = 0.9 * c + 2e-4 * (c - 100) ** 2 + 0.3 * r + 0.02 * rng.standard_normal((h, w))
+    coord[40:45, 60:66] += 2.0  # a defect
+    valid = np.ones((h, w), bool)
+    if holes == "clustered":
+        valid[:7] = False
+        valid[:, 190:] = False
+        valid[80:95, 100:130] = False
+    else:
+        valid = rng.random((h, w)) > 0.1
+    fused = spatial.neighbourhood_residual(coord, valid)
+    flagged, used = spatial.spatial_outliers(coord, valid, 0.02)
+    monkeypatch.setattr(spatial, "_kernels", lambda: None)
+    plain = spatial.neighbourhood_residual(coord, valid)
+    assert np.array_equal(fused[0], plain[0], equal_nan=True)
+    assert np.array_equal(fused[1], plain[1])
+    flagged2, used2 = spatial.spatial_outliers(coord, valid, 0.02)
+    assert np.array_equal(flagged, flagged2) and used == used2
+    assert flagged[40:45, 60:66].mean() > 0.5
