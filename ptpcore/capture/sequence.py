@@ -487,6 +487,15 @@ class CaptureResult:
     display_means: np.ndarray | None = None
 
 
+def _with_image_ext(rig: Rig, image_ext: str) -> Rig:
+    """``rig`` with every image template (fringes, Gray code, white, black) ending in ``image_ext``."""
+    for key in ("template", "gray_template", "white_template", "black_template"):
+        t = getattr(rig, key)
+        if t is not None and Path(t).suffix != image_ext:
+            rig = replace(rig, **{key: str(Path(t).with_suffix(image_ext))})
+    return rig
+
+
 def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
             exposure_us: float | None = None, check: bool = True, accept_exposure: bool = False,
             limits: ExposureLimits = ExposureLimits(), retries: int = 2, home: bool = True,
@@ -562,12 +571,7 @@ def capture(out_dir, rig: Rig, camera, stage, display, *, resume: bool = False,
     out = Path(out_dir)
     if image_ext not in (".png", ".tif", ".tiff"):
         raise ValueError(f"image_ext must be .png or .tif, got {image_ext!r}")
-    if image_ext != Path(rig.template).suffix:
-        rig = replace(rig, template=str(Path(rig.template).with_suffix(image_ext)))
-    for key in ("gray_template", "white_template", "black_template"):
-        t = getattr(rig, key)
-        if t is not None and Path(t).suffix != image_ext:
-            rig = replace(rig, **{key: str(Path(t).with_suffix(image_ext))})
+    rig = _with_image_ext(rig, image_ext)
     check_calibration_design(rig, "rig")
     limits.validate()
     plan_toml = rig_to_toml(rig)

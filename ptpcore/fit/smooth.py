@@ -889,13 +889,21 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
     sig, loo, merr = _uncertainty(setup, gfit, leak_w, fits, valid, noise, stage_var, uncertainty, report)
+    lut = _assemble_lut(degree, (zc, zs), z, coef, valid, fits, q, loo, sig, rig_toml, scale)
+    report(1.0, "smooth LUT fitted")
+    return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
+                           float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
+
+
+def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "_PixelFits", q: dict, loo: dict, sig: dict,
+                  rig_toml: str, scale: float) -> Lut:
+    """The smooth LUT from its maps, NaN at the pixels that are not ``valid`` ((H, W) bool)."""
     for a in "xy":
         coef[a][:, ~valid] = np.nan
-        sig[a][~valid] = np.nan
-        q[a][~valid] = np.nan
-        loo[a][~valid] = np.nan
-    lut = Lut(
-        kind="poly", degree=degree, z_center=zc, z_scale=zs, z_min=float(z.min()), z_max=float(z.max()),
+        for maps in (sig, q, loo):
+            maps[a][~valid] = np.nan
+    return Lut(
+        kind="poly", degree=degree, z_center=z_norm[0], z_scale=z_norm[1], z_min=float(z.min()), z_max=float(z.max()),
         x=coef["x"], y=coef["y"], z_nodes=None, valid=valid,
         n_positions=np.where(valid, fits.n_pos, 0).astype(np.uint16),
         pixel_z_min=fits.pz_min, pixel_z_max=fits.pz_max,
@@ -903,9 +911,6 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         sigma_x=sig["x"], sigma_y=sig["y"], rig_toml=rig_toml,
         extra_attrs={"method": "smooth", "smoothing_scale_px": scale},
     )
-    report(1.0, "smooth LUT fitted")
-    return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
-                           float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
 
 
 @dataclass
