@@ -52,10 +52,12 @@ class PeakSampler(threading.Thread):
 
     def run(self) -> None:
         names = {}
+        recorded = -self.step_mb
         while not self.stop_event.wait(self.interval_s):
             rss = _rss_mb()
             if rss > self.peak:
-                if rss > self.peak + self.step_mb or not self.records:
+                if rss > recorded + self.step_mb:
+                    recorded = rss
                     names.update({t.ident: t.name for t in threading.enumerate()})
                     frames = sys._current_frames()
                     stacks = {names.get(i, str(i)): _our_stack(f) for i, f in frames.items()

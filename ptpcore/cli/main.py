@@ -199,20 +199,19 @@ def _lut_summary(lut, path) -> str:
 
 def cmd_decode(args) -> int:
     from ptpcore.io.dataset import DatasetSource
-    from ptpcore.io.decodedfile import save_decoded
     from ptpcore.run.decoding import decode_dataset
 
     source = DatasetSource(args.dataset_dir)
     positions = _parse_positions(args.positions, source.rig.stage.n_positions) if args.positions else None
     source.validate(check_design=False)
     bar = progress_bar(args)
-    try:
-        run = decode_dataset(source, positions, min_fraction=args.min_valid / 100.0, progress=bar)
+    try:  # written position by position: one position's maps in memory
+        run = decode_dataset(source, positions, min_fraction=args.min_valid / 100.0, progress=bar, out=args.out)
     finally:
         bar.close()
-    save_decoded(args.out, run.decoded)
     rig = source.rig
-    print(f"{args.out}: ptp-decoded/1, {len(run.decoded.positions)} position(s), direction(s)"
+    n_done = len(positions) if positions is not None else rig.stage.n_positions
+    print(f"{args.out}: ptp-decoded/1, {n_done} position(s), direction(s)"
           f" {', '.join(rig.fringes.directions)}, {rig.camera.width}x{rig.camera.height} px")
     for (k, d), frac in run.valid_fraction.items():
         src = run.noise_sources.get((k, d))

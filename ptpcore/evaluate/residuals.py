@@ -84,9 +84,17 @@ def _block_mean(a: np.ndarray, b: int) -> np.ndarray:
         return np.where(n > 0, np.where(ok, blocks, 0.0).sum(axis=(1, 3)) / n, np.nan)
 
 
+BAND_PIXELS = 1 << 19
+"""Pixels per row band of :func:`residual_field` (about 0.5 M: its float64 temporaries are a few MB each)."""
+
+
 def residual_field(lut: Lut, samples: SampleStack, positions=None, *, block: int = 16,
                    n_worst: int = 20) -> ResidualField:
     """The residuals of ``lut`` at every position of ``samples``.
+
+    Worked in row bands (a multiple of ``block`` rows, about :data:`BAND_PIXELS` pixels), the
+    samples of each band read from their spill file (:func:`ptpcore.io.fastio.read_block`), so
+    that a big sensor's stack never comes into memory whole.
 
     Parameters
     ----------
@@ -118,33 +126,79 @@ def residual_field(lut: Lut, samples: SampleStack, positions=None, *, block: int
     used[np.arange(k_all) if positions is None else np.asarray(positions, dtype=np.int64)] = True
     h, w = samples.shape
     b = int(block)
-    gy, gx = -(-h // b), -(-w // b)
-    dx, dy = np.full((k_all, gy, gx), np.nan), np.full((k_all, gy, gx), np.nan)
-    rms, npx = np.full(k_all, np.nan), np.zeros(k_all, np.int64)
-    sq, cnt = np.zeros((h, w)), np.zeros((h, w))
-    for k in range(k_all):
-        ev = lut.evaluate(float(samples.z[k]))
-        sx, sy = samples.absolute(k)
-        ok = (samples.reasons[k] == 0) & ev.in_range & lut.valid & np.isfinite(sx)
-        rx, ry = np.where(ok, sx - ev.x, np.nan), np.where(ok, sy - ev.y, np.nan)
-        r2 = rx * rx + ry * ry
-        npx[k] = int(ok.sum())
-        if npx[k]:
-            rms[k] = float(np.sqrt(np.mean(r2[ok])) * 1e3)
-            dx[k], dy[k] = _block_mean(rx, b), _block_mean(ry, b)
-        sq += np.where(ok, r2, 0.0)
-        cnt += ok
+    acc = _Residuals.empty(k_all, h, w, b)
+    band = max(b, BAND_PIXELS // w // b * b)
+    for r0 in range(0, h, band):
+        acc.add_band(lut.row_band(r0, min(h, r0 + band)), samples, r0, min(h, r0 + band))
     with np.errstate(invalid="ignore", divide="ignore"):
-        pix = np.where(cnt > 0, np.sqrt(sq / cnt) * 1e3, np.nan)
+        rms = np.where(acc.npx > 0, np.sqrt(acc.sum_r2 / np.maximum(acc.npx, 1)) * 1e3, np.nan)
+    pix = acc.pixel_rms_um
     flat = np.where(np.isfinite(pix), pix, -1.0).ravel()
     top = np.argsort(flat)[::-1][:int(n_worst)]
     top = top[flat[top] >= 0]
     worst_pos = np.argsort(np.where(np.isfinite(rms), rms, -1.0))[::-1]
+    gy, gx = acc.dx.shape[1:]
     rows = np.minimum(np.arange(gy) * b + (b - 1) / 2, h - 1)
     cols = np.minimum(np.arange(gx) * b + (b - 1) / 2, w - 1)
-    return ResidualField(samples.z.astype(float).copy(), used, rms, npx, rows, cols,
-                         dx, dy, pix, worst_pos.astype(np.int64),
+    return ResidualField(samples.z.astype(float).copy(), used, rms, acc.npx, rows, cols,
+                         acc.dx, acc.dy, pix, worst_pos.astype(np.int64),
                          np.stack(np.unravel_index(top, (h, w)), axis=1).astype(np.int64), b)
+
+
+@dataclass
+class _Residuals:
+    """What :func:`residual_field` gathers band by band.
+
+    Attributes
+    ----------
+    dx, dy : (K, Gy, Gx) float64, mm
+        Block means, filled band by band (a band is a whole number of block rows).
+    sum_r2 : (K,) float64, mm^2
+        Per position, the sum of squared residual lengths (summed per band, then over bands).
+    npx : (K,) int64
+    pixel_rms_um : (H, W) float64
+    block : int
+    """
+
+    dx: np.ndarray
+    dy: np.ndarray
+    sum_r2: np.ndarray
+    npx: np.ndarray
+    pixel_rms_um: np.ndarray
+    block: int
+
+    @classmethod
+    def empty(cls, k_all: int, h: int, w: int, b: int) -> "_Residuals":
+        gy, gx = -(-h // b), -(-w // b)
+        return cls(np.full((k_all, gy, gx), np.nan), np.full((k_all, gy, gx), np.nan), np.zeros(k_all),
+                   np.zeros(k_all, np.int64), np.full((h, w), np.nan), b)
+
+    def add_band(self, lut: Lut, samples: SampleStack, r0: int, r1: int) -> None:
+        """Every position's residuals on rows ``[r0, r1)`` (``lut`` is that band's :meth:`Lut.row_band`)."""
+        from ptpcore.io.fastio import read_block
+
+        w = samples.shape[1]
+        start, stop = r0 * w, r1 * w
+        x_ref, y_ref = samples.x_ref[r0:r1], samples.y_ref[r0:r1]
+        sq, cnt = np.zeros((r1 - r0, w)), np.zeros((r1 - r0, w))
+        g0, g1 = r0 // self.block, -(-r1 // self.block)
+        for k in range(samples.z.size):
+            ev = lut.evaluate(float(samples.z[k]))
+            sx = x_ref + read_block(samples.x, start, stop, [k]).reshape(r1 - r0, w)
+            sy = y_ref + read_block(samples.y, start, stop, [k]).reshape(r1 - r0, w)
+            reasons = read_block(samples.reasons, start, stop, [k]).reshape(r1 - r0, w)
+            ok = (reasons == 0) & ev.in_range & lut.valid & np.isfinite(sx)
+            rx, ry = np.where(ok, sx - ev.x, np.nan), np.where(ok, sy - ev.y, np.nan)
+            r2 = rx * rx + ry * ry
+            n = int(ok.sum())
+            if n:
+                self.npx[k] += n
+                self.sum_r2[k] += float(np.sum(r2[ok]))
+                self.dx[k, g0:g1], self.dy[k, g0:g1] = _block_mean(rx, self.block), _block_mean(ry, self.block)
+            sq += np.where(ok, r2, 0.0)
+            cnt += ok
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.pixel_rms_um[r0:r1] = np.where(cnt > 0, np.sqrt(sq / cnt) * 1e3, np.nan)
 
 
 def residual_png(field: ResidualField, k: int, path, size_px: int = 800) -> None:

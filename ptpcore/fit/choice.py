@@ -200,60 +200,116 @@ def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level
         return None
 
 
-def _fold_errors(samples: SampleStack, rig: Rig, luts: list, held, stage_sigma_mm: float):
-    """Squared held-out differences of every candidate, over the samples all of them predict.
+class _HeldOutJudge:
+    """One fold's candidates judged at its held-out positions, one candidate LUT in memory at a time.
 
-    Returns
-    -------
-    sums : (C,) float, mm^2
-        Sum over X and Y of (prediction - sample)^2 on the common samples.
-    counts : (C,) int
-        Samples each candidate predicts (for its coverage).
-    n_common : int
-        X and Y values in the common set (2 per sample).
-    noise_sum : float, mm^2
-        Sum of the predicted noise variance over the common set (NaN without a noise model).
+    Each candidate is evaluated at every held-out position as soon as it is fitted: the
+    pixels it predicts (bits in memory) and its squared difference ``(X - x)^2 + (Y - y)^2``
+    per pixel (float64, to a temporary file, :class:`ptpcore.io.fastio.SpillStore`), then its
+    LUT is dropped. :meth:`errors` sums them over the pixels every kept candidate predicts,
+    the same numbers in the same order as evaluating all the LUTs side by side (a big sensor's
+    four candidate LUTs would take about 1 GB at 5 MP).
+
+    Parameters
+    ----------
+    samples : SampleStack
+    held : (E,) int
+        The held-out positions.
+    n_candidates : int
+    stage_sigma_mm : float
+        With a stage error, each candidate's squared slope ``|dXY/dz|^2`` is kept too
+        (:func:`_noise_variance_sum` takes the first kept candidate's).
     """
-    from ptpcore.fit.smooth import sample_sigma_from_noise
 
-    sums = np.zeros(len(luts))
-    counts = np.zeros(len(luts), dtype=np.int64)
-    n_common, noise_sum = 0, 0.0
-    for k in held:
-        z = float(samples.z[k])
-        sx, sy = samples.absolute(k)
-        ok = np.isfinite(sx) & np.isfinite(sy) & (samples.reasons[k] == 0)  # outliers flagged by a robust fit
-        evs = [lut.evaluate(z) if lut is not None else None for lut in luts]
-        common = ok.copy()
-        for i, ev in enumerate(evs):
-            if ev is not None:
-                counts[i] += int((ok & ev.in_range).sum())
-                common &= ev.in_range
-        for i, ev in enumerate(evs):
-            if ev is not None:
-                sums[i] += float(np.sum((ev.x[common] - sx[common]) ** 2 + (ev.y[common] - sy[common]) ** 2))
-        n_common += 2 * int(common.sum())
-        noise_sum += _noise_variance_sum(samples, rig, k, common, luts, stage_sigma_mm, sample_sigma_from_noise)
-    return sums, counts, n_common, noise_sum
+    def __init__(self, samples: SampleStack, held, n_candidates: int, stage_sigma_mm: float):
+        from ptpcore.io.fastio import SpillStore
+
+        self.samples, self.held, self.stage_sigma_mm = samples, [int(k) for k in held], stage_sigma_mm
+        self.n_valid = np.zeros(n_candidates, dtype=np.int64)
+        self.in_range: list = [None] * n_candidates  # (E, ceil(H*W/8)) uint8 packed bits, per candidate
+        self.ok = [self._usable(k) for k in self.held]
+        fields = {"e2": np.float64, **({"slope2": np.float64} if stage_sigma_mm else {})}
+        self.store = SpillStore(n_candidates * len(self.held), samples.shape, fields, {name: np.nan for name in fields})
+
+    def _usable(self, k: int) -> np.ndarray:
+        sx, sy = self.samples.absolute(k)
+        return np.isfinite(sx) & np.isfinite(sy) & (self.samples.plane("reasons", k) == 0)  # robust fit's outliers too
+
+    def add(self, ci: int, lut: Lut) -> None:
+        """Evaluate candidate ``ci``'s ``lut`` at every held-out position (then it may be dropped)."""
+        self.n_valid[ci] = int(lut.valid.sum())
+        bits = []
+        for e, k in enumerate(self.held):
+            z = float(self.samples.z[k])
+            sx, sy = self.samples.absolute(k)
+            ev = lut.evaluate(z)
+            bits.append(np.packbits(ev.in_range.ravel()))
+            self.store.write("e2", ci * len(self.held) + e, (ev.x - sx) ** 2 + (ev.y - sy) ** 2)
+            if self.stage_sigma_mm:
+                h = 0.05  # the slope by a central difference over 0.1 mm
+                hi, lo = lut.evaluate(z + h, extrapolate=True), lut.evaluate(z - h, extrapolate=True)
+                self.store.write("slope2", ci * len(self.held) + e,
+                                 ((hi.x - lo.x) / (2 * h)) ** 2 + ((hi.y - lo.y) / (2 * h)) ** 2)
+        self.in_range[ci] = np.stack(bits)
+
+    def drop(self, ci: int) -> None:
+        """Leave candidate ``ci`` out of the comparison (too few pixels)."""
+        self.in_range[ci] = None
+
+    def _plane(self, name: str, ci: int, e: int) -> np.ndarray:
+        n = self.store.pixels
+        return self.store.read(name, 0, n, [ci * len(self.held) + e])[0]
+
+    def errors(self, rig: Rig):
+        """Squared held-out differences of every kept candidate, over the samples all of them predict.
+
+        Returns
+        -------
+        sums : (C,) float, mm^2
+            Sum over X and Y of (prediction - sample)^2 on the common samples.
+        counts : (C,) int
+            Samples each candidate predicts (for its coverage).
+        n_common : int
+            X and Y values in the common set (2 per sample).
+        noise_sum : float, mm^2
+            Sum of the predicted noise variance over the common set (NaN without a noise model).
+        """
+        from ptpcore.fit.smooth import sample_sigma_from_noise
+
+        kept = [ci for ci, bits in enumerate(self.in_range) if bits is not None]
+        sums = np.zeros(len(self.in_range))
+        counts = np.zeros(len(self.in_range), dtype=np.int64)
+        n_common, noise_sum = 0, 0.0
+        n = self.store.pixels
+        for e, k in enumerate(self.held):
+            ok = self.ok[e].ravel()
+            common = ok.copy()
+            for ci in kept:
+                in_range = np.unpackbits(self.in_range[ci][e], count=n).view(bool)
+                counts[ci] += int((ok & in_range).sum())
+                common &= in_range
+            for ci in kept:
+                sums[ci] += float(np.sum(self._plane("e2", ci, e)[common]))
+            n_common += 2 * int(common.sum())
+            slope2 = self._plane("slope2", kept[0], e) if self.stage_sigma_mm and kept else None
+            noise_sum += _noise_variance_sum(self.samples, rig, k, common.reshape(self.samples.shape), slope2,
+                                             self.stage_sigma_mm, sample_sigma_from_noise)
+        return sums, counts, n_common, noise_sum
 
 
-def _noise_variance_sum(samples, rig, k, common, luts, stage_sigma_mm, sigma_fn) -> float:
+def _noise_variance_sum(samples, rig, k, common, slope2, stage_sigma_mm, sigma_fn) -> float:
     """Sum over X and Y of the predicted noise variance of position ``k``'s samples on ``common`` (mm^2).
 
     The phase noise of each sample, plus (``stage_sigma_mm``) the stage reading's error, which
-    moves the sample along its pixel's ray: ``dX/dz * dz`` (the slope from the first candidate
-    LUT, by a central difference over 0.1 mm).
+    moves the sample along its pixel's ray: ``dX/dz * dz`` (``slope2``: the squared slope of the
+    first kept candidate LUT, flat ``(H*W,)``, by a central difference over 0.1 mm).
     """
     if samples.noise is None or samples.modulation is None:
         return float("nan")
     s = sigma_fn(samples.subset([k]), rig)[0][common]
     total = 2.0 * float(np.sum(s * s))
-    ref = next((lut for lut in luts if lut is not None), None)
-    if stage_sigma_mm and ref is not None:
-        z, h = float(samples.z[k]), 0.05
-        hi, lo = ref.evaluate(z + h, extrapolate=True), ref.evaluate(z - h, extrapolate=True)
-        slope2 = ((hi.x - lo.x) / (2 * h)) ** 2 + ((hi.y - lo.y) / (2 * h)) ** 2
-        total += float(np.nansum(slope2[common])) * stage_sigma_mm ** 2
+    if stage_sigma_mm and slope2 is not None:
+        total += float(np.nansum(slope2[common.ravel()])) * stage_sigma_mm ** 2
     return total
 
 
@@ -293,20 +349,23 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
     n_common, noise_sum = 0, 0.0
     steps = len(folds) * len(cands)
     for fi, (fit_i, held_i) in enumerate(folds):
-        luts = []
+        judge = _HeldOutJudge(samples, pos[held_i], len(cands), stage_sigma_mm)
         for ci, (model, degree) in enumerate(cands):
             if progress:
                 progress((fi * len(cands) + ci) / steps, f"choosing the model: fitting {model} {degree}")
             lut = _fit_candidate(samples, rig, model, degree, pos[fit_i], stage_sigma_mm, level_bias, footprint) \
                 if fitted[ci] else None
             fitted[ci] &= lut is not None
-            luts.append(lut if fitted[ci] else None)
-        n_valid = np.array([0 if lut is None else int(lut.valid.sum()) for lut in luts])
+            if fitted[ci]:
+                judge.add(ci, lut)
+            del lut  # one candidate LUT in memory at a time
+        n_valid = np.where(fitted, judge.n_valid, 0)
         for ci in np.nonzero(fitted & (n_valid < MIN_COVERAGE * max(n_valid.max(), 1)))[0]:
-            luts[ci] = None  # too few pixels: it would shrink the common set for all
+            judge.drop(ci)  # too few pixels: it would shrink the common set for all
             fitted[ci] = False
             notes[ci] = f"fits only {n_valid[ci] / max(n_valid.max(), 1):.0%} of the pixels on {fit_i.size} positions"
-        s, c, n, ns = _fold_errors(samples, rig, luts, pos[held_i], stage_sigma_mm)
+        s, c, n, ns = judge.errors(rig)
+        del judge  # its temporary file with it
         sums, counts, n_common, noise_sum = sums + s, counts + c, n_common + n, noise_sum + ns
     return _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, [pos[h].tolist() for _, h in folds])
 

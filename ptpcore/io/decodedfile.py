@@ -6,8 +6,10 @@ Arrays ``[K, H, W]`` (``[K, 2, H, W]`` per direction x, y) for K positions in
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 from dataclasses import dataclass
+from typing import Iterator
 
 import h5py
 import numpy as np
@@ -15,11 +17,14 @@ import numpy as np
 from ptpcore import __version__
 from ptpcore.atomic import atomic_path
 
-__all__ = ["DECODED_FORMAT", "Decoded", "save_decoded", "load_decoded"]
+__all__ = ["DECODED_FORMAT", "Decoded", "DecodedWriter", "decoded_writer", "save_decoded", "load_decoded"]
 
 DECODED_FORMAT = "ptp-decoded/1"
 
-_OPTS = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
+_OPTS = dict(compression="gzip", compression_opts=1, shuffle=True)
+
+_CHUNK_PIXELS = 1 << 18
+"""About this many pixels per chunk (1 MB of float32): a chunk holds whole rows of one position."""
 
 
 @dataclass
@@ -53,20 +58,67 @@ class Decoded:
 
 
 def save_decoded(path, dec: Decoded) -> None:
-    """Write a ``ptp-decoded/1`` file atomically."""
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = DECODED_FORMAT
-            f.attrs["software"] = f"ptpcore {__version__}"
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-            f.create_group("rig").attrs["toml"] = dec.rig_toml
-            f["positions"] = np.asarray(dec.positions, np.int32)
-            f["z_mm"] = np.asarray(dec.z_mm, np.float64)
-            for name in ("u", "v", "modulation", "background"):
-                f.create_dataset(name, data=np.asarray(getattr(dec, name), np.float32), **_OPTS)
-            r = f.create_dataset("reasons", data=np.asarray(dec.reasons, np.uint16), **_OPTS)
-            for key, bit in dec.reason_bits.items():
-                r.attrs[key] = np.uint16(bit)
+    """Write a ``ptp-decoded/1`` file atomically (all positions in memory; see :func:`decoded_writer`)."""
+    with decoded_writer(path, dec.positions, dec.z_mm, dec.u.shape[1:], dec.reason_bits, dec.rig_toml) as out:
+        for i in range(len(dec.positions)):
+            out.write(i, dec.u[i], dec.v[i], dec.modulation[i], dec.background[i], dec.reasons[i])
+
+
+@contextlib.contextmanager
+def decoded_writer(path, positions, z_mm, shape, reason_bits: dict, rig_toml: str) -> Iterator["DecodedWriter"]:
+    """A ``ptp-decoded/1`` file written one position at a time, atomically.
+
+    A big sensor's positions never need to be in memory together (5 MP x 21 positions
+    of maps is about 3 GB). The file appears under its name only when the ``with`` block
+    ends without an exception (:func:`ptpcore.atomic.atomic_path`); positions never
+    written keep the fill values (NaN coordinates, reasons 0).
+
+    Parameters
+    ----------
+    path : path
+    positions : (K,) int
+    z_mm : (K,) float64
+    shape : (H, W)
+    reason_bits : dict of str -> int
+    rig_toml : str
+
+    Yields
+    ------
+    DecodedWriter
+    """
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = DECODED_FORMAT
+        f.attrs["software"] = f"ptpcore {__version__}"
+        f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        f.create_group("rig").attrs["toml"] = rig_toml
+        f["positions"] = np.asarray(positions, np.int32)
+        f["z_mm"] = np.asarray(z_mm, np.float64)
+        (h, w), k = shape, len(positions)
+        rows = int(min(h, max(1, _CHUNK_PIXELS // w)))  # a chunk: rows of one position, written whole
+        for name, per_dir, fill in (("u", False, np.nan), ("v", False, np.nan), ("modulation", True, 0.0),
+                                    ("background", True, 0.0)):
+            dims, chunks = ((k, 2, h, w), (1, 1, rows, w)) if per_dir else ((k, h, w), (1, rows, w))
+            f.create_dataset(name, dims, np.float32, chunks=chunks, fillvalue=fill, **_OPTS)
+        r = f.create_dataset("reasons", (k, 2, h, w), np.uint16, chunks=(1, 1, rows, w), fillvalue=0, **_OPTS)
+        for key, bit in reason_bits.items():
+            r.attrs[key] = np.uint16(bit)
+        yield DecodedWriter(f)
+
+
+class DecodedWriter:
+    """Writes the positions of an open ``ptp-decoded/1`` file (:func:`decoded_writer`)."""
+
+    def __init__(self, f: h5py.File):
+        self.file = f
+
+    def write(self, i: int, u, v, modulation, background, reasons) -> None:
+        """Position ``i`` (index into the file's ``positions``): ``u, v`` (H, W) px; the others (2, H, W)."""
+        f = self.file
+        f["u"][i] = np.asarray(u, np.float32)
+        f["v"][i] = np.asarray(v, np.float32)
+        f["modulation"][i] = np.asarray(modulation, np.float32)
+        f["background"][i] = np.asarray(background, np.float32)
+        f["reasons"][i] = np.asarray(reasons, np.uint16)
 
 
 def load_decoded(path) -> Decoded:

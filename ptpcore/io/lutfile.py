@@ -13,6 +13,7 @@ and reads a LUT, so scanners and tools can use it without the fitting code.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import io
 import shutil
@@ -124,6 +125,21 @@ class Lut:
     @property
     def shape(self) -> tuple[int, int]:
         return self.valid.shape
+
+    def row_band(self, r0: int, r1: int) -> "Lut":
+        """The LUT of image rows ``[r0, r1)``: every per-pixel array a view of this one's rows.
+
+        For work in row blocks on big sensors (the residual diagnostics): evaluating the
+        band gives exactly the rows of evaluating the whole image.
+        """
+        def band(a):
+            if a is None:
+                return None
+            return a[:, r0:r1] if a.ndim == 3 else a[r0:r1]
+
+        per_pixel = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y",
+                     "loo_x", "loo_y", "sigma_x", "sigma_y", "n_rejected")
+        return dataclasses.replace(self, **{name: band(getattr(self, name)) for name in per_pixel})
 
     def evaluate(self, z, *, extrapolate: bool = False) -> LutEvaluation:
         """X, Y at height ``z``.
@@ -369,19 +385,20 @@ def _write_lut_group(group, lut: Lut) -> None:
     for key, val in lut.extra_attrs.items():
         m.attrs[key] = val
     opts = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
-    group.create_dataset("x", data=lut.x.astype(np.float64), **opts)
-    group.create_dataset("y", data=lut.y.astype(np.float64), **opts)
+    # np.asarray, not astype: no copy of a big sensor's maps that already have the stored type.
+    group.create_dataset("x", data=np.asarray(lut.x, np.float64), **opts)
+    group.create_dataset("y", data=np.asarray(lut.y, np.float64), **opts)
     if lut.z_nodes is not None:
         group["z_nodes"] = np.asarray(lut.z_nodes, dtype=np.float64)
     group.create_dataset("valid", data=lut.valid.astype(np.uint8), **opts)
     q = group.create_group("quality")
-    q.create_dataset("n_positions", data=lut.n_positions.astype(np.uint16), **opts)
-    q.create_dataset("z_min", data=lut.pixel_z_min.astype(np.float32), **opts)
-    q.create_dataset("z_max", data=lut.pixel_z_max.astype(np.float32), **opts)
+    q.create_dataset("n_positions", data=np.asarray(lut.n_positions, np.uint16), **opts)
+    q.create_dataset("z_min", data=np.asarray(lut.pixel_z_min, np.float32), **opts)
+    q.create_dataset("z_max", data=np.asarray(lut.pixel_z_max, np.float32), **opts)
     for name in ("rms_x", "rms_y", "loo_x", "loo_y", "sigma_x", "sigma_y"):
         val = getattr(lut, name)
         if val is not None:
-            q.create_dataset(name, data=val.astype(np.float32), **opts)
+            q.create_dataset(name, data=np.asarray(val, np.float32), **opts)
     if lut.n_rejected is not None:
         q.create_dataset("n_rejected", data=np.minimum(lut.n_rejected, 65535).astype(np.uint16), **opts)
     group.create_group("rig").attrs["toml"] = lut.rig_toml
@@ -406,8 +423,11 @@ def save_lut(lut: Lut, path) -> None:
                                           lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y))
 
 
-IN_MEMORY_MAX = 512 * 2 ** 20
-"""HDF5 files estimated larger than this (bytes, uncompressed) are written straight to disk."""
+IN_MEMORY_MAX = 64 * 2 ** 20
+"""HDF5 files estimated larger than this (bytes, uncompressed) are written straight to disk.
+
+Building a file in memory costs up to twice its size (the growing buffer, then the
+write): 64 MB keeps that small beside a big sensor's LUT (about 450 MB at 5 MP)."""
 
 
 def write_hdf5_atomic(path, fill, size_hint: int | None = None) -> None:

@@ -96,9 +96,21 @@ class SampleStack:
         if self.background is not None and background is not None:
             self.background[k] = background
 
+    def plane(self, name: str, k: int) -> np.ndarray:
+        """Position ``k``'s ``(H, W)`` map of ``name`` (``"x"``, ``"reasons"``, ...), as a new array.
+
+        A spilled stack's map is read with a file read (:func:`ptpcore.io.fastio.read_block`):
+        indexing its ``numpy.memmap`` would map the pages into the process, where they stay
+        (and count in its resident memory) until the stack is gone.
+        """
+        from ptpcore.io.fastio import read_block
+
+        h, w = self.shape
+        return read_block(getattr(self, name), 0, h * w, [k]).reshape(h, w)
+
     def absolute(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Absolute X, Y (H, W) float64 mm at position ``k`` (NaN where invalid)."""
-        return self.x_ref + self.x[k], self.y_ref + self.y[k]
+        return self.x_ref + self.plane("x", k), self.y_ref + self.plane("y", k)
 
     def subset(self, positions) -> "SampleStack":
         """The stack restricted to some positions (views where possible)."""

@@ -17,11 +17,11 @@ from typing import Callable
 
 import numpy as np
 
-from ptpcore.decode.phase import REASON_KEYS, DecodeOptions, finish_position
+from ptpcore.decode.phase import REASON_KEYS, REASON_NAMES, DecodeOptions, finish_position
 from ptpcore.errors import DatasetError
 from ptpcore.io.decodedfile import Decoded
 from ptpcore.rig.rigfile import rig_to_toml
-from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, dominant_reason, position_report
+from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, position_report
 
 __all__ = ["DecodeRun", "decode_dataset", "direction_reasons"]
 
@@ -82,8 +82,15 @@ def direction_reasons(rig, pos, options: DecodeOptions = DecodeOptions()) -> dic
 
 def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOptions(),
                    min_fraction: float = MIN_VALID_FRACTION, check_conventions: bool = True,
-                   progress: Callable[[float, str], None] | None = None) -> DecodeRun:
+                   progress: Callable[[float, str], None] | None = None, out=None) -> DecodeRun:
     """Decode some positions of a dataset into ``ptp-decoded/1`` arrays.
+
+    Parameters
+    ----------
+    out : path, optional
+        Write the ``ptp-decoded/1`` file there position by position (atomically:
+        nothing is left on an error), holding one position in memory; ``DecodeRun.decoded``
+        is then None. Without it the arrays of every position come back in memory.
 
     Raises
     ------
@@ -93,10 +100,9 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
     ValueError
         A position that does not exist.
     """
-    from ptpcore.run.pipeline import decode_position
+    from ptpcore.io.decodedfile import decoded_writer
 
     rig = source.rig
-    f = rig.fringes
     k_total = rig.stage.n_positions
     todo = list(range(k_total)) if positions is None else [int(k) for k in positions]
     bad = [k for k in todo if not 0 <= k < k_total]
@@ -104,39 +110,103 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
         raise ValueError(f"positions {bad} do not exist (the dataset has {k_total}: 0 to {k_total - 1})")
     if not todo:
         raise ValueError("no position to decode")
-    options = options.for_rig(rig)
+    z = np.asarray([rig.stage.z_mm[k] for k in todo], float)
+    toml = _rig_text(source)
+    bits = {name: bit for bit, name in REASON_KEYS.items()}
+    if out is None:
+        sink = _MemorySink(todo, z, rig.camera.shape, bits, toml)
+        run = _decode_into(source, todo, options.for_rig(rig), min_fraction, check_conventions, progress, sink)
+        run.decoded = sink.decoded
+        return run
+    with decoded_writer(out, todo, z, rig.camera.shape, bits, toml) as sink:
+        return _decode_into(source, todo, options.for_rig(rig), min_fraction, check_conventions, progress, sink)
+
+
+def _rig_text(source) -> str:
+    """The dataset's own ``rig.toml`` text (kept as written), or the rig written anew."""
+    folder = getattr(source, "folder", None)
+    if folder is not None and (folder / "rig.toml").is_file():
+        return (folder / "rig.toml").read_text(encoding="utf-8")
+    return rig_to_toml(source.rig)
+
+
+class _MemorySink:
+    """Every decoded position's maps in memory (:func:`decode_dataset` without ``out``)."""
+
+    def __init__(self, todo, z, shape, bits: dict, toml: str):
+        kk, (h, w) = len(todo), shape
+        self.decoded = Decoded(np.asarray(todo, np.int32), z, np.full((kk, h, w), np.nan, np.float32),
+                               np.full((kk, h, w), np.nan, np.float32), np.zeros((kk, 2, h, w), np.float32),
+                               np.zeros((kk, 2, h, w), np.float32), np.zeros((kk, 2, h, w), np.uint16), bits, toml)
+
+    def write(self, i: int, u, v, modulation, background, reasons) -> None:
+        d = self.decoded
+        d.u[i], d.v[i], d.modulation[i], d.background[i], d.reasons[i] = u, v, modulation, background, reasons
+
+
+class _ReasonTally:
+    """How many pixels carry each reason bit, over every decoded position and direction."""
+
+    def __init__(self):
+        self.counts: dict = {}
+        self.n = 0
+        self.any_valid = False
+
+    def add(self, reasons: np.ndarray) -> None:
+        self.any_valid |= bool(np.any(reasons == 0))
+        self.n += reasons.size
+        for bit in REASON_NAMES:
+            self.counts[bit] = self.counts.get(bit, 0) + int(np.count_nonzero(reasons & bit))
+
+    def dominant(self) -> tuple[str, float]:
+        """As :func:`ptpcore.run.diagnose.dominant_reason` over everything added."""
+        best, frac = "none", 0.0
+        for bit, name in REASON_NAMES.items():
+            c = self.counts.get(bit, 0) / max(self.n, 1)
+            if c > frac:
+                best, frac = name, c
+        return best, frac
+
+
+def _position_maps(rig, pos, per_direction: dict, run: DecodeRun, min_fraction: float):
+    """One position's ``ptp-decoded/1`` maps (u, v (H, W); modulation, background, reasons (2, H, W))."""
     h, w = rig.camera.shape
-    kk = len(todo)
-    u = np.full((kk, h, w), np.nan, np.float32)
-    v = np.full((kk, h, w), np.nan, np.float32)
-    mod = np.zeros((kk, 2, h, w), np.float32)
-    bg = np.zeros((kk, 2, h, w), np.float32)
-    reasons = np.zeros((kk, 2, h, w), np.uint16)
-    run = DecodeRun(None)
-    checked = False
+    u, v = np.full((h, w), np.nan, np.float32), np.full((h, w), np.nan, np.float32)
+    mod, bg = np.zeros((2, h, w), np.float32), np.zeros((2, h, w), np.float32)
+    reasons = np.zeros((2, h, w), np.uint16)
+    k = pos.index
+    for d in rig.fringes.directions:
+        di = "xy".index(d)
+        dec, r = pos.directions[d], per_direction[d]
+        reasons[di] = r
+        fine = dec.wrapped[-1]
+        mod[di] = fine.modulation
+        if fine.background is not None:
+            bg[di] = fine.background
+        (u if d == "x" else v)[...] = np.where(r == 0, dec.coord, np.nan)
+        run.valid_fraction[(k, d)] = float(np.mean(r == 0))
+        line = position_report(f"position {k} (z = {rig.stage.z_mm[k]:g} mm), direction {d},", r, min_fraction)
+        if line:
+            run.warnings.append(line)
+        run.noise_sources[(k, d)] = pos.info.get("noise_source", {}).get(d)
+    return u, v, mod, bg, reasons
+
+
+def _decode_into(source, todo, options, min_fraction, check_conventions, progress, sink) -> DecodeRun:
+    """Decode ``todo`` position by position into ``sink`` (``sink.write(i, u, v, mod, bg, reasons)``)."""
+    from ptpcore.run.pipeline import decode_position
+
+    rig = source.rig
+    run, tally, checked = DecodeRun(None), _ReasonTally(), False
+    present = ["xy".index(d) for d in rig.fringes.directions]
     for i, k in enumerate(todo):
         if progress:
-            progress(i / kk, f"decoding position {k + 1}/{k_total}")
+            progress(i / len(todo), f"decoding position {k + 1}/{rig.stage.n_positions}")
         pos = decode_position(source, k, options)
-        per_direction = direction_reasons(rig, pos, options)
-        for d in f.directions:
-            di = "xy".index(d)
-            dec = pos.directions[d]
-            r = per_direction[d]
-            reasons[i, di] = r
-            fine = dec.wrapped[-1]
-            mod[i, di] = fine.modulation
-            if fine.background is not None:
-                bg[i, di] = fine.background
-            coord = np.where(r == 0, dec.coord, np.nan).astype(np.float32)
-            (u if d == "x" else v)[i] = coord
-            run.valid_fraction[(k, d)] = float(np.mean(r == 0))
-            line = position_report(f"position {k} (z = {rig.stage.z_mm[k]:g} mm), direction {d},", r, min_fraction)
-            if line:
-                run.warnings.append(line)
-            run.noise_sources[(k, d)] = pos.info.get("noise_source", {}).get(d)
+        maps = _position_maps(rig, pos, direction_reasons(rig, pos, options), run, min_fraction)
+        tally.add(maps[4][present])
         if check_conventions and (not checked or any(run.valid_fraction[(k, d)] < min_fraction
-                                                     for d in f.directions)):
+                                                     for d in rig.fringes.directions)):
             if not checked:
                 harmonics = _harmonics_warning(rig, pos)
                 if harmonics:
@@ -146,19 +216,14 @@ def decode_dataset(source, positions=None, *, options: DecodeOptions = DecodeOpt
             if findings:
                 raise DatasetError("; ".join(fd.message(str(getattr(source, "folder", "dataset")) + "/rig.toml")
                                              for fd in findings))
-    present = ["xy".index(d) for d in f.directions]
-    if not np.any(reasons[:, present] == 0):
-        name, frac = dominant_reason(reasons[:, present])
+        del pos
+        sink.write(i, *maps)
+    if not tally.any_valid:
+        name, frac = tally.dominant()
         raise DatasetError(f"no pixel is valid in any decoded position and direction; dominant reason: {name}"
                            f" ({100 * frac:.1f} % of pixels)")
     for line in run.warnings:
-        warnings.warn(line, stacklevel=2)
-    toml = rig_to_toml(rig)
-    folder = getattr(source, "folder", None)
-    if folder is not None and (folder / "rig.toml").is_file():
-        toml = (folder / "rig.toml").read_text(encoding="utf-8")
-    run.decoded = Decoded(np.asarray(todo, np.int32), np.asarray([rig.stage.z_mm[k] for k in todo], float),
-                          u, v, mod, bg, reasons, {name: bit for bit, name in REASON_KEYS.items()}, toml)
+        warnings.warn(line, stacklevel=3)
     if progress:
         progress(1.0, "decoding done")
     return run

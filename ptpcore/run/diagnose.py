@@ -181,6 +181,12 @@ def convention_check(rig: Rig, pos: DecodedPosition, options: DecodeOptions = De
             # Of the origins that decode as many pixels (a whole arc does, within the
             # tolerance), the one with the smallest unwrapping residuals; snapped to 15
             # degrees when close.
+            at_o0, r_o0 = _score(raw, periods, sign, np.array([o0]), shift, extent, tol)
+            if at_o0[0] >= top - 0.01:
+                # The configured origin decodes as many: keep it (a fix of the sign alone is the
+                # simplest; over a wide arc of equal scores the smallest residual is noise's choice).
+                cands.append((float(top), sign, o0, float(r_o0[0]), True))
+                continue
             near = np.flatnonzero(scores >= top - 0.01)
             o = float(grid[near[np.argmin(resid[near])]])
             fine = o + np.radians(np.linspace(-1.0, 1.0, 41))
