@@ -44,7 +44,7 @@ def test_one_dusty_sample_is_left_out_and_counted(mild, tmp_path):
     r, c, k = 40, 70, 8
     bad.x[k, r, c] += 30 * sig[k, r, c]  # a speck of dust: 30 predicted sigmas off in X
     lut, rep = fit_robust(bad, vr.rig, "poly", 3)
-    assert rep.rejected[k, r, c] and lut.n_rejected[r, c] == 1
+    assert rep.rejected_at(k)[r, c] and lut.n_rejected[r, c] == 1  # every position screened: index k
     assert bad.reasons[k, r, c] == 0  # the caller's samples are left alone; the fit saw Reason.OUTLIER
     assert rep.n_outliers <= 1e-4 * samples.valid.sum() + 1 and not rep.suspect
     clean = fit_model(samples, vr.rig, "poly", 3)
@@ -111,7 +111,10 @@ def test_without_outliers_of_a_spilled_stack_stays_spilled(rough_rig):
 
     vr, samples = rough_rig
     rep = screen_samples(samples, vr.rig, positions=list(range(1, samples.z.size)))
-    rep.rejected[:, 10:12, 20:25] = True  # some flags for sure
+    for i in range(len(rep.positions)):  # some flags for sure
+        mask = rep.rejected_at(i)
+        mask[10:12, 20:25] = True
+        rep.set_rejected(i, mask)
     store = SpillStore(samples.z.size, samples.shape, {"reasons": np.uint8}, {})
     for k in range(samples.z.size):
         store.write("reasons", k, np.asarray(samples.reasons[k]))

@@ -68,8 +68,10 @@ class RobustReport:
     ----------
     positions : (Kp,) int64
         The screened positions (indices into the stack).
-    rejected : (Kp, H, W) bool
-        Samples left out (suspect positions included).
+    rejected_bits : (Kp, ceil(H * W / 8)) uint8
+        Samples left out (suspect positions included), a bit per pixel (``numpy.packbits`` of
+        each position's flat mask: a big sensor's ``(Kp, H, W)`` bool would grow with the
+        positions); :meth:`rejected_at` unpacks one position.
     n_rejected : (H, W) uint16
         Samples left out per pixel.
     fraction : (Kp,) float64
@@ -86,7 +88,7 @@ class RobustReport:
     """
 
     positions: np.ndarray
-    rejected: np.ndarray
+    rejected_bits: np.ndarray
     n_rejected: np.ndarray
     fraction: np.ndarray
     suspect: list
@@ -97,7 +99,19 @@ class RobustReport:
 
     @property
     def n_outliers(self) -> int:
-        return int(self.rejected.sum())
+        return int(self.n_rejected.sum(dtype=np.int64))
+
+    def rejected_at(self, i: int) -> np.ndarray:
+        """``(H, W)`` bool: the samples of screened position ``positions[i]`` left out."""
+        h, w = self.n_rejected.shape
+        return np.unpackbits(self.rejected_bits[i], count=h * w).view(bool).reshape(h, w)
+
+    def set_rejected(self, i: int, mask: np.ndarray) -> None:
+        """Replace position ``positions[i]``'s left-out samples by ``mask`` ((H, W) bool); ``n_rejected`` follows."""
+        old = self.rejected_at(i)
+        new = np.asarray(mask, bool)
+        self.n_rejected = (self.n_rejected.astype(np.int64) + new - old).astype(np.uint16)
+        self.rejected_bits[i] = np.packbits(new.ravel())
 
     def to_json(self) -> str:
         """The ``/provenance`` attribute ``robust`` (FORMATS.md)."""
@@ -254,26 +268,29 @@ def screen_samples(samples: SampleStack, rig: Rig, positions=None, *, k_sigma: f
     z = np.asarray(samples.z, float)[idx]
     zc, zs = 0.5 * (z.max() + z.min()), max(0.5 * (z.max() - z.min()), 1e-9)
     t = (z - zc) / zs
-    rejected = np.zeros((idx.size, h * w), bool)
-    n_valid = np.zeros(idx.size, np.int64)
+    # Packed bits (blocks are multiples of 8 pixels): 1/8 of a (K, H, W) bool stack.
+    bits = np.zeros((idx.size, -(-h * w // 8)), np.uint8)
+    n_rej = np.zeros(h * w, np.int64)
+    n_valid, n_out = np.zeros(idx.size, np.int64), np.zeros(idx.size, np.int64)
     scales = []
     if idx.size >= 5:  # fewer: nothing to judge a sample against
         for start in range(0, h * w, _BLOCK):
             stop = min(start + _BLOCK, h * w)
             rej, valid, scale = _screen_block(samples, rig, start, stop, idx, t, deg, k_sigma, stage_sigma_mm / zs)
-            rejected[:, start:stop] = rej
+            bits[:, start // 8:-(-stop // 8)] = np.packbits(rej, axis=1)
+            n_rej[start:stop] = rej.sum(axis=0)
+            n_out += rej.sum(axis=1)
             n_valid += valid.sum(axis=1)
             scales.append(scale)
-    fraction = rejected.sum(axis=1) / np.maximum(n_valid, 1)
+    fraction = n_out / np.maximum(n_valid, 1)
     suspect = [int(k) for k, f in zip(idx, fraction) if f > SUSPECT_FRACTION]
+    report = RobustReport(idx, bits, np.minimum(n_rej, 65535).astype(np.uint16).reshape(h, w), fraction, suspect,
+                          float(k_sigma), deg, float(np.nanmedian(scales)) if scales else 1.0,
+                          samples.noise is not None and samples.modulation is not None)
     for k in suspect:  # left out everywhere it was valid
         i = int(np.flatnonzero(idx == k)[0])
-        rejected[i] |= read_block(samples.reasons, 0, h * w, [k])[0] == 0
-    rejected = rejected.reshape(idx.size, h, w)
-    n_rej = np.minimum(rejected.sum(axis=0), 65535).astype(np.uint16)
-    scale = float(np.nanmedian(scales)) if scales else 1.0
-    return RobustReport(idx, rejected, n_rej, fraction, suspect, float(k_sigma), deg, scale,
-                        samples.noise is not None and samples.modulation is not None)
+        report.set_rejected(i, report.rejected_at(i) | (samples.plane("reasons", k) == 0))
+    return report
 
 
 def without_outliers(samples: SampleStack, report: RobustReport) -> SampleStack:
@@ -291,13 +308,12 @@ def without_outliers(samples: SampleStack, report: RobustReport) -> SampleStack:
         for k in range(samples.z.size):
             r = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w)
             if k in row_of:
-                r[report.rejected[row_of[k]]] |= np.uint8(Reason.OUTLIER)
+                r[report.rejected_at(row_of[k])] |= np.uint8(Reason.OUTLIER)
             store.write("reasons", k, r)
         return replace(samples, reasons=store.arrays()["reasons"])
     reasons = np.array(samples.reasons, copy=True)
-    sub = reasons[report.positions]
-    sub[report.rejected] |= np.uint8(Reason.OUTLIER)
-    reasons[report.positions] = sub
+    for i, k in enumerate(report.positions):
+        reasons[k][report.rejected_at(i)] |= np.uint8(Reason.OUTLIER)
     return replace(samples, reasons=reasons)
 
 
