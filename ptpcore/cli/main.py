@@ -105,6 +105,7 @@ def cmd_resume(args) -> int:
 def _finish_session(args, session, session_path, out: Path, validate: bool) -> int:
     """Run a session's remaining stages (saved after each), then write the LUT."""
     from ptpcore.io.lutfile import save_lut
+    from ptpcore.parallel import release_free_memory
     from ptpcore.run.session import run_session
 
     bar = progress_bar(args)
@@ -115,6 +116,7 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
     drift = _sweep_drift(session)
     if drift is not None:
         session.lut.provenance["drift"] = drift.to_json()
+    release_free_memory()  # the fit's transients, before the LUT is written and the residuals computed
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
     if drift is not None:

@@ -36,6 +36,7 @@ import numpy as np
 
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.parallel import release_free_memory
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "CandidateError", "ModelChoice",
@@ -359,6 +360,7 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
             if fitted[ci]:
                 judge.add(ci, lut)
             del lut  # one candidate LUT in memory at a time
+            release_free_memory()
         n_valid = np.where(fitted, judge.n_valid, 0)
         for ci in np.nonzero(fitted & (n_valid < MIN_COVERAGE * max(n_valid.max(), 1)))[0]:
             judge.drop(ci)  # too few pixels: it would shrink the common set for all

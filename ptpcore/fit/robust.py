@@ -37,6 +37,7 @@ import numpy as np
 from ptpcore.decode.phase import Reason
 from ptpcore.io.fastio import read_block
 from ptpcore.io.samples import SampleStack
+from ptpcore.parallel import release_free_memory
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["K_SIGMA", "SCREEN_DEGREE", "MAX_PER_PIXEL", "SUSPECT_FRACTION", "RobustReport", "screen_samples",
@@ -339,6 +340,7 @@ def fit_robust(samples: SampleStack, rig: Rig, model: str = "auto", degree: int 
         progress(0.0, "screening the samples for outliers")
     report = screen_samples(samples, rig, positions, k_sigma=k_sigma, stage_sigma_mm=stage_sigma_mm)
     clean = without_outliers(samples, report) if report.n_outliers else samples
+    release_free_memory()  # the screening's blocks, before the fit's
     sub = None if progress is None else (lambda f, msg: progress(0.05 + 0.95 * f, msg))
     lut = fit_model(clean, rig, model, degree, positions, sub, stage_sigma_mm=stage_sigma_mm, **kwargs)
     lut.n_rejected = report.n_rejected

@@ -20,6 +20,7 @@ import numpy as np
 from ptpcore.decode.phase import REASON_KEYS, REASON_NAMES, DecodeOptions, finish_position
 from ptpcore.errors import DatasetError
 from ptpcore.io.decodedfile import Decoded
+from ptpcore.parallel import release_free_memory
 from ptpcore.rig.rigfile import rig_to_toml
 from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, position_report
 
@@ -218,6 +219,8 @@ def _decode_into(source, todo, options, min_fraction, check_conventions, progres
                                              for fd in findings))
         del pos
         sink.write(i, *maps)
+        del maps
+        release_free_memory()  # the position's transients (see ptpcore.parallel)
     if not tally.any_valid:
         name, frac = tally.dominant()
         raise DatasetError(f"no pixel is valid in any decoded position and direction; dominant reason: {name}"

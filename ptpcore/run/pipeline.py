@@ -38,7 +38,7 @@ from ptpcore.decode.harmonics import harmonic_noise_samples
 from ptpcore.decode.noise import NoiseAccumulator, NoiseModel
 from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, WrappedPhase, apply_convention,
     black_clipped, decode_and_finish, decode_direction, finish_position, fused_kernels, wrapped_phase)
-from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, run_tiles, tile_workers
+from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, release_free_memory, run_tiles, tile_workers
 from ptpcore.rig.rigfile import Rig, rig_to_toml
 
 __all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES", "repeat_drift"]
@@ -566,6 +566,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                     noise.source = f"residual of period {float(t):g} px (N = {n})"
             if on_position:
                 on_position(pos)
+            release_free_memory()  # the position's transients: keep the heap from growing position by position
     finally:
         if reader:
             reader.close()
