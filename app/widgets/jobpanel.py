@@ -97,7 +97,14 @@ class JobPanel(QWidget):
             self.cancel_button.setEnabled(False)
 
     def _progress(self, fraction: float, message: str) -> None:
-        self.bar.setValue(int(round(1000 * min(max(fraction, 0.0), 1.0))))
+        value = int(round(1000 * min(max(fraction, 0.0), 1.0)))
+        if value != self.bar.value():
+            # QProgressBar.setValue repaints synchronously whenever its text changes, which flushes every
+            # pending paint of the window (the pyqtgraph views too) at the job's progress rate: with updates
+            # off it only schedules an ordinary paint, coalesced with the others (issue 15).
+            self.bar.setUpdatesEnabled(False)
+            self.bar.setValue(value)
+            self.bar.setUpdatesEnabled(True)
         if message:
             self.message.setText(message)
 
