@@ -4,9 +4,10 @@
 
 Opens the wizard (:class:`ptp_studio.wizard.StudioWizard`) on the folder (the Rig page's "open dataset"
 engine call, :meth:`ptp_studio.session.SessionModel.import_dataset`), runs the Acquire page's job (decode
-every position) and then the Calibrate page's fit, and prints one JSON line: each job's wall time and
+every position) and then the Calibrate page's fit, and prints one JSON line: each job's wall time,
 the longest gap between the ticks of a 1 ms timer on the GUI thread while it ran (the event loop's
-worst stall). :mod:`benchmarks.commands` runs it in a fresh process for its peak RSS and CPU time.
+worst stall), the job phase it fell in (the job's progress message then, or "handing the result to
+the page" for the page's own handling of the result) and the worst gap of the five worst phases. :mod:`benchmarks.commands` runs it in a fresh process for its peak RSS and CPU time.
 """
 
 from __future__ import annotations
@@ -43,13 +44,14 @@ def run(dataset: Path, model: str, degree: int) -> dict:
     wiz.resize(1300, 850)
     wiz.show()
     wiz.model.import_dataset(dataset, load_rig(dataset / "rig.toml"))
-    gaps: list[float] = []
+    gaps: list[tuple[float, str]] = []  # (gap s, the job's latest progress message then)
     last = [None]
+    phase = [""]
 
     def tick():
         now = time.perf_counter()
         if last[0] is not None:
-            gaps.append(now - last[0])
+            gaps.append((now - last[0], phase[0]))
         last[0] = now
 
     timer = QTimer()
@@ -61,19 +63,40 @@ def run(dataset: Path, model: str, degree: int) -> dict:
         wiz.go_to(key)
         gaps.clear()
         last[0] = None
+        phase[0] = "starting the job"
         timer.start()
         t0 = time.perf_counter()
         job = start()
         if job is None:
             raise RuntimeError(f"the {key} page did not start its job")
+        _follow(job, phase)
         outcome = _wait(app, job)
         timer.stop()
-        out[key] = {"outcome": outcome, "wall_s": time.perf_counter() - t0,
-                    "max_gap_ms": 1e3 * max(gaps, default=float("nan")), "ticks": len(gaps)}
+        out[key] = {"outcome": outcome, "wall_s": time.perf_counter() - t0, "ticks": len(gaps), **_worst(gaps)}
         if outcome != "finished":
             raise RuntimeError(f"the {key} job ended {outcome}")
     wiz.model.mark_saved()  # no "unsaved work" question at exit
     return out
+
+
+def _follow(job, phase: list[str]) -> None:
+    """Keep ``phase[0]`` at the job's latest progress message, so a stall says where it happened."""
+    job.progress.connect(lambda _f, message: phase.__setitem__(0, message or phase[0]))
+    # The page's handlers of the result (maps, tables, plots) run on the GUI thread too.
+    job.finished.connect(lambda _r: phase.__setitem__(0, "handing the result to the page"))
+
+
+def _worst(gaps: list[tuple[float, str]]) -> dict:
+    """The longest gap (ms), the phase it fell in, and the next longest in other phases (ms by phase)."""
+    if not gaps:
+        return {"max_gap_ms": float("nan"), "max_gap_phase": None, "max_gap_ms_by_phase": {}}
+    by_phase: dict[str, float] = {}
+    for gap, where in gaps:
+        by_phase[where] = max(by_phase.get(where, 0.0), 1e3 * gap)
+    top = sorted(by_phase.items(), key=lambda kv: -kv[1])[:5]  # the five worst phases, enough to say where
+    gap, where = max(gaps)
+    return {"max_gap_ms": 1e3 * gap, "max_gap_phase": where,
+            "max_gap_ms_by_phase": {k: round(v, 1) for k, v in top}}
 
 
 def _calibrate(wiz, model: str, degree: int):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from PySide6.QtGui import QColor
+from PySide6.QtGui import QBrush, QColor
 from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView,
                                QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
 
@@ -339,10 +339,7 @@ class AcquirePage(StudioPage):
                      "" if st.valid_fraction is None else f"{100 * st.valid_fraction:.1f} %",
                      self._main_reason(st)]
             for c, text in enumerate(cells):
-                item = QTableWidgetItem(text)
-                if c == 2 and st.state in colours:
-                    item.setForeground(QColor(colours[st.state]))
-                self.table.setItem(i, c, item)
+                self._set_cell(i, c, text, colours.get(st.state) if c == 2 else None)
         done = [st for st in s.positions if st.state == "done"]
         if done:
             vf = [st.valid_fraction for st in done]
@@ -350,6 +347,22 @@ class AcquirePage(StudioPage):
                                  f"{100 * min(vf):.1f} … {100 * max(vf):.1f} % per position.")
         else:
             self.summary.setText("")
+
+    def _set_cell(self, row: int, col: int, text: str, colour: str | None) -> None:
+        """Set one cell, touching the table only when it changes.
+
+        Every position update redraws the table; new items (each re-measuring the columns sized to
+        their contents) cost the GUI thread ~30 ms per update while the acquisition runs (issue 15).
+        """
+        item = self.table.item(row, col)
+        if item is None:
+            item = QTableWidgetItem(text)
+            self.table.setItem(row, col, item)
+        elif item.text() != text:
+            item.setText(text)
+        brush = QBrush(QColor(colour)) if colour else QBrush()  # QBrush(): the table's own text colour
+        if item.foreground() != brush:
+            item.setForeground(brush)
 
     @staticmethod
     def _main_reason(st: PositionStatus) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 import numpy as np
 import pyqtgraph as pg
@@ -24,7 +25,7 @@ from ..widgets.stagepose import StagePosePanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map"]
+__all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map"]
 
 MODELS = {"auto": "Auto: best at held-out positions",
           "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
@@ -109,6 +110,80 @@ def drift_map(drift, index: int = 0) -> np.ndarray | None:
     if drift is None or index >= drift.z.size or drift.matched[index] < 0:
         return None
     return np.hypot(drift.dx[index], drift.dy[index]) * 1e3
+
+
+@dataclass
+class LutView:
+    """What the Calibrate page shows of one LUT, ready for the widgets.
+
+    Built by :func:`lut_view` on the fit job's thread: at 5 MP the statistics and the
+    residual field take seconds that the GUI thread must not spend (issue 15).
+
+    Attributes
+    ----------
+    lut : the LUT it describes
+    maps : dict
+        :func:`quality_maps` (and the drift map when the sweep was repeated).
+    stats : str
+        The statistics line under the heatmap.
+    residual_field : ResidualField or None
+    first_pixel : (row, col) or None
+        The valid pixel nearest the sensor's centre, selected first.
+    """
+
+    lut: object
+    maps: dict
+    stats: str
+    residual_field: object
+    first_pixel: tuple[int, int] | None
+
+
+def lut_view(lut, fitted_samples, positions=None, drift=None) -> LutView:
+    """The maps, statistics, residual field and first pixel of ``lut`` (no widget: any thread).
+
+    Parameters
+    ----------
+    lut : the fitted LUT
+    fitted_samples : SampleStack or None
+        The samples as fitted (corrections applied), or None when the session has none.
+    positions : list of int, optional
+        The positions the fit used (None: all).
+    drift : ptpcore.fit.drift.Drift, optional
+    """
+    maps = quality_maps(lut)
+    dmap = drift_map(drift) if drift is not None else None
+    if dmap is not None:
+        maps["drift"] = ("Drift: |repeat − sweep| per pixel", dmap, "µm", "viridis", False)
+    field = (residual_field(lut, fitted_samples, positions)
+             if fitted_samples is not None and fitted_samples.shape == lut.shape else None)
+    return LutView(lut, maps, _stats_text(lut, maps, fitted_samples), field, _central_pixel(lut.valid))
+
+
+def _stats_text(lut, maps: dict, fitted_samples) -> str:
+    """The statistics line: validity, median residual, LOO and predicted 1σ, corrections, robust, drift."""
+    v = lut.valid
+    rms = maps["rms_x"][1][v]
+    text = (f"<b>{describe_lut(lut)}</b>: {v.sum()} of {v.size} pixels valid ({100 * v.mean():.1f} %), "
+            f"z {lut.z_min:g} … {lut.z_max:g} mm.")
+    if rms.size:
+        text += (f" Median residual RMS X {np.nanmedian(rms):.2f} µm, Y {np.nanmedian(maps['rms_y'][1][v]):.2f} µm;"
+                 f" median LOO RMS X {np.nanmedian(maps['loo_x'][1][v]):.2f} µm.")
+    if "sigma_x" in maps and rms.size:
+        text += (f" Predicted 1σ (median) X {np.nanmedian(maps['sigma_x'][1][v]):.2f} µm,"
+                 f" Y {np.nanmedian(maps['sigma_y'][1][v]):.2f} µm.")
+    for line in describe_corrections(fitted_samples.corrections if fitted_samples is not None else {}):
+        text += f" {line[0].upper()}{line[1:]}."
+    return text + robust_text(lut) + drift_text(lut)
+
+
+def _central_pixel(valid: np.ndarray) -> tuple[int, int] | None:
+    """The valid pixel nearest the sensor's centre, or None."""
+    if not valid.any():
+        return None
+    rows, cols = np.nonzero(valid)
+    h, w = valid.shape
+    i = int(np.argmin((rows - h / 2) ** 2 + (cols - w / 2) ** 2))
+    return int(rows[i]), int(cols[i])
 
 
 class CalibratePage(StudioPage):
@@ -244,6 +319,7 @@ class CalibratePage(StudioPage):
         self.maps: dict = {}
         self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
         self.residual_field = None
+        self._view: LutView | None = None  # what the fit job computed for the LUT it hands over
         self.series = None
         self.selected: tuple[int, int] | None = None
         self._outcome = None
@@ -337,7 +413,6 @@ class CalibratePage(StudioPage):
         gen = self.model.generation
         source = s.make_source() if rig.stage.repeat_z_mm else None
         options = s.decode_options
-        drifts = {}
 
         def work(ctx):
             # The cover glass, flatness and (refine) stage pose leave the samples before the fit; the
@@ -347,16 +422,18 @@ class CalibratePage(StudioPage):
                                 footprint=fit["footprint"], robust=True)
             self._corrected_cache = (samples, rig, res.lut, res.samples)
             lut = res.lut
+            drift = None
             if source is not None:  # the sweep's repeat positions: the drift in between
                 ctx.progress(0.99, "decoding the repeat positions (drift)")
-                drifts[id(lut)] = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
-                if drifts[id(lut)] is not None:
-                    lut.provenance["drift"] = drifts[id(lut)].to_json()
-            return lut
+                drift = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
+                if drift is not None:
+                    lut.provenance["drift"] = drift.to_json()
+            # What the page shows, computed here: on the GUI thread it would freeze the window (issue 15).
+            ctx.progress(0.995, "computing the quality maps and residuals")
+            return lut, drift, lut_view(lut, res.samples, positions, drift)
 
         job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
-        job.finished.connect(lambda lut: gen == self.model.generation
-                             and self._fitted(lut, positions, fit, drifts.get(id(lut))))
+        job.finished.connect(lambda out: gen == self.model.generation and self._fitted(*out, positions, fit))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
 
@@ -369,9 +446,10 @@ class CalibratePage(StudioPage):
             cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
         return cached[3]
 
-    def _fitted(self, lut, positions, fit: dict, drift=None) -> None:
+    def _fitted(self, lut, drift, view: LutView, positions, fit: dict) -> None:
         self.fitted = dict(fit)
         self.drift = (lut, drift) if drift is not None else None
+        self._view = view
         self.model.set_lut(lut, positions)
 
     def lut_settings(self) -> dict:
@@ -393,44 +471,26 @@ class CalibratePage(StudioPage):
             self.stage_pose.set_pose((), None, None)
             self.update_complete()
             return
-        self.maps = quality_maps(lut)
-        dmap = drift_map(self.drift[1]) if self.drift is not None and self.drift[0] is lut else None
-        if dmap is not None:
-            self.maps["drift"] = ("Drift: |repeat − sweep| per pixel", dmap, "µm", "viridis", False)
+        view = self._view
+        if view is None or view.lut is not lut:  # a LUT not fitted here (an opened session): build it now
+            s = self.model.session
+            drift = self.drift[1] if self.drift is not None and self.drift[0] is lut else None
+            fitted = self._corrected(s.samples, s.rig) if s.samples is not None else None
+            view = lut_view(lut, fitted, s.lut_positions, drift)
+        self._view = None  # shown: the page keeps its parts, not the view
+        self.maps = view.maps
         for key in ("sigma_x", "sigma_y", "drift"):
             self.map_buttons.button(self._map_keys.index(key)).setVisible(key in self.maps)
         if self.current_map not in self.maps:
             self.map_buttons.button(0).setChecked(True)
         self._show_map()
-        v = lut.valid
-        rms = self.maps["rms_x"][1][v]
-        loo = self.maps["loo_x"][1][v]
-        text = (f"<b>{describe_lut(lut)}</b>: {v.sum()} of {v.size} pixels valid ({100 * v.mean():.1f} %), "
-                f"z {lut.z_min:g} … {lut.z_max:g} mm.")
-        if rms.size:
-            text += (f" Median residual RMS X {np.nanmedian(rms):.2f} µm, Y {np.nanmedian(self.maps['rms_y'][1][v]):.2f} µm;"
-                     f" median LOO RMS X {np.nanmedian(loo):.2f} µm.")
-        if "sigma_x" in self.maps and rms.size:
-            text += (f" Predicted 1σ (median) X {np.nanmedian(self.maps['sigma_x'][1][v]):.2f} µm,"
-                     f" Y {np.nanmedian(self.maps['sigma_y'][1][v]):.2f} µm.")
-        for line in describe_corrections(self._corrected(self.model.session.samples, self.model.session.rig)
-                                         .corrections if self.model.session.samples is not None else {}):
-            text += f" {line[0].upper()}{line[1:]}."
-        text += robust_text(lut)
-        text += drift_text(lut)
-        self.stats.setText(text)
+        self.stats.setText(view.stats)
         self._show_choice(choice_of(lut))
-        s = self.model.session
-        self.stage_pose.set_pose(s.rig.stage.z_mm, lut.stage_pose, lut.stage_pose_sigma)
-        self.residual_field = (residual_field(lut, self._corrected(s.samples, s.rig), s.lut_positions)
-                               if s.samples is not None and s.samples.shape == lut.shape else None)
+        self.stage_pose.set_pose(self.model.session.rig.stage.z_mm, lut.stage_pose, lut.stage_pose_sigma)
+        self.residual_field = view.residual_field
         self.residuals.set_field(self.residual_field)
-        # Start with the valid pixel nearest the sensor's centre.
-        if v.any():
-            rows, cols = np.nonzero(v)
-            h, w = v.shape
-            i = int(np.argmin((rows - h / 2) ** 2 + (cols - w / 2) ** 2))
-            self.select_pixel(int(rows[i]), int(cols[i]))
+        if view.first_pixel is not None:  # start with the valid pixel nearest the sensor's centre
+            self.select_pixel(*view.first_pixel)
         self.update_complete()
 
     def _show_choice(self, choice: ModelChoice | None) -> None:

@@ -62,6 +62,7 @@ class FringesPage(StudioPage):
         super().__init__(model, parent)
         self._error: str | None = None
         self._loading = False
+        self._stale = False  # a position was decoded while the page was hidden: refresh when shown
         self.report = None
         grid = QGridLayout(self.body)
         grid.setColumnStretch(0, 0)
@@ -240,8 +241,22 @@ class FringesPage(StudioPage):
         return self.frames_box
 
     def _decoded_arrived(self, *_):
-        """A decoded position brings the display's measured harmonics to the design check."""
-        if not self._loading:
+        """A decoded position brings the display's measured harmonics to the design check.
+
+        A hidden page only notes it: the check (harmonics, pattern previews) costs the GUI thread
+        tens of ms per position while the acquisition runs (issue 15); :meth:`refresh` catches up.
+        """
+        if self._loading:
+            return
+        if not self.isVisible():
+            self._stale = True
+            return
+        self._refresh()
+
+    def refresh(self) -> None:
+        """Bring the page up to date when it is shown (forward, Back or a jump)."""
+        super().refresh()
+        if self._stale:
             self._refresh()
 
     # ---- model -> widgets -------------------------------------------------
@@ -320,6 +335,7 @@ class FringesPage(StudioPage):
         self._show_rig()  # the design and its check are the (new) dataset's
 
     def _refresh(self) -> None:
+        self._stale = False
         rig = self.model.session.rig
         f = rig.fringes
         self.frames_label.setText(

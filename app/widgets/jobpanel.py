@@ -79,7 +79,7 @@ class JobPanel(QWidget):
         job.finished.connect(lambda _r: self._end("finished", f"{job.name}: done"))
         job.errored.connect(lambda msg: self._end("errored", f"{job.name}: failed", msg))
         job.cancelled.connect(lambda: self._end("cancelled", f"{job.name}: cancelled"))
-        self.bar.setValue(0)
+        self._set_bar(0)
         self.message.setText(f"{job.name} …")
         self.error.hide()
         self.error.setText("")
@@ -96,15 +96,27 @@ class JobPanel(QWidget):
             self.message.setText(f"{self.job.name}: cancelling …")
             self.cancel_button.setEnabled(False)
 
+    def _set_bar(self, value: int) -> None:
+        """Move the bar without painting now.
+
+        QProgressBar.setValue repaints synchronously whenever its text changes, which flushes every
+        pending paint of the window (the pyqtgraph views too) at each progress report: with updates
+        off it only schedules an ordinary paint, coalesced with the others (issue 15).
+        """
+        if value != self.bar.value():
+            self.bar.setUpdatesEnabled(False)
+            self.bar.setValue(value)
+            self.bar.setUpdatesEnabled(True)
+
     def _progress(self, fraction: float, message: str) -> None:
-        self.bar.setValue(int(round(1000 * min(max(fraction, 0.0), 1.0))))
+        self._set_bar(int(round(1000 * min(max(fraction, 0.0), 1.0))))
         if message:
             self.message.setText(message)
 
     def _end(self, outcome: str, text: str, error: str = "") -> None:
         self.cancel_button.setEnabled(False)
         if outcome == "finished":
-            self.bar.setValue(1000)
+            self._set_bar(1000)
         self.message.setText(text)
         if error:
             self.error.setText(error)

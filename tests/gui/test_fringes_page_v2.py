@@ -84,7 +84,12 @@ def test_design_check_takes_the_measured_harmonics(wizard):
     pos = decode_position(s.make_source(), 2)
     measured = measured_harmonics(pos.info["noise_samples"])
     assert measured is not None and measured.noise_dn > 0 and measured.n_pixels > 100
+    before = p._basis
     model.set_decoded(pos)
+    # A hidden page only notes the new position (no work on the GUI thread during an acquisition, issue 15)...
+    assert not p.isVisible() and p._basis == before
+    # ...and catches up when shown.
+    wizard.go_to("fringes")
     assert p.measured_harmonics()[0] == 2
     assert p._basis.startswith("measured at position 3") and f"{measured.harmonic_dn:.2g}" in p._basis
     has_item = any(i.name == "display harmonics" for i in p.report.items)
