@@ -134,16 +134,16 @@ def draw_features(samples: SampleStack, positions, n_points: int, rng: np.random
     """
     positions = np.asarray(positions, dtype=np.int64)
     valid = _valid(samples, positions)
-    flat = np.flatnonzero(valid)
-    if flat.size < 20:
-        raise ValueError(f"3DSTC needs feature points: only {flat.size} valid samples at positions"
+    n_valid = int(np.count_nonzero(valid))  # (the valid slots' index list only when topping up: 8 B a sample)
+    if n_valid < 20:
+        raise ValueError(f"3DSTC needs feature points: only {n_valid} valid samples at positions"
                          f" {positions.tolist()}")
-    m = min(int(n_points), flat.size)
-    n_draw = min(valid.size, int(np.ceil(1.3 * m * valid.size / flat.size)) + 64)
+    m = min(int(n_points), n_valid)
+    n_draw = min(valid.size, int(np.ceil(1.3 * m * valid.size / n_valid)) + 64)
     slots = rng.choice(valid.size, size=n_draw, replace=False)
     slots = slots[valid.ravel()[slots]][:m]
     if slots.size < m:  # unlucky: top up from the valid slots not drawn yet
-        rest = np.setdiff1d(flat, slots, assume_unique=True)
+        rest = np.setdiff1d(np.flatnonzero(valid), slots, assume_unique=True)
         slots = np.concatenate([slots, rng.choice(rest, size=m - slots.size, replace=False)])
     i, row, col = np.unravel_index(np.sort(slots), valid.shape)
     k = positions[i]
@@ -237,14 +237,24 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
     for fi, (cal, held) in enumerate(folds_idx):
         base, step = fi / len(folds_idx) * 0.9, 0.9 / len(folds_idx)
         tag = f"(fold {fi + 1}/{len(folds_idx)})"
-        fold, lut, smooth = _fit_fold(samples, rig, fi, cal, held, seed, n_points, rational, model, degree,
-                                      s_degree, lambda f, msg: report(base + step * f, f"{msg} {tag}"),
-                                      {"level_bias": level_bias, "footprint": footprint})
+
+        def fold_report(f, msg, base=base, step=step, tag=tag):
+            report(base + step * f, f"{msg} {tag}")
+
+        fold, lut = _fit_fold(samples, rig, fi, cal, held, seed, n_points, rational, model, degree, fold_report)
         folds.append(fold)
+        e0 = acc.e
         for k in held:
-            report(base + 0.8 * step, f"evaluating held-out position {k} (z = {samples.z[k]:g} mm)")
-            acc.judge_position(samples, int(k), fold.pinhole, lut, smooth, truth)
-        del lut, smooth  # the next fold's LUTs are fitted without this fold's held in memory
+            fold_report(0.15, f"evaluating held-out position {k} (z = {samples.z[k]:g} mm)")
+            acc.judge_position(samples, int(k), fold.pinhole, lut, truth, final=s_degree is None)
+        del lut  # the plain LUT is judged: the smooth fit (the command's peak) runs without it
+        if s_degree is not None:
+            smooth = _fit_fold_smooth(samples, rig, fold, s_degree, seed, fold_report,
+                                      {"level_bias": level_bias, "footprint": footprint})
+            for e, k in enumerate(held, start=e0):
+                fold_report(0.8, f"evaluating PTP smooth at held-out position {k} (z = {samples.z[k]:g} mm)")
+                acc.add_smooth(samples, e, int(k), smooth)
+            del smooth
 
     # --- point pairs, and every method's coordinates at their ends
     report(0.92, "drawing point pairs")
@@ -320,15 +330,15 @@ def _smooth_plan(samples: SampleStack, folds_idx, with_smooth: bool, degree: int
 
 
 def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_points: int, rational: bool,
-              model: str, degree: int, s_degree: int | None, report: Progress, smooth_options: dict | None = None):
-    """Calibrate every method on one fold's calibration positions ``cal``.
+              model: str, degree: int, report: Progress):
+    """Calibrate 3DSTC and the plain PTP LUT on one fold's calibration positions ``cal``.
 
     Returns
     -------
     fold : Fold
         The fold's 3DSTC fit, feature points, coverage and warnings.
-    lut, smooth : Lut, Lut or None
-        The plain PTP LUT and the smooth LUT (None when left out).
+    lut : Lut
+        The plain PTP LUT.
     """
     report(0.0, "3DSTC: fitting the pinhole camera")
     feats = draw_features(samples, cal, n_points, np.random.default_rng([seed, 0, fi]))
@@ -348,19 +358,22 @@ def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_p
                          f" ({need} valid positions per pixel)")
     fold = Fold(np.asarray(cal, np.int64), np.asarray(held, np.int64), pin, feats,
                 float(lut.valid.mean()), [str(w.message) for w in caught])
-    smooth = None
-    if s_degree is not None:
-        smooth, info = fit_smooth_lut(samples, rig, s_degree, list(map(int, cal)), seed=seed,
-                                      **(smooth_options or {}),
-                                      progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
-        if not smooth.valid.any():
-            raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions"
-                             f" {list(map(int, cal))}")
-        fold.smooth_valid_fraction = float(smooth.valid.mean())
-        fold.smooth_scale_px = float(info.scale_px)
     if model == "auto":
         fold.lut_degree = int(degree)
-    return fold, lut, smooth
+    return fold, lut
+
+
+def _fit_fold_smooth(samples: SampleStack, rig: Rig, fold: Fold, s_degree: int, seed: int, report: Progress,
+                     smooth_options: dict | None = None):
+    """The smooth LUT on ``fold``'s calibration positions; records its coverage and scale in ``fold``."""
+    cal = list(map(int, fold.calibration))
+    smooth, info = fit_smooth_lut(samples, rig, s_degree, cal, seed=seed, **(smooth_options or {}),
+                                  progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
+    if not smooth.valid.any():
+        raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions {cal}")
+    fold.smooth_valid_fraction = float(smooth.valid.mean())
+    fold.smooth_scale_px = float(info.scale_px)
+    return smooth
 
 
 _BLOCK_PIXELS = 1 << 18
@@ -373,7 +386,10 @@ def _valid(samples: SampleStack, positions) -> np.ndarray:
     ``samples.valid`` would compare the whole ``(K, H, W)`` reasons through the memory map.
     """
     h, w = samples.shape
-    return (read_block(samples.reasons, 0, h * w, positions) == 0).reshape(len(positions), h, w)
+    out = np.empty((len(positions), h, w), bool)
+    for i, k in enumerate(positions):  # one position's reasons at a time
+        out[i] = (read_block(samples.reasons, 0, h * w, [k])[0] == 0).reshape(h, w)
+    return out
 
 
 def _lut_rows(lut, r0: int, r1: int):
@@ -408,30 +424,42 @@ class _HeldOutErrors:
             cov["n_smooth"] = np.zeros(e_n, np.int64)
         return cls(HeldOutMaps(methods, e_n, shape, with_truth), cov)
 
-    def judge_position(self, samples: SampleStack, k: int, pin, lut, smooth, truth) -> None:
-        """Evaluate every method at held-out position ``k`` (the next one) against its samples.
+    def judge_position(self, samples: SampleStack, k: int, pin, lut, truth, final: bool = True) -> None:
+        """Evaluate PTP and 3DSTC at held-out position ``k`` (the next one) against its samples.
 
         In row blocks of about :data:`_BLOCK_PIXELS` pixels: every full-image
         float64 temporary (the methods' X, Y, the pinhole's undistortion) is a
-        block's, and each block's errors go to the file at once.
+        block's, and each block's errors go to the file at once. ``final=False``:
+        the smooth LUT comes later (:meth:`add_smooth`) and narrows the mask.
         """
         h, w = self.maps.shape
-        rows = max(1, _BLOCK_PIXELS // w)
-        for r0 in range(0, h, rows):
-            counts = self._judge_rows(samples, k, r0, min(h, r0 + rows), pin, lut, smooth, truth)
+        for r0 in range(0, h, max(1, _BLOCK_PIXELS // w)):
+            counts = self._judge_rows(samples, k, r0, min(h, r0 + max(1, _BLOCK_PIXELS // w)), pin, lut, truth)
             for key, n in counts.items():
                 self.cov[key][self.e] += n
-        self.maps.mark_written(self.e)
+        if final:
+            self.maps.mark_written(self.e)
         self.e += 1
 
-    def _judge_rows(self, samples: SampleStack, k: int, r0: int, r1: int, pin, lut, smooth, truth) -> dict:
-        """Judge rows ``[r0, r1)`` of held-out position ``k``; returns their pixel counts (keys of ``cov``)."""
+    def add_smooth(self, samples: SampleStack, e: int, k: int, smooth) -> None:
+        """Add the smooth LUT at held-out position ``k`` (index ``e``), judged already by :meth:`judge_position`.
+
+        The compared pixels become those where the smooth LUT gives a value too;
+        every stored map is cut to them, row block by row block.
+        """
+        h, w = self.maps.shape
+        self.cov["n_compared"][e] = 0
+        for r0 in range(0, h, max(1, _BLOCK_PIXELS // w)):
+            counts = self._smooth_rows(samples, e, k, r0, min(h, r0 + max(1, _BLOCK_PIXELS // w)), smooth)
+            for key, n in counts.items():
+                self.cov[key][e] += n
+        self.maps.mark_written(e)
+
+    def _judge_rows(self, samples: SampleStack, k: int, r0: int, r1: int, pin, lut, truth) -> dict:
+        """Judge PTP and 3DSTC at rows ``[r0, r1)`` of held-out position ``k``; their pixel counts (keys of ``cov``)."""
         w = self.maps.shape[1]
         z = float(samples.z[k])
-        n0, n1 = r0 * w, r1 * w
-        valid = (read_block(samples.reasons, n0, n1, [k])[0] == 0).reshape(r1 - r0, w)
-        mx = samples.x_ref[r0:r1] + read_block(samples.x, n0, n1, [k])[0].reshape(r1 - r0, w)
-        my = samples.y_ref[r0:r1] + read_block(samples.y, n0, n1, [k])[0].reshape(r1 - r0, w)
+        valid, mx, my = _measured_rows(samples, k, r0, r1)
         ev = _lut_rows(lut, r0, r1).evaluate(z)
         xy = {"ptp": (ev.x, ev.y)}
         cols = np.arange(w, dtype=np.float64)[None, :]
@@ -439,14 +467,6 @@ class _HeldOutErrors:
         xy["3dstc"] = pin.model.pixel_to_world_at_z(cols, prow, z)
         has = {name: valid & np.isfinite(xy[name][0]) & np.isfinite(xy[name][1]) for name in xy}
         m = has["ptp"] & has["3dstc"]
-        counts = {"n_measured": int(valid.sum()), "n_ptp": int(has["ptp"].sum()), "n_3dstc": int(has["3dstc"].sum())}
-        if smooth is not None:
-            es = _lut_rows(smooth, r0, r1).evaluate(z)
-            xy["smooth"] = (es.x, es.y)
-            has_smooth = valid & np.isfinite(es.x) & np.isfinite(es.y)
-            counts["n_smooth"] = int(has_smooth.sum())
-            m &= has_smooth
-        counts["n_compared"] = int(m.sum())
         fields = {}
         for name, (x, y) in xy.items():
             fields[f"{name}.x"] = np.where(m, x - mx, np.nan).astype(np.float32)
@@ -455,7 +475,34 @@ class _HeldOutErrors:
             fields["truth.x"] = np.where(m, mx - (truth.x0[r0:r1] + truth.sx[r0:r1] * z), np.nan).astype(np.float32)
             fields["truth.y"] = np.where(m, my - (truth.y0[r0:r1] + truth.sy[r0:r1] * z), np.nan).astype(np.float32)
         self.maps.write_rows(self.e, r0, m, fields)
-        return counts
+        return {"n_measured": int(valid.sum()), "n_ptp": int(has["ptp"].sum()), "n_3dstc": int(has["3dstc"].sum()),
+                "n_compared": int(m.sum())}
+
+    def _smooth_rows(self, samples: SampleStack, e: int, k: int, r0: int, r1: int, smooth) -> dict:
+        """The smooth LUT at rows ``[r0, r1)`` of held-out position ``k``; the mask and every map cut to it."""
+        valid, mx, my = _measured_rows(samples, k, r0, r1)
+        es = _lut_rows(smooth, r0, r1).evaluate(float(samples.z[k]))
+        has_smooth = valid & np.isfinite(es.x) & np.isfinite(es.y)
+        m = self.maps.read_rows("mask", e, r0, r1) & has_smooth
+        fields = {name: np.where(m, self.maps.read_rows(name, e, r0, r1), np.float32(np.nan))
+                  for name in self.maps.float_fields if not name.startswith("smooth.")}
+        fields["smooth.x"] = np.where(m, es.x - mx, np.nan).astype(np.float32)
+        fields["smooth.y"] = np.where(m, es.y - my, np.nan).astype(np.float32)
+        self.maps.write_rows(e, r0, m, fields)
+        return {"n_smooth": int(has_smooth.sum()), "n_compared": int(m.sum())}
+
+
+def _measured_rows(samples: SampleStack, k: int, r0: int, r1: int):
+    """Rows ``[r0, r1)`` of position ``k``: valid (n, W) bool and the absolute X, Y (n, W) float64 mm.
+
+    File reads of the (spilled) stack; the same numbers as ``samples.valid[k]``, ``samples.absolute(k)``.
+    """
+    w = samples.shape[1]
+    n0, n1 = r0 * w, r1 * w
+    valid = (read_block(samples.reasons, n0, n1, [k])[0] == 0).reshape(r1 - r0, w)
+    mx = samples.x_ref[r0:r1] + read_block(samples.x, n0, n1, [k])[0].reshape(r1 - r0, w)
+    my = samples.y_ref[r0:r1] + read_block(samples.y, n0, n1, [k])[0].reshape(r1 - r0, w)
+    return valid, mx, my
 
 
 def _measured_points(samples: SampleStack, held_positions: np.ndarray, z_held: np.ndarray):

@@ -215,6 +215,16 @@ class HeldOutMaps:
         for name in self._store.layout:
             self._store.mark_written(name, e)
 
+    @property
+    def float_fields(self) -> list[str]:
+        """Names of the float32 maps (every field but ``"mask"``)."""
+        return [n for n in self._store.layout if n != "mask"]
+
+    def read_rows(self, name: str, e: int, r0: int, r1: int) -> np.ndarray:
+        """(r1 - r0, W) rows of one field at held-out position ``e``."""
+        w = self.shape[1]
+        return self._store.read(name, r0 * w, r1 * w, [e]).reshape(r1 - r0, w)
+
     def field_at(self, name: str, e: int) -> np.ndarray:
         """(H, W) one field at held-out position ``e`` (float32 maps, mm; bool mask), read from the file."""
         return self._store.read(name, 0, self._pixels, [e]).reshape(self.shape)
