@@ -590,10 +590,14 @@ def _blocked_stats(e_n: int, position) -> tuple:
         if sq is None:
             sq, n = np.zeros(dx.shape), np.zeros(dx.shape, np.int64)
         cx, cy = dx[mk], dy[mk]
+        dx *= dx  # in place: a position's float64 maps are the largest temporaries here
+        dx += dy * dy
+        dx[~mk] = 0.0
+        sq += dx  # in position order, as a sum over axis 0 adds them
+        n += mk
+        del dx, dy
         per.append(coordinate_stats(cx, cy))
         acc.add(cx, cy)
-        sq += np.where(mk, dx * dx + dy * dy, 0.0)  # in position order, as a sum over axis 0 adds them
-        n += mk
 
     def lengths(e):
         dx, dy, mk = position(e)
