@@ -45,18 +45,19 @@ Lengths in arrays are mm; statistics are µm (``*_um``).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
 
 from ptpcore.evaluate.report import (METHODS, PAIR_KINDS, SPLITS, CompareResult, Coverage, FeaturePoints, Fold,
-    MethodReport, ReferenceReport)
-from ptpcore.evaluate.statistics import (DistanceErrors, _curve, _draw_pairs, _verdict, coordinate_stats,
-    error_stats)
+    HeldOutMaps, MethodReport, ReferenceReport)
+from ptpcore.evaluate.statistics import (CoordinateAccumulator, DistanceErrors, _curve, _draw_pairs, _verdict,
+    coordinate_stats, error_stats)
 from ptpcore.fit import fit_lut, fit_smooth_lut
 from ptpcore.fit.choice import fit_auto
 from ptpcore.io import MODELS, SampleStack
+from ptpcore.io.fastio import read_block
 from ptpcore.pinhole import fit_pinhole
 from ptpcore.rig import Rig
 
@@ -132,17 +133,17 @@ def draw_features(samples: SampleStack, positions, n_points: int, rng: np.random
         Fewer than 20 valid samples in ``positions``.
     """
     positions = np.asarray(positions, dtype=np.int64)
-    valid = samples.valid[positions]
-    flat = np.flatnonzero(valid)
-    if flat.size < 20:
-        raise ValueError(f"3DSTC needs feature points: only {flat.size} valid samples at positions"
+    valid = _valid(samples, positions)
+    n_valid = int(np.count_nonzero(valid))  # (the valid slots' index list only when topping up: 8 B a sample)
+    if n_valid < 20:
+        raise ValueError(f"3DSTC needs feature points: only {n_valid} valid samples at positions"
                          f" {positions.tolist()}")
-    m = min(int(n_points), flat.size)
-    n_draw = min(valid.size, int(np.ceil(1.3 * m * valid.size / flat.size)) + 64)
+    m = min(int(n_points), n_valid)
+    n_draw = min(valid.size, int(np.ceil(1.3 * m * valid.size / n_valid)) + 64)
     slots = rng.choice(valid.size, size=n_draw, replace=False)
     slots = slots[valid.ravel()[slots]][:m]
     if slots.size < m:  # unlucky: top up from the valid slots not drawn yet
-        rest = np.setdiff1d(flat, slots, assume_unique=True)
+        rest = np.setdiff1d(np.flatnonzero(valid), slots, assume_unique=True)
         slots = np.concatenate([slots, rng.choice(rest, size=m - slots.size, replace=False)])
     i, row, col = np.unravel_index(np.sort(slots), valid.shape)
     k = positions[i]
@@ -236,33 +237,45 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
     for fi, (cal, held) in enumerate(folds_idx):
         base, step = fi / len(folds_idx) * 0.9, 0.9 / len(folds_idx)
         tag = f"(fold {fi + 1}/{len(folds_idx)})"
-        fold, lut, smooth = _fit_fold(samples, rig, fi, cal, held, seed, n_points, rational, model, degree,
-                                      s_degree, lambda f, msg: report(base + step * f, f"{msg} {tag}"),
-                                      {"level_bias": level_bias, "footprint": footprint})
+
+        def fold_report(f, msg, base=base, step=step, tag=tag):
+            report(base + step * f, f"{msg} {tag}")
+
+        fold, lut = _fit_fold(samples, rig, fi, cal, held, seed, n_points, rational, model, degree, fold_report)
         folds.append(fold)
+        e0 = acc.e
         for k in held:
-            report(base + 0.8 * step, f"evaluating held-out position {k} (z = {samples.z[k]:g} mm)")
-            acc.judge_position(samples, int(k), fold.pinhole, lut, smooth, truth)
+            fold_report(0.15, f"evaluating held-out position {k} (z = {samples.z[k]:g} mm)")
+            acc.judge_position(samples, int(k), fold.pinhole, lut, truth, final=s_degree is None)
+        del lut  # the plain LUT is judged: the smooth fit (the command's peak) runs without it
+        if s_degree is not None:
+            smooth = _fit_fold_smooth(samples, rig, fold, s_degree, seed, fold_report,
+                                      {"level_bias": level_bias, "footprint": footprint})
+            for e, k in enumerate(held, start=e0):
+                fold_report(0.8, f"evaluating PTP smooth at held-out position {k} (z = {samples.z[k]:g} mm)")
+                acc.add_smooth(samples, e, int(k), smooth)
+            del smooth
 
     # --- point pairs, and every method's coordinates at their ends
     report(0.92, "drawing point pairs")
     measured_xyz = _measured_points(samples, held_positions, z_held)
     groups = [np.flatnonzero(fold_of_held == fi) for fi in range(len(folds_idx))]
-    pairs = {kind: _draw_pairs(acc.mask, groups, kind, int(n_pairs), int(n_bins),
-                               np.random.default_rng([seed, 1, i]), measured_xyz)
+    maps = acc.maps
+    pairs = {kind: _draw_pairs(maps.mask_at, acc.cov["n_compared"], samples.shape, groups, kind, int(n_pairs),
+                               int(n_bins), np.random.default_rng([seed, 1, i]), measured_xyz)
              for i, kind in enumerate(PAIR_KINDS)}
 
     result = CompareResult(split, seed, int(n_points), bool(rational), model, int(degree) if model == "poly" else None,
-                           samples.z.astype(float).copy(), held_positions, z_held, fold_of_held, folds, acc.mask,
-                           acc.err, acc.measured_minus_truth, Coverage(**acc.cov), pairs, methods=methods,
-                           smooth_degree=s_degree, notes=notes, corrections=dict(samples.corrections))
+                           samples.z.astype(float).copy(), held_positions, z_held, fold_of_held, folds, maps,
+                           Coverage(**acc.cov), pairs, methods=methods, smooth_degree=s_degree, notes=notes,
+                           corrections=dict(samples.corrections))
+    ends = _PairEnds(result, measured_xyz, truth)
     refs = ["measured"] + (["truth"] if truth is not None else [])
     for ref in refs:
         report(0.95, f"statistics against the {ref} reference")
-        result.references[ref] = _reference_report(result, ref, measured_xyz, truth)
+        result.references[ref] = _reference_report(result, ref, ends)
     if truth is not None:
-        mmt, mask = acc.measured_minus_truth, acc.mask
-        result.reference_noise = coordinate_stats(mmt[0][mask], mmt[1][mask])
+        result.reference_noise = _blocked_stats(len(held_positions), lambda e: _truth_noise_at(maps, e))[0]
     report(1.0, "comparison done")
     return result
 
@@ -317,15 +330,15 @@ def _smooth_plan(samples: SampleStack, folds_idx, with_smooth: bool, degree: int
 
 
 def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_points: int, rational: bool,
-              model: str, degree: int, s_degree: int | None, report: Progress, smooth_options: dict | None = None):
-    """Calibrate every method on one fold's calibration positions ``cal``.
+              model: str, degree: int, report: Progress):
+    """Calibrate 3DSTC and the plain PTP LUT on one fold's calibration positions ``cal``.
 
     Returns
     -------
     fold : Fold
         The fold's 3DSTC fit, feature points, coverage and warnings.
-    lut, smooth : Lut, Lut or None
-        The plain PTP LUT and the smooth LUT (None when left out).
+    lut : Lut
+        The plain PTP LUT.
     """
     report(0.0, "3DSTC: fitting the pinhole camera")
     feats = draw_features(samples, cal, n_points, np.random.default_rng([seed, 0, fi]))
@@ -345,135 +358,276 @@ def _fit_fold(samples: SampleStack, rig: Rig, fi: int, cal, held, seed: int, n_p
                          f" ({need} valid positions per pixel)")
     fold = Fold(np.asarray(cal, np.int64), np.asarray(held, np.int64), pin, feats,
                 float(lut.valid.mean()), [str(w.message) for w in caught])
-    smooth = None
-    if s_degree is not None:
-        smooth, info = fit_smooth_lut(samples, rig, s_degree, list(map(int, cal)), seed=seed,
-                                      **(smooth_options or {}),
-                                      progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
-        if not smooth.valid.any():
-            raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions"
-                             f" {list(map(int, cal))}")
-        fold.smooth_valid_fraction = float(smooth.valid.mean())
-        fold.smooth_scale_px = float(info.scale_px)
     if model == "auto":
         fold.lut_degree = int(degree)
-    return fold, lut, smooth
+    return fold, lut
+
+
+def _fit_fold_smooth(samples: SampleStack, rig: Rig, fold: Fold, s_degree: int, seed: int, report: Progress,
+                     smooth_options: dict | None = None):
+    """The smooth LUT on ``fold``'s calibration positions; records its coverage and scale in ``fold``."""
+    cal = list(map(int, fold.calibration))
+    smooth, info = fit_smooth_lut(samples, rig, s_degree, cal, seed=seed, **(smooth_options or {}),
+                                  progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
+    if not smooth.valid.any():
+        raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions {cal}")
+    fold.smooth_valid_fraction = float(smooth.valid.mean())
+    fold.smooth_scale_px = float(info.scale_px)
+    return smooth
+
+
+_BLOCK_PIXELS = 1 << 18
+"""Pixels per row block when judging a held-out position (whole rows; 2 MB per float64 map)."""
+
+
+def _valid(samples: SampleStack, positions) -> np.ndarray:
+    """(len(positions), H, W) bool: the samples' validity, read from the (spilled) stack by file reads.
+
+    ``samples.valid`` would compare the whole ``(K, H, W)`` reasons through the memory map.
+    """
+    h, w = samples.shape
+    out = np.empty((len(positions), h, w), bool)
+    for i, k in enumerate(positions):  # one position's reasons at a time
+        out[i] = (read_block(samples.reasons, 0, h * w, [k])[0] == 0).reshape(h, w)
+    return out
+
+
+def _lut_rows(lut, r0: int, r1: int):
+    """The LUT of rows ``[r0, r1)`` (views): its evaluation there is the whole LUT's, pixel by pixel."""
+    if lut is None:
+        return None
+    return replace(lut, x=lut.x[:, r0:r1], y=lut.y[:, r0:r1], valid=lut.valid[r0:r1],
+                   pixel_z_min=lut.pixel_z_min[r0:r1], pixel_z_max=lut.pixel_z_max[r0:r1])
 
 
 @dataclass
 class _HeldOutErrors:
-    """Every method's error at every held-out position, filled position by position.
+    """Every method's error at every held-out position, filled position by position, row block by row block.
 
     Attributes
     ----------
-    mask : (E, H, W) bool
-        Pixels where the held-out sample is valid and every method gives a value.
-    err : dict of method -> (2, E, H, W) float32, mm
-        Method minus measured, X and Y; NaN outside ``mask``.
-    measured_minus_truth : (2, E, H, W) float32 or None, mm
+    maps : HeldOutMaps
+        The error maps (method minus measured, measured minus truth; float32, mm, NaN outside the mask) and
+        the compared pixels (valid held-out sample and every method gives a value), in a temporary file.
     cov : dict of str -> (E,) int64
         Pixel counts per held-out position (see :class:`Coverage`).
-    pixel_cols, pixel_rows : (H, W) float64
-        Every pixel's camera coordinates, for the pinhole back-projection.
     """
 
-    mask: np.ndarray
-    err: dict
-    measured_minus_truth: np.ndarray | None
+    maps: HeldOutMaps
     cov: dict
-    pixel_cols: np.ndarray
-    pixel_rows: np.ndarray
     e: int = 0
 
     @classmethod
     def empty(cls, methods, e_n: int, shape, with_truth: bool) -> "_HeldOutErrors":
-        h, w = shape
         cov = {k: np.zeros(e_n, np.int64) for k in ("n_measured", "n_ptp", "n_3dstc", "n_compared")}
         if "smooth" in methods:
             cov["n_smooth"] = np.zeros(e_n, np.int64)
-        rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
-        return cls(np.zeros((e_n, h, w), bool), {m: np.full((2, e_n, h, w), np.nan, np.float32) for m in methods},
-                   np.full((2, e_n, h, w), np.nan, np.float32) if with_truth else None, cov, cols, rows)
+        return cls(HeldOutMaps(methods, e_n, shape, with_truth), cov)
 
-    def judge_position(self, samples: SampleStack, k: int, pin, lut, smooth, truth) -> None:
-        """Evaluate every method at held-out position ``k`` (the next one) against its samples."""
-        e = self.e
-        z = float(samples.z[k])
-        mx, my = samples.absolute(k)
-        xy = {"ptp": lut.evaluate(z)}
-        sx, sy = pin.model.pixel_to_world_at_z(self.pixel_cols, self.pixel_rows, z)
-        valid = samples.valid[k]
-        has_ptp = valid & np.isfinite(xy["ptp"].x) & np.isfinite(xy["ptp"].y)
-        has_stc = valid & np.isfinite(sx) & np.isfinite(sy)
-        m = has_ptp & has_stc
-        if smooth is not None:
-            xy["smooth"] = smooth.evaluate(z)
-            has_smooth = valid & np.isfinite(xy["smooth"].x) & np.isfinite(xy["smooth"].y)
-            self.cov["n_smooth"][e] = has_smooth.sum()
-            m &= has_smooth
-        self.mask[e] = m
-        self.cov["n_measured"][e] = valid.sum()
-        self.cov["n_ptp"][e] = has_ptp.sum()
-        self.cov["n_3dstc"][e] = has_stc.sum()
-        self.cov["n_compared"][e] = m.sum()
-        for name, ev in xy.items():
-            self.err[name][0, e][m] = (ev.x - mx)[m]
-            self.err[name][1, e][m] = (ev.y - my)[m]
-        self.err["3dstc"][0, e][m] = (sx - mx)[m]
-        self.err["3dstc"][1, e][m] = (sy - my)[m]
-        if self.measured_minus_truth is not None:
-            tx, ty = truth.xy(z)
-            self.measured_minus_truth[0, e][m] = (mx - tx)[m]
-            self.measured_minus_truth[1, e][m] = (my - ty)[m]
+    def judge_position(self, samples: SampleStack, k: int, pin, lut, truth, final: bool = True) -> None:
+        """Evaluate PTP and 3DSTC at held-out position ``k`` (the next one) against its samples.
+
+        In row blocks of about :data:`_BLOCK_PIXELS` pixels: every full-image
+        float64 temporary (the methods' X, Y, the pinhole's undistortion) is a
+        block's, and each block's errors go to the file at once. ``final=False``:
+        the smooth LUT comes later (:meth:`add_smooth`) and narrows the mask.
+        """
+        h, w = self.maps.shape
+        for r0 in range(0, h, max(1, _BLOCK_PIXELS // w)):
+            counts = self._judge_rows(samples, k, r0, min(h, r0 + max(1, _BLOCK_PIXELS // w)), pin, lut, truth)
+            for key, n in counts.items():
+                self.cov[key][self.e] += n
+        if final:
+            self.maps.mark_written(self.e)
         self.e += 1
+
+    def add_smooth(self, samples: SampleStack, e: int, k: int, smooth) -> None:
+        """Add the smooth LUT at held-out position ``k`` (index ``e``), judged already by :meth:`judge_position`.
+
+        The compared pixels become those where the smooth LUT gives a value too;
+        every stored map is cut to them, row block by row block.
+        """
+        h, w = self.maps.shape
+        self.cov["n_compared"][e] = 0
+        for r0 in range(0, h, max(1, _BLOCK_PIXELS // w)):
+            counts = self._smooth_rows(samples, e, k, r0, min(h, r0 + max(1, _BLOCK_PIXELS // w)), smooth)
+            for key, n in counts.items():
+                self.cov[key][e] += n
+        self.maps.mark_written(e)
+
+    def _judge_rows(self, samples: SampleStack, k: int, r0: int, r1: int, pin, lut, truth) -> dict:
+        """Judge PTP and 3DSTC at rows ``[r0, r1)`` of held-out position ``k``; their pixel counts (keys of ``cov``)."""
+        w = self.maps.shape[1]
+        z = float(samples.z[k])
+        valid, mx, my = _measured_rows(samples, k, r0, r1)
+        ev = _lut_rows(lut, r0, r1).evaluate(z)
+        xy = {"ptp": (ev.x, ev.y)}
+        cols = np.arange(w, dtype=np.float64)[None, :]
+        prow = np.arange(r0, r1, dtype=np.float64)[:, None]
+        xy["3dstc"] = pin.model.pixel_to_world_at_z(cols, prow, z)
+        has = {name: valid & np.isfinite(xy[name][0]) & np.isfinite(xy[name][1]) for name in xy}
+        m = has["ptp"] & has["3dstc"]
+        fields = {}
+        for name, (x, y) in xy.items():
+            fields[f"{name}.x"] = np.where(m, x - mx, np.nan).astype(np.float32)
+            fields[f"{name}.y"] = np.where(m, y - my, np.nan).astype(np.float32)
+        if self.maps.with_truth:  # truth.xy(z), for these rows
+            fields["truth.x"] = np.where(m, mx - (truth.x0[r0:r1] + truth.sx[r0:r1] * z), np.nan).astype(np.float32)
+            fields["truth.y"] = np.where(m, my - (truth.y0[r0:r1] + truth.sy[r0:r1] * z), np.nan).astype(np.float32)
+        self.maps.write_rows(self.e, r0, m, fields)
+        return {"n_measured": int(valid.sum()), "n_ptp": int(has["ptp"].sum()), "n_3dstc": int(has["3dstc"].sum()),
+                "n_compared": int(m.sum())}
+
+    def _smooth_rows(self, samples: SampleStack, e: int, k: int, r0: int, r1: int, smooth) -> dict:
+        """The smooth LUT at rows ``[r0, r1)`` of held-out position ``k``; the mask and every map cut to it."""
+        valid, mx, my = _measured_rows(samples, k, r0, r1)
+        es = _lut_rows(smooth, r0, r1).evaluate(float(samples.z[k]))
+        has_smooth = valid & np.isfinite(es.x) & np.isfinite(es.y)
+        m = self.maps.read_rows("mask", e, r0, r1) & has_smooth
+        fields = {name: np.where(m, self.maps.read_rows(name, e, r0, r1), np.float32(np.nan))
+                  for name in self.maps.float_fields if not name.startswith("smooth.")}
+        fields["smooth.x"] = np.where(m, es.x - mx, np.nan).astype(np.float32)
+        fields["smooth.y"] = np.where(m, es.y - my, np.nan).astype(np.float32)
+        self.maps.write_rows(e, r0, m, fields)
+        return {"n_smooth": int(has_smooth.sum()), "n_compared": int(m.sum())}
+
+
+def _measured_rows(samples: SampleStack, k: int, r0: int, r1: int):
+    """Rows ``[r0, r1)`` of position ``k``: valid (n, W) bool and the absolute X, Y (n, W) float64 mm.
+
+    File reads of the (spilled) stack; the same numbers as ``samples.valid[k]``, ``samples.absolute(k)``.
+    """
+    w = samples.shape[1]
+    n0, n1 = r0 * w, r1 * w
+    valid = (read_block(samples.reasons, n0, n1, [k])[0] == 0).reshape(r1 - r0, w)
+    mx = samples.x_ref[r0:r1] + read_block(samples.x, n0, n1, [k])[0].reshape(r1 - r0, w)
+    my = samples.y_ref[r0:r1] + read_block(samples.y, n0, n1, [k])[0].reshape(r1 - r0, w)
+    return valid, mx, my
 
 
 def _measured_points(samples: SampleStack, held_positions: np.ndarray, z_held: np.ndarray):
-    """``measured_xyz(ei, r, c)``: (P, 3) measured world points (mm) of held-out position ``ei`` at pixels ``r, c``."""
+    """``measured_xyz(ei, r, c)``: (P, 3) measured world points (mm) of held-out position ``ei`` at pixels ``r, c``.
+
+    The samples are read one held-out position at a time with file reads (a
+    spilled stack's pages are not mapped into the process).
+    """
+    h, w = samples.shape
 
     def measured_xyz(ei, r, c):
-        k = held_positions[ei]
-        return np.stack([samples.x_ref[r, c] + samples.x[k, r, c].astype(np.float64),
-                         samples.y_ref[r, c] + samples.y[k, r, c].astype(np.float64), z_held[ei]], axis=1)
+        ei = np.asarray(ei)
+        out = np.empty((ei.size, 3))
+        for e in np.unique(ei):
+            sel = ei == e
+            k = int(held_positions[e])
+            rs, cs = r[sel], c[sel]
+            for axis, (ref, stack) in enumerate(((samples.x_ref, samples.x), (samples.y_ref, samples.y))):
+                out[sel, axis] = ref[rs, cs] + read_block(stack, 0, h * w, [k])[0].reshape(h, w)[rs, cs].astype(
+                    np.float64)
+        out[:, 2] = z_held[ei]
+        return out
 
     return measured_xyz
 
 
-def _reference_report(result: CompareResult, ref: str, measured_xyz, truth) -> ReferenceReport:
-    mask = result.mask
-    e_n = mask.shape[0]
+class _PairEnds:
+    """The point pairs' ends, gathered once: measured points, the truth's, every method's error there.
 
-    def ref_xyz(ei, r, c):
-        """(P, 3) the reference's points at pair ends (a method's are measured + its error)."""
-        if ref == "measured":
-            return measured_xyz(ei, r, c)
-        z = result.z_held[ei]
-        return np.stack([truth.x0[r, c] + truth.sx[r, c] * z, truth.y0[r, c] + truth.sy[r, c] * z, z], axis=1)
+    Attributes
+    ----------
+    measured, truth : dict of kind -> ((P, 3), (P, 3)) float64, mm
+        Ends a and b (``truth`` empty without a truth).
+    error : dict of method -> kind -> ((2, P), (2, P)) float32, mm
+        Method minus measured at ends a and b (read one held-out position at a time).
+    """
 
+    def __init__(self, result: CompareResult, measured_xyz, truth):
+        ends = {kind: ((p.held_a, p.row_a, p.col_a), (p.held_b, p.row_b, p.col_b)) for kind, p in result.pairs.items()}
+        self.measured = {kind: tuple(measured_xyz(*end) for end in two) for kind, two in ends.items()}
+        self.truth = {}
+        if truth is not None:
+            def truth_xyz(ei, r, c):
+                z = result.z_held[ei]
+                return np.stack([truth.x0[r, c] + truth.sx[r, c] * z, truth.y0[r, c] + truth.sy[r, c] * z, z], axis=1)
+
+            self.truth = {kind: tuple(truth_xyz(*end) for end in two) for kind, two in ends.items()}
+        self.error = {m: self._gather(result.maps, m, ends) for m in result.methods}
+
+    @staticmethod
+    def _gather(maps: HeldOutMaps, method: str, ends: dict) -> dict:
+        """Every pair end's error of ``method`` in one pass over the positions per axis."""
+        parts = [end for two in ends.values() for end in two]
+        if not parts:
+            return {kind: (np.zeros((2, 0), np.float32),) * 2 for kind in ends}
+        ei, r, c = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        both = np.stack([maps.gather(f"{method}.{a}", ei, r, c) for a in "xy"])
+        split = np.split(both, np.cumsum([len(p[0]) for p in parts])[:-1], axis=1)
+        return {kind: (split[2 * i], split[2 * i + 1]) for i, kind in enumerate(ends)}
+
+
+def _blocked_stats(e_n: int, position) -> tuple:
+    """Coordinate statistics over every held-out position, read one position at a time.
+
+    Parameters
+    ----------
+    e_n : int
+        E, held-out positions.
+    position : callable
+        ``position(e)``: (dx, dy, mask) with dx, dy (H, W) float64 mm and mask (H, W) bool.
+
+    Returns
+    -------
+    overall : CoordinateStats
+        Over every compared pixel of every position (n, p95 and max exact; RMS and means
+        from per-position sums: :class:`~ptpcore.evaluate.statistics.CoordinateAccumulator`).
+    per_position : list of CoordinateStats
+    heatmap : (H, W) float64, mm
+        Per pixel the RMS over positions of ``|(dX, dY)|``; NaN where never compared.
+    """
+    acc = CoordinateAccumulator()
+    per, sq, n = [], None, None
+    for e in range(e_n):
+        dx, dy, mk = position(e)
+        if sq is None:
+            sq, n = np.zeros(dx.shape), np.zeros(dx.shape, np.int64)
+        cx, cy = dx[mk], dy[mk]
+        dx *= dx  # in place: a position's float64 maps are the largest temporaries here
+        dx += dy * dy
+        dx[~mk] = 0.0
+        sq += dx  # in position order, as a sum over axis 0 adds them
+        n += mk
+        del dx, dy
+        per.append(coordinate_stats(cx, cy))
+        acc.add(cx, cy)
+
+    def lengths(e):
+        dx, dy, mk = position(e)
+        return np.hypot(dx[mk], dy[mk])
+
+    heat = None
+    if sq is not None:
+        heat = np.full(sq.shape, np.nan)
+        np.sqrt(np.divide(sq, n, out=np.zeros_like(sq), where=n > 0), out=heat, where=n > 0)
+    return acc.result(lengths, e_n), per, heat
+
+
+def _truth_noise_at(maps: HeldOutMaps, e: int):
+    """(dx, dy, mask) of the measured samples against the truth at held-out position ``e``."""
+    return maps.field_at("truth.x", e).astype(np.float64), maps.field_at("truth.y", e).astype(np.float64), maps.mask_at(e)
+
+
+def _reference_report(result: CompareResult, ref: str, ends: _PairEnds) -> ReferenceReport:
+    """Every method against reference ``ref``: statistics, heatmaps (a position at a time), distance errors."""
+    e_n = len(result.held_positions)
     methods = {}
     for m in result.methods:
-        dx, dy = result.errors(m, ref)
-        per = [coordinate_stats(dx[i][mask[i]], dy[i][mask[i]]) for i in range(e_n)]
-        overall = coordinate_stats(dx[mask], dy[mask])
-        sq = np.where(mask, dx * dx + dy * dy, 0.0).sum(axis=0)
-        n = mask.sum(axis=0)
-        heat = np.full(result.shape, np.nan)
-        np.sqrt(np.divide(sq, n, out=np.zeros_like(sq), where=n > 0), out=heat, where=n > 0)
-        dist = {}
-        em = result.error_vs_measured[m]
-        for kind, p in result.pairs.items():
-            ends = []
-            for ei, r, c in ((p.held_a, p.row_a, p.col_a), (p.held_b, p.row_b, p.col_b)):
-                meas = measured_xyz(ei, r, c)
-                mp = meas.copy()
-                mp[:, 0] += em[0, ei, r, c]
-                mp[:, 1] += em[1, ei, r, c]
-                ends.append((mp, ref_xyz(ei, r, c)))
-            d_method = np.linalg.norm(ends[0][0] - ends[1][0], axis=1)
-            d_ref = np.linalg.norm(ends[0][1] - ends[1][1], axis=1)
-            err = d_method - d_ref
-            dist[kind] = DistanceErrors(kind, m, ref, d_ref, err, error_stats(err), _curve(d_ref, err, p.edges_mm))
-        methods[m] = MethodReport(m, ref, overall, per, heat, dist)
+        def position(e, m=m):
+            dx, dy = result.errors_at(m, ref, e)
+            return dx, dy, result.maps.mask_at(e)
+
+        overall, per, heat = _blocked_stats(e_n, position)
+        if heat is None:
+            heat = np.full(result.shape, np.nan)
+        methods[m] = MethodReport(m, ref, overall, per, heat, _distance_errors(result, m, ref, ends))
 
     def dist_rms(m):
         e = np.concatenate([d.error_mm for d in methods[m].distance.values()])
@@ -482,3 +636,21 @@ def _reference_report(result: CompareResult, ref: str, measured_xyz, truth) -> R
     v = _verdict(ref, {m: methods[m].coordinate.rms_um for m in result.methods},
                  {m: dist_rms(m) for m in result.methods})
     return ReferenceReport(ref, methods, v)
+
+
+def _distance_errors(result: CompareResult, m: str, ref: str, ends: _PairEnds) -> dict:
+    """Per pair kind, the distance errors of method ``m`` against ``ref`` (a method's point: measured + its error)."""
+    dist = {}
+    for kind, p in result.pairs.items():
+        pts = []
+        for meas, em, ref_pt in zip(ends.measured[kind], ends.error[m][kind],
+                                    ends.truth[kind] if ref == "truth" else ends.measured[kind]):
+            mp = meas.copy()
+            mp[:, 0] += em[0]
+            mp[:, 1] += em[1]
+            pts.append((mp, ref_pt))
+        d_method = np.linalg.norm(pts[0][0] - pts[1][0], axis=1)
+        d_ref = np.linalg.norm(pts[0][1] - pts[1][1], axis=1)
+        err = d_method - d_ref
+        dist[kind] = DistanceErrors(kind, m, ref, d_ref, err, error_stats(err), _curve(d_ref, err, p.edges_mm))
+    return dist

@@ -8,6 +8,7 @@ Nothing is drawn here: the GUI and the export render these arrays.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import math
 from dataclasses import dataclass, field
 
@@ -16,11 +17,14 @@ import numpy as np
 from ptpcore import __version__
 from ptpcore.evaluate.statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS, PAIR_KINDS, REFERENCES, SPLITS,
     CoordinateStats, Verdict, _block_rms, _jsonable)
+from ptpcore.atomic import DiskFullError
 from ptpcore.fit.glass import describe_corrections
+from ptpcore.io.fastio import SpillStore
 from ptpcore.pinhole import PinholeFit
 
 __all__ = ["COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS", "MethodReport",
-           "ReferenceReport", "FeaturePoints", "Fold", "Coverage", "CompareResult", "format_summary"]
+           "ReferenceReport", "FeaturePoints", "Fold", "Coverage", "CompareResult", "format_summary", "HeldOutMaps",
+           "ErrorMaps"]
 
 
 
@@ -146,6 +150,142 @@ class Coverage:
     n_smooth: np.ndarray | None = None
 
 
+class HeldOutMaps:
+    """Every held-out position's error maps and compared pixels, in a temporary file.
+
+    Written one held-out position at a time, in row blocks (:meth:`write_rows`),
+    and read back one position at a time: the comparison never holds more than
+    a position's maps, whatever the number of positions. The file (float32 maps,
+    ``(2 M + 2) 4 + 1`` bytes per pixel and position for M methods with a truth)
+    goes where the decoder's spill file goes (``PTP_SPILL_DIR`` or the system's
+    temporary folder) and is removed when the last reference to this object is
+    gone, or at exit.
+
+    Parameters
+    ----------
+    methods : sequence of str
+        The methods compared.
+    e_n : int
+        E, held-out positions.
+    shape : (H, W)
+    with_truth : bool
+        Also store the measured samples' error against the truth.
+
+    Raises
+    ------
+    DiskFullError
+        The file does not fit (naming it and the space it needs).
+
+    Notes
+    -----
+    Fields: ``"{m}.x"``, ``"{m}.y"`` (method minus measured, mm, NaN outside the
+    mask), ``"truth.x"``, ``"truth.y"`` (measured minus truth), ``"mask"``.
+    """
+
+    def __init__(self, methods, e_n: int, shape, with_truth: bool):
+        self.methods = tuple(methods)
+        self.e_n = int(e_n)
+        self.shape = tuple(int(s) for s in shape)
+        self.with_truth = bool(with_truth)
+        names = [f"{m}.{a}" for m in self.methods for a in "xy"] + (["truth.x", "truth.y"] if with_truth else [])
+        fields = {n: np.float32 for n in names}
+        fields["mask"] = np.bool_
+        try:
+            self._store = SpillStore(self.e_n, self.shape, fields, {n: np.nan for n in names} | {"mask": False})
+        except DiskFullError as exc:  # the store's message names the file and calls it the samples': say what it is
+            raise DiskFullError(errno.ENOSPC, str(exc).replace("the decoded samples' spill file",
+                                                               "the comparison's per-position error maps")) from None
+        self._pixels = self.shape[0] * self.shape[1]
+
+    def write_rows(self, e: int, row0: int, mask: np.ndarray, fields: dict) -> None:
+        """Store rows ``[row0, row0 + len(mask))`` of held-out position ``e``.
+
+        Parameters
+        ----------
+        mask : (n, W) bool
+        fields : dict of str -> (n, W) float
+            Every float field (see Notes of the class); cast to float32.
+        """
+        self._store.write_rows("mask", e, row0, mask)
+        for name, rows in fields.items():
+            self._store.write_rows(name, e, row0, rows)
+
+    def mark_written(self, e: int) -> None:
+        """Every row of held-out position ``e`` is in."""
+        for name in self._store.layout:
+            self._store.mark_written(name, e)
+
+    @property
+    def float_fields(self) -> list[str]:
+        """Names of the float32 maps (every field but ``"mask"``)."""
+        return [n for n in self._store.layout if n != "mask"]
+
+    def read_rows(self, name: str, e: int, r0: int, r1: int) -> np.ndarray:
+        """(r1 - r0, W) rows of one field at held-out position ``e``."""
+        w = self.shape[1]
+        return self._store.read(name, r0 * w, r1 * w, [e]).reshape(r1 - r0, w)
+
+    def field_at(self, name: str, e: int) -> np.ndarray:
+        """(H, W) one field at held-out position ``e`` (float32 maps, mm; bool mask), read from the file."""
+        return self._store.read(name, 0, self._pixels, [e]).reshape(self.shape)
+
+    def mask_at(self, e: int) -> np.ndarray:
+        """(H, W) bool: the compared pixels of held-out position ``e``."""
+        return self.field_at("mask", e)
+
+    def gather(self, name: str, e: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """(P,) one field at pixels ``(row, col)`` of held-out positions ``e`` (one position read at a time)."""
+        e = np.asarray(e)
+        out = np.empty(e.shape, self._store.layout[name][0])
+        for ei in np.unique(e):
+            sel = e == ei
+            out[sel] = self.field_at(name, int(ei))[row[sel], col[sel]]
+        return out
+
+    def mask_array(self) -> np.ndarray:
+        """(E, H, W) bool, every position's compared pixels at once (E x H x W bytes)."""
+        return np.stack([self.mask_at(e) for e in range(self.e_n)]) if self.e_n else np.zeros((0, *self.shape), bool)
+
+
+class ErrorMaps:
+    """A ``(2, E, H, W)`` float32 error map (mm) that stays in :class:`HeldOutMaps`' file.
+
+    :meth:`position` reads one held-out position; ``np.asarray(maps)`` and
+    indexing (``maps[0, e]``) build the whole array, for small sensors and tests.
+
+    Parameters
+    ----------
+    maps : HeldOutMaps
+    prefix : str
+        A method (``"ptp"``, ...: method minus measured) or ``"truth"`` (measured minus truth).
+    """
+
+    dtype = np.dtype(np.float32)
+    ndim = 4
+
+    def __init__(self, maps: HeldOutMaps, prefix: str):
+        self.maps = maps
+        self.prefix = prefix
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return (2, self.maps.e_n, *self.maps.shape)
+
+    def __len__(self) -> int:
+        return 2
+
+    def position(self, e: int) -> np.ndarray:
+        """(2, H, W) float32, mm: dX, dY at held-out position ``e``; NaN outside the mask."""
+        return np.stack([self.maps.field_at(f"{self.prefix}.{a}", e) for a in "xy"])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        whole = np.stack([self.position(e) for e in range(self.maps.e_n)], axis=1)
+        return whole if dtype is None else whole.astype(dtype)
+
+    def __getitem__(self, key):
+        return np.asarray(self)[key]
+
+
 @dataclass
 class CompareResult:
     """Everything the comparison found.
@@ -168,12 +308,19 @@ class CompareResult:
         Index into ``folds`` of the calibration that judged each held-out position.
     folds : list of Fold
         One for ``alternate``; one per held-out position for ``loo``.
-    mask : (E, H, W) bool
-        Compared pixels.
-    error_vs_measured : dict of str to (2, E, H, W) float32, mm
-        Per method, ``(dX, dY)`` = method minus measured sample; NaN outside ``mask``.
-    measured_minus_truth : (2, E, H, W) float32 or None, mm
-        The held-out samples' own error against the truth (NaN outside ``mask``).
+    maps : HeldOutMaps
+        The per-position error maps and compared pixels, in a temporary file
+        (read one held-out position at a time: :meth:`errors_at`). The
+        properties below build whole arrays from it on request.
+    mask : (E, H, W) bool (property)
+        Compared pixels (:meth:`HeldOutMaps.mask_at` for one position).
+    error_vs_measured : dict of str to ErrorMaps (property)
+        Per method, ``(dX, dY)`` = method minus measured sample, ``(2, E, H, W)``
+        float32, mm; NaN outside ``mask``. ``ErrorMaps.position(e)`` reads one
+        position, ``np.asarray`` the whole array.
+    measured_minus_truth : ErrorMaps or None (property)
+        The held-out samples' own error against the truth, ``(2, E, H, W)``
+        float32, mm (NaN outside ``mask``).
     coverage : Coverage
     pairs : dict of str to PairSet
         Keyed by :data:`PAIR_KINDS`.
@@ -206,9 +353,7 @@ class CompareResult:
     z_held: np.ndarray
     fold_of_held: np.ndarray
     folds: list
-    mask: np.ndarray
-    error_vs_measured: dict
-    measured_minus_truth: np.ndarray | None
+    maps: HeldOutMaps
     coverage: Coverage
     pairs: dict
     references: dict = field(default_factory=dict)
@@ -221,15 +366,51 @@ class CompareResult:
     @property
     def shape(self) -> tuple[int, int]:
         """``(H, W)`` of the camera."""
-        return self.mask.shape[1:]
+        return self.maps.shape
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(E, H, W) bool: the compared pixels, built from the file on each access."""
+        return self.maps.mask_array()
+
+    @property
+    def error_vs_measured(self) -> dict:
+        """Per method an :class:`ErrorMaps` ``(2, E, H, W)`` float32, mm: method minus measured."""
+        return {m: ErrorMaps(self.maps, m) for m in self.methods}
+
+    @property
+    def measured_minus_truth(self) -> ErrorMaps | None:
+        """:class:`ErrorMaps` ``(2, E, H, W)`` float32, mm: measured minus truth; None without a truth."""
+        return ErrorMaps(self.maps, "truth") if self.maps.with_truth else None
 
     @property
     def pinhole(self) -> PinholeFit:
         """The 3DSTC fit of the first fold (the only one for ``alternate``)."""
         return self.folds[0].pinhole
 
+    def errors_at(self, method: str, reference: str, e: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel coordinate errors at held-out position ``e`` (index into :attr:`held_positions`).
+
+        Returns
+        -------
+        dx, dy : (H, W) float64, mm
+            Method minus reference; NaN outside ``mask[e]``.
+
+        Raises
+        ------
+        ValueError
+            Unknown method or reference, or ``"truth"`` without a truth.
+        """
+        self._check_errors(method, reference)
+        dx = self.maps.field_at(f"{method}.x", e).astype(np.float64)
+        dy = self.maps.field_at(f"{method}.y", e).astype(np.float64)
+        if reference == "truth":  # (method - measured) + (measured - truth), in float64 as the sum always was
+            dx += self.maps.field_at("truth.x", e)
+            dy += self.maps.field_at("truth.y", e)
+        return dx, dy
+
     def errors(self, method: str, reference: str) -> tuple[np.ndarray, np.ndarray]:
-        """Per-pixel coordinate errors at every held-out position.
+        """Per-pixel coordinate errors at every held-out position at once (small sensors, tests).
 
         Parameters
         ----------
@@ -240,18 +421,22 @@ class CompareResult:
         -------
         dx, dy : (E, H, W) float64, mm
             Method minus reference; NaN outside :attr:`mask`. Error heatmaps
-            are ``np.hypot(dx, dy)``.
+            are ``np.hypot(dx, dy)``. 16 bytes per pixel and position: for big
+            sensors read one position at a time with :meth:`errors_at`.
         """
+        self._check_errors(method, reference)
+        both = [self.errors_at(method, reference, e) for e in range(len(self.held_positions))]
+        if not both:
+            return np.zeros((0, *self.shape)), np.zeros((0, *self.shape))
+        return np.stack([b[0] for b in both]), np.stack([b[1] for b in both])
+
+    def _check_errors(self, method: str, reference: str) -> None:
         if method not in self.methods:
             raise ValueError(f"method must be one of {self.methods}, got {method!r}")
         if reference not in REFERENCES:
             raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
-        if reference == "truth" and self.measured_minus_truth is None:
+        if reference == "truth" and not self.maps.with_truth:
             raise ValueError("no truth was given to compare(): only the 'measured' reference exists")
-        e = self.error_vs_measured[method].astype(np.float64)
-        if reference == "truth":
-            e = e + self.measured_minus_truth
-        return e[0], e[1]
 
     def to_json_dict(self) -> dict:
         """The report as plain JSON types (``ptp-compare/1``; NaN as null).

@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = ["COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS", "ErrorStats",
            "CoordinateStats", "DistanceCurve", "PairSet", "DistanceErrors", "Verdict", "error_stats",
-           "coordinate_stats"]
+           "coordinate_stats", "CoordinateAccumulator"]
 
 COMPARE_FORMAT = "ptp-compare/1"
 SPLITS = ("alternate", "loo")
@@ -238,7 +238,7 @@ class Verdict:
         return b / a if a > 0 else (math.inf if b > 0 else 1.0)
 
 
-def _draw_pairs(mask: np.ndarray, groups, kind: str, n_pairs: int, n_bins: int, rng: np.random.Generator,
+def _draw_pairs(mask_at, sizes, shape, groups, kind: str, n_pairs: int, n_bins: int, rng: np.random.Generator,
                 measured_xyz) -> PairSet:
     """Random point pairs whose measured distances spread over the field.
 
@@ -247,10 +247,22 @@ def _draw_pairs(mask: np.ndarray, groups, kind: str, n_pairs: int, n_bins: int, 
     height or at another height of the same fold. They are binned by measured
     3D distance into ``n_bins`` equal bins and each bin keeps at most
     ``n_pairs // n_bins`` of them.
+
+    Parameters
+    ----------
+    mask_at : callable
+        ``mask_at(e)``: (H, W) bool, the compared pixels of held-out position ``e``
+        (read one position at a time: the whole ``(E, H, W)`` mask is never needed).
+    sizes : (E,) int64
+        Compared pixels per held-out position (``mask_at(e).sum()``).
+    shape : (H, W)
+    groups : list of (n,) int64
+        Held-out positions of each fold.
+    measured_xyz : callable
+        ``measured_xyz(e, row, col)``: (P, 3) measured points, mm.
     """
-    e_n, h, w = mask.shape
-    flat = [np.flatnonzero(mask[e]) for e in range(e_n)]
-    sizes = np.array([f.size for f in flat], dtype=np.int64)
+    sizes = np.asarray(sizes, dtype=np.int64)
+    e_n, (h, w) = len(sizes), shape
     if kind == "same_height":
         combos = [(e, e) for e in range(e_n) if sizes[e] >= 2]
     else:
@@ -259,8 +271,6 @@ def _draw_pairs(mask: np.ndarray, groups, kind: str, n_pairs: int, n_bins: int, 
     if not combos or n_pairs < 1:
         return PairSet(kind, empty, empty, empty, empty, empty, empty, np.zeros(0))
     combos = np.asarray(combos, dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes)])
-    all_flat = np.concatenate(flat)
     diag = math.hypot(h - 1, w - 1)
     want = 10 * n_pairs
     got = []
@@ -271,14 +281,14 @@ def _draw_pairs(mask: np.ndarray, groups, kind: str, n_pairs: int, n_bins: int, 
         swap = rng.random(m) < 0.5  # either end may be the higher one
         ea = np.where(swap, c[:, 1], c[:, 0])
         eb = np.where(swap, c[:, 0], c[:, 1])
-        pa = all_flat[offsets[ea] + (rng.random(m) * sizes[ea]).astype(np.int64)]
+        pa = _nth_compared(mask_at, ea, (rng.random(m) * sizes[ea]).astype(np.int64))
         ra, ca = np.divmod(pa, w)
         length = rng.random(m) * diag
         theta = rng.random(m) * 2 * np.pi
         cb = np.rint(ca + length * np.cos(theta)).astype(np.int64)
         rb = np.rint(ra + length * np.sin(theta)).astype(np.int64)
         ok = (cb >= 0) & (cb < w) & (rb >= 0) & (rb < h)
-        ok[ok] = mask[eb[ok], rb[ok], cb[ok]]
+        ok[ok] = _mask_lookup(mask_at, eb[ok], rb[ok], cb[ok])
         ok &= ~((ea == eb) & (ra == rb) & (ca == cb))
         got.append((ea[ok], eb[ok], ra[ok], ca[ok], rb[ok], cb[ok]))
         n_got += int(ok.sum())
@@ -297,6 +307,159 @@ def _draw_pairs(mask: np.ndarray, groups, kind: str, n_pairs: int, n_bins: int, 
         keep = np.concatenate([np.flatnonzero(b == i)[:quota] for i in range(n_bins)])
         keep.sort()
     return PairSet(kind, ea[keep], eb[keep], ra[keep], ca[keep], rb[keep], cb[keep], edges)
+
+
+def _nth_compared(mask_at, e: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Flat pixel index of the ``j``-th compared pixel (row-major order) of held-out position ``e``.
+
+    One position's index list at a time (int64, H x W at most), instead of every
+    position's at once: the same pixels as indexing the concatenated lists.
+    """
+    out = np.empty(e.shape, np.int64)
+    for ei in np.unique(e):
+        sel = e == ei
+        out[sel] = np.flatnonzero(mask_at(int(ei)))[j[sel]]
+    return out
+
+
+def _mask_lookup(mask_at, e: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``mask[e, r, c]`` (bool, same shape as ``e``), one held-out position's mask at a time."""
+    out = np.zeros(e.shape, bool)
+    for ei in np.unique(e):
+        sel = e == ei
+        out[sel] = mask_at(int(ei))[r[sel], c[sel]]
+    return out
+
+
+class CoordinateAccumulator:
+    """:func:`coordinate_stats` over values that arrive in blocks (one held-out position at a time).
+
+    Counts, sums, the maximum and a histogram of the lengths' float32 bit patterns
+    are kept; the 95th percentile is selected exactly afterwards (:meth:`result`)
+    by reading the blocks again. Memory: a 65 536-bin histogram, never the values.
+
+    ``n``, ``max_um`` and ``p95_um`` equal :func:`coordinate_stats` of the
+    concatenated blocks exactly; ``rms_*`` and ``mean_*`` are sums of per-block
+    sums and may differ from it in the last bits (summation order).
+    """
+
+    _TOP = 16  # the histogram's key: a float32 length's upper 16 bits (sign, exponent, 7 mantissa bits)
+
+    def __init__(self):
+        self.n = 0
+        self.sums = np.zeros(6)  # length, length**2, dx, dy, dx**2, dy**2 (mm, mm**2)
+        self.max = -math.inf
+        self.hist = np.zeros(1 << (32 - self._TOP), np.int64)
+
+    def add(self, dx, dy) -> None:
+        """One block's coordinate errors: dx, dy (n,) mm (entries where either is NaN are ignored)."""
+        dx, dy = _finite_pairs(dx, dy)
+        length = _finite(np.hypot(dx, dy))
+        if length.size == 0:
+            return
+        self.n += length.size
+        self.sums += [np.sum(length), np.sum(length * length), np.sum(dx), np.sum(dy), np.sum(dx * dx),
+                      np.sum(dy * dy)]
+        self.max = max(self.max, float(length.max()))
+        self.hist += np.bincount(_bits(length) >> self._TOP, minlength=self.hist.size)
+
+    def result(self, lengths, n_blocks: int) -> CoordinateStats:
+        """The statistics; ``lengths(i)``: block ``i``'s ``np.hypot(dx, dy)`` again, (n,) mm, as added."""
+        if self.n == 0:
+            return coordinate_stats([], [])
+        n = self.n
+        s_len, s_len2, s_x, s_y, s_x2, s_y2 = self.sums
+        p95 = _linear_percentile(lambda ranks: _select_ranks(lengths, n_blocks, self.hist, self._TOP, ranks), n, 95)
+        return CoordinateStats(n, float(math.sqrt(s_len2 / n) * 1e3), float(s_len / n * 1e3), float(p95 * 1e3),
+                               float(self.max * 1e3), rms_x_um=float(math.sqrt(s_x2 / n) * 1e3),
+                               rms_y_um=float(math.sqrt(s_y2 / n) * 1e3), mean_x_um=float(s_x / n * 1e3),
+                               mean_y_um=float(s_y / n * 1e3))
+
+
+def _finite_pairs(dx, dy) -> tuple[np.ndarray, np.ndarray]:
+    """Flat float64 ``dx, dy`` where both are finite (as :func:`coordinate_stats` keeps them)."""
+    dx = np.asarray(dx, dtype=float).ravel()
+    dy = np.asarray(dy, dtype=float).ravel()
+    ok = np.isfinite(dx) & np.isfinite(dy)
+    return dx[ok], dy[ok]
+
+
+def _finite(e: np.ndarray) -> np.ndarray:
+    return e[np.isfinite(e)]
+
+
+def _bits(length: np.ndarray) -> np.ndarray:
+    """Lengths (>= 0) as the uint32 bit patterns of their float32 values: ordered as the lengths are.
+
+    Rounding to float32 never reverses two lengths' order, and non-negative
+    float32 values sort as their bit patterns do.
+    """
+    return length.astype(np.float32).view(np.uint32)
+
+
+def _select_ranks(lengths, n_blocks: int, hist: np.ndarray, top: int, ranks) -> dict:
+    """The values of ranks ``ranks`` (0 = smallest) of every block's lengths, exactly.
+
+    ``hist`` counts the lengths by ``_bits >> top``. The ranks' bins are found
+    from it; a pass over the blocks keeps only the lengths of those bins (about
+    1 % of them near the 95th percentile), which are sorted. When those are too
+    many (lengths crowding into few float32 values), a second histogram on the
+    lower bits narrows the range first.
+    """
+    cum = np.cumsum(hist)
+    bins = [int(np.searchsorted(cum, r, side="right")) for r in ranks]
+    lo, hi = min(bins), max(bins)
+    below = int(cum[lo - 1]) if lo else 0
+    if int(cum[hi]) - below <= _SELECT_LIMIT:
+        return _select_ranks_in(lengths, n_blocks, hist, ranks, 0, top)
+    fine = np.zeros((hi - lo + 1) << top, np.int64)  # the lower bits within the ranks' bins
+    for i in range(n_blocks):
+        b = _bits(_finite(lengths(i))).astype(np.int64)
+        b = b[(b >> top >= lo) & (b >> top <= hi)] - (lo << top)
+        fine += np.bincount(b, minlength=fine.size)
+    return _select_ranks_in(lengths, n_blocks, fine, ranks, lo << top, 0, base=below)
+
+
+_SELECT_LIMIT = 4_000_000  # lengths kept for the exact selection (32 MB)
+
+
+def _select_ranks_in(lengths, n_blocks: int, hist: np.ndarray, ranks, offset: int, shift: int,
+                     base: int = 0) -> dict:
+    """Ranks' values from the lengths whose key ``(_bits - offset) >> shift`` is in the ranks' bins.
+
+    ``hist`` counts the keys from 0 up; ``base`` lengths lie below key 0 (their ranks come first).
+    """
+    cum = base + np.cumsum(hist)
+    bins = [int(np.searchsorted(cum, r, side="right")) for r in ranks]
+    lo, hi = min(bins), max(bins)
+    below = int(cum[lo - 1]) if lo else base
+    kept = []
+    for i in range(n_blocks):
+        v = _finite(lengths(i))
+        key = (_bits(v).astype(np.int64) - offset) >> shift
+        kept.append(v[(key >= lo) & (key <= hi)])
+    kept = np.sort(np.concatenate(kept))
+    return {r: float(kept[r - below]) for r in ranks}
+
+
+def _linear_percentile(select, n: int, q: float) -> float:
+    """``np.percentile(a, q)`` (method "linear") of ``n`` values from their order statistics, bit for bit.
+
+    ``select(ranks)`` gives ``{rank: value}`` of the sorted values (rank 0 the
+    smallest). numpy's steps: virtual index ``(n - 1) * q / 100``, its floor and
+    the next index (both the last one past the end), then ``_lerp``.
+    """
+    virtual = (n - 1) * (np.float64(q) / 100)
+    if virtual >= n - 1:
+        return select([n - 1])[n - 1]
+    prev = int(np.floor(virtual))
+    gamma = virtual - np.float64(prev)
+    v = select([prev, prev + 1])
+    a, b = np.float64(v[prev]), np.float64(v[prev + 1])
+    diff = b - a
+    if gamma >= 0.5:
+        return float(b - diff * (1 - gamma))
+    return float(a + diff * gamma)
 
 
 def _rank(values: dict) -> tuple[str | None, float, list]:
