@@ -13,7 +13,7 @@ May import :mod:`ptpcore.decode`, :mod:`ptpcore.rig` and the base modules.
 
 from .dataset import (FrameSource, DatasetSource, SimulatedSource, ImageHeader, DatasetReport,
     read_image, read_header, validate_dataset, check_calibration_design, open_source)
-from .fastio import read_into, map_frame, SpillStore, read_block
+from .fastio import read_into, map_frame, tiff_layout, SpillStore, read_block
 from .samples import SampleStack
 from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
 from .pointcloud import PointCloud, read_height_map, write_point_cloud
@@ -31,6 +31,7 @@ __all__ = [
     "open_source",
     "read_into",
     "map_frame",
+    "tiff_layout",
     "SpillStore",
     "read_block",
     "SampleStack",

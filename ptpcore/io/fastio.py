@@ -10,7 +10,7 @@ reading its images and fits a laptop's memory:
   with the full reader, which also gives the proper error message.
 - :func:`map_frame`: an uncompressed grey TIFF mapped instead of read: the
   pixels are used where they lie in the operating system's page cache, with
-  no copy at all (where they lie comes from tifffile's page attributes).
+  no copy at all (where they lie: :func:`ptpcore.io.images.tiff_layout`).
 - :class:`SpillStore`: the per-position ``(K, H, W)`` sample arrays written to
   a temporary file one position at a time, read back in pixel blocks for
   fitting, and exposed as ``numpy.memmap`` for everything else. Peak memory
@@ -23,6 +23,7 @@ from __future__ import annotations
 import errno
 import mmap
 import os
+import struct
 import tempfile
 import threading
 import weakref
@@ -31,9 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from ptpcore.atomic import disk_full_error, forget_temporary, is_disk_full, register_temporary
-from ptpcore.io.images import read_into, tiff_pixels_run
+from ptpcore.io.images import read_into, tiff_layout
 
-__all__ = ["read_into", "map_frame", "SpillStore", "read_block"]
+__all__ = ["read_into", "map_frame", "tiff_layout", "SpillStore", "read_block"]
 
 _PREADV = hasattr(os, "preadv")
 _PWRITE = hasattr(os, "pwrite")
@@ -53,7 +54,7 @@ def map_frame(path, shape, dtype) -> np.ndarray | None:
     (H, W) array of ``dtype`` (read-only) or None
         The pixels where they lie in the file (the map is released with the
         last reference to the array). None unless the file is in the layout
-        :func:`read_into` accepts, of exactly this size and depth, with its
+        :func:`tiff_layout` accepts, of exactly this size and depth, with its
         pixels in one contiguous run at an offset aligned to the pixel size
         and, for 16 bits, in the machine's byte order: then read it with
         :func:`read_into` or the full reader.
@@ -70,22 +71,25 @@ def map_frame(path, shape, dtype) -> np.ndarray | None:
     dtype = np.dtype(dtype)
     if dtype not in (np.uint8, np.uint16) or len(shape) != 2:
         return None
-    h, w = shape
     try:
-        with open(path, "rb") as fh:
-            run = tiff_pixels_run(fh, shape, dtype)  # tifffile's page attributes
-            if run is None or (dtype.itemsize > 1 and (run[1] == "<") != np.little_endian):
-                return None
+        with open(path, "rb", buffering=0) as fh:
             fd = fh.fileno()
             size = os.fstat(fd).st_size
+            layout = tiff_layout(lambda offset, n: os.pread(fd, n, offset), size)  # by hand: images.py says why
+            if layout is None:
+                return None
+            w, h, bits, bo, runs = layout
+            if ((h, w) != tuple(shape) or bits != 8 * dtype.itemsize or len(runs) != 1
+                    or runs[0][0] % dtype.itemsize or (bits == 16 and (bo == "<") != np.little_endian)):
+                return None
             if hasattr(mmap, "MAP_SHARED"):
                 flags = mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0)
                 mm = mmap.mmap(fd, size, flags=flags, prot=mmap.PROT_READ)
             else:  # pragma: no cover - Windows
                 mm = mmap.mmap(fd, size, access=mmap.ACCESS_READ)
-    except (OSError, ValueError):
+    except (OSError, ValueError, struct.error):
         return None
-    return np.frombuffer(mm, dtype, count=h * w, offset=run[0]).reshape(h, w)
+    return np.frombuffer(mm, dtype, count=h * w, offset=runs[0][0]).reshape(h, w)
 
 
 # --------------------------------------------------------------------------- spill
