@@ -25,7 +25,6 @@ from typing import Iterator, Protocol
 
 import cv2
 import numpy as np
-import tifffile
 
 from ptpcore.errors import ConfigError, DatasetError
 from ptpcore.io.images import PNG_SIGNATURE, TIFF_SIGNATURES, BadImage, png_check_bytes, read_into
@@ -139,29 +138,69 @@ def _png_header(fh, size: int) -> ImageHeader:
     return ImageHeader("png", w, h, bits, _PNG_CHANNELS[colour])
 
 
+_TIFF_TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 16: 8}
+_TIFF_TYPE_CODE = {1: "B", 3: "H", 4: "I", 6: "b", 8: "h", 9: "i", 16: "Q"}
 _TIFF_SAMPLE_FORMAT = {1: "uint", 2: "int", 3: "float"}
 
 
 def _tiff_header(fh, size: int) -> ImageHeader:
-    """The first page's tags (tifffile), then the extents of its strips or tiles against the file size."""
-    if len(fh.read(16)) < 8:
+    """The first IFD, then the extents of its strips or tiles against the file size.
+
+    Hand-written because it is measured 2.5-5x cheaper than tifffile's page object
+    (0.06-0.19 s against 0.30-0.47 s of CPU for 1008 files, docs/performance.md,
+    "Reading the images"), on a pass over every file of the dataset.
+    """
+    head = fh.read(8)
+    if len(head) < 8:
         raise _Unusable("truncated", f"truncated TIFF ({size} bytes, header incomplete)")
-    fh.seek(0)
+    bo = "<" if head[:2] == b"II" else ">"
+    magic = struct.unpack(bo + "H", head[2:4])[0]
+    if magic != 42:
+        raise _Unusable("unsupported", "BigTIFF or unknown TIFF variant")  # decoded fully instead
+    ifd = struct.unpack(bo + "I", head[4:8])[0]
+    if ifd + 2 > size:
+        raise _Unusable("truncated", f"truncated TIFF (directory at byte {ifd}, file has {size})")
+    fh.seek(ifd)
+    (n,) = struct.unpack(bo + "H", fh.read(2))
+    raw = fh.read(12 * n)
+    if len(raw) < 12 * n:
+        raise _Unusable("truncated", f"truncated TIFF (directory cut at byte {size})")
+    tags: dict[int, list[int]] = {}
+    for i in range(n):
+        tag, typ, count, value = struct.unpack(bo + "HHI4s", raw[12 * i:12 * i + 12])
+        if typ not in _TIFF_TYPE_CODE or count == 0:
+            continue  # rationals, ASCII, ...: nothing we need
+        nbytes = _TIFF_TYPE_SIZE[typ] * count
+        if nbytes <= 4:
+            data = value[:nbytes]
+        else:
+            (off,) = struct.unpack(bo + "I", value)
+            if off + nbytes > size:
+                raise _Unusable("truncated", f"truncated TIFF (tag {tag} data beyond byte {size})")
+            if count > 1_000_000:
+                raise _Unusable("unreadable", f"corrupt TIFF (tag {tag} has {count} values)")
+            fh.seek(off)
+            data = fh.read(nbytes)
+        tags[tag] = list(struct.unpack(f"{bo}{count}{_TIFF_TYPE_CODE[typ]}", data))
     try:
-        with tifffile.TiffFile(fh) as tf:
-            page = tf.pages.first
-            w, h = page.imagewidth, page.imagelength
-            offsets, counts = page.dataoffsets, page.databytecounts
-            channels, bits, fmt = page.samplesperpixel, page.bitspersample, page.sampleformat
-    except Exception:  # noqa: BLE001 - tifffile's many kinds for a directory it cannot read
-        offsets = ()
-    if not offsets or len(offsets) != len(counts) or not w or not h:
-        raise _Unusable("truncated", f"truncated TIFF (or corrupt: its first directory cannot be read"
-                                     f" completely from its {size} bytes)")
+        w, h = tags[256][0], tags[257][0]
+    except KeyError:
+        raise _Unusable("unreadable", "corrupt TIFF (no image size)") from None
+    channels = tags.get(277, [1])[0]
+    bits_list = tags.get(258, [1])
+    sample_format = _TIFF_SAMPLE_FORMAT.get(tags.get(339, [1])[0], "unknown")
+    if 273 in tags and 279 in tags:
+        offsets, counts = tags[273], tags[279]
+    elif 324 in tags and 325 in tags:
+        offsets, counts = tags[324], tags[325]
+    else:
+        raise _Unusable("unsupported", "TIFF without strip or tile byte counts")
+    if len(offsets) != len(counts):
+        raise _Unusable("unreadable", "corrupt TIFF (strip offsets and byte counts differ in number)")
     end = max(o + c for o, c in zip(offsets, counts))
     if end > size:
         raise _Unusable("truncated", f"truncated TIFF (image data needs {end} bytes, file has {size})")
-    return ImageHeader("tiff", w, h, bits, channels, _TIFF_SAMPLE_FORMAT.get(fmt, "unknown"))
+    return ImageHeader("tiff", w, h, bits_list[0], channels, sample_format)
 
 
 def read_header(path: Path) -> ImageHeader:
