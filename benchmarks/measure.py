@@ -149,7 +149,8 @@ def task_frames(folder, rig, repeat, positions):
     each on one thread and on the reader's pool (``tile_workers()`` threads, one
     file per thread); the pixels of both are compared. For TIFF also tifffile's own
     decoder (``TiffPage.asarray(out=...)``): one file per pool thread
-    (``maxworkers=1``), and files in turn with ``maxworkers`` = the pool's size.
+    (``maxworkers=1``), and files in turn with ``maxworkers`` = the pool's size;
+    and the CPU time of reading a TIFF's structure by hand and with tifffile.
     """
     from ptpcore.io import read_into
     from ptpcore.parallel import tile_workers
@@ -184,7 +185,27 @@ def task_frames(folder, rig, repeat, positions):
         res["tifffile_ms_pool"], res["tifffile_cpu_ms_pool"] = _per_frame(paths, out, tiff(1), n, repeat)
         res["tifffile_ms_maxworkers"], res["tifffile_cpu_ms_maxworkers"] = _per_frame(paths, out, tiff(n), 1, repeat)
         res["tifffile_identical"] = bool(np.array_equal(ref, out))
+        res.update(_header_costs(paths, repeat))
     return res
+
+
+def _header_costs(paths, repeat: int) -> dict:
+    """CPU time (ms per file, one thread) of a TIFF's structure: the hand parsers against tifffile's page."""
+    import tifffile
+    from ptpcore.io.dataset import read_header
+    from ptpcore.io.images import tiff_layout
+
+    def layout(p, o):
+        with open(p, "rb", buffering=0) as fh:
+            tiff_layout(lambda offset, n: os.pread(fh.fileno(), n, offset), os.fstat(fh.fileno()).st_size)
+
+    def page(p, o):
+        with tifffile.TiffFile(p) as tf:
+            tf.pages.first.dataoffsets
+    out = [None] * len(paths)
+    return {"hand_layout_cpu_ms": _per_frame(paths, out, layout, 1, repeat)[1],
+            "hand_header_cpu_ms": _per_frame(paths, out, lambda p, o: read_header(p), 1, repeat)[1],
+            "tifffile_page_cpu_ms": _per_frame(paths, out, page, 1, repeat)[1]}
 
 
 class MemorySource:
