@@ -367,7 +367,8 @@ def task_spatial(folder, rig, repeat, positions):
             "spatial_cpu_s": CPU[2], "spatial_share": t_sp / t_dec, "frames": len(paths)}
 
 
-TASKS = {"spatial": task_spatial, "read": task_read, "frames": task_frames, "decode": task_decode, "unwrap": task_unwrap, "fit": task_fit,
+TASKS = {"spatial": task_spatial, "read": task_read, "frames": task_frames, "decode": task_decode,
+         "unwrap": task_unwrap, "fit": task_fit,
          "evaluate": task_evaluate, "calibrate": task_calibrate, "calibrate-vs-read": task_calibrate_vs_read}
 
 

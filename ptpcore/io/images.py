@@ -32,11 +32,13 @@ import struct
 import threading
 import zlib
 
-import imagecodecs
 import numpy as np
-import tifffile
 
-__all__ = ["read_into", "tiff_layout", "read_plain_tiff", "png_check_bytes", "PNG_SIGNATURE", "TIFF_SIGNATURES", "BadImage"]
+# tifffile and imagecodecs are imported where first used: together about 0.5 s, which a
+# command that reads no image (`ptp inspect`, `ptp apply`) should not pay at start.
+
+__all__ = ["read_into", "tiff_layout", "read_plain_tiff", "png_check_bytes", "PNG_SIGNATURE", "TIFF_SIGNATURES",
+           "BadImage"]
 
 # tifffile reports what it finds odd in a damaged file through `logging`; our own
 # message names the file and says what is wrong (as for OpenCV's console chatter).
@@ -122,8 +124,9 @@ def _file_bytes(fh, size: int) -> np.ndarray:
     return view
 
 
-def _plain_grey_page(tf: tifffile.TiffFile, shape, dtype: np.dtype, size: int):
-    """The first page if it is one grey image of ``shape`` and ``dtype`` we decode, else None.
+def _plain_grey_page(tf, shape, dtype: np.dtype, size: int):
+    """The first page of ``tf`` (a ``tifffile.TiffFile``) if it is one grey image of ``shape``
+    and ``dtype`` we decode, else None.
 
     One sample per pixel, unsigned 8 or 16 bits, black is zero, no orientation
     other than top-left, compression none/LZW/deflate, every strip or tile
@@ -143,9 +146,10 @@ def _plain_grey_page(tf: tifffile.TiffFile, shape, dtype: np.dtype, size: int):
 
 # --------------------------------------------------------------------------- uncompressed TIFF by hand
 # Kept by hand, where measured faster than tifffile (docs/performance.md, "Reading the images"):
-# opening a file with tifffile is ~0.35 ms of Python per file (its page object), against
-# ~0.05 ms for this parser; for an uncompressed 5 MP frame read with one readinto that is
-# +25 % of the read's CPU time, at 0.3 MP +100 %, and mapping small files costs 2x.
+# tifffile builds its page object in Python, ~0.36 ms of CPU per file. 1008 uncompressed files
+# of 0.3 MP: mapped 0.17-0.24 s by hand against 0.40-0.57 s, read 0.13-0.19 s against
+# 0.45-0.67 s; of 5 MP: mapped a tie (1.36-1.59 s against 1.36-1.65 s), read 1.48-1.76 s
+# against 1.87-2.02 s.
 
 _TYPE_SIZE = {3: 2, 4: 4, 16: 8}
 _TYPE_CODE = {3: "H", 4: "I", 16: "Q"}
@@ -271,6 +275,9 @@ def _read_at(fh, view, offset: int) -> int:  # pragma: no cover - no preadv (Win
 def _read_tiff(fh, out: np.ndarray) -> bool:
     if read_plain_tiff(fh, out):  # uncompressed, by hand (see above)
         return True
+    import imagecodecs
+    import tifffile
+
     size = os.fstat(fh.fileno()).st_size
     fh.seek(0)  # tifffile reads from the handle's position
     with tifffile.TiffFile(fh) as tf:
@@ -285,6 +292,8 @@ def _read_tiff(fh, out: np.ndarray) -> bool:
 
 
 def _read_png(fh, out: np.ndarray) -> bool:
+    import imagecodecs
+
     data = _file_bytes(fh, os.fstat(fh.fileno()).st_size)
     try:
         png_check_bytes(data)
