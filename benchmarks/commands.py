@@ -7,8 +7,9 @@ Every command runs as the user runs it (``ptp calibrate DIR --out F`` through
 :func:`ptpcore.cli.main`, in a new Python process); its wall time, CPU time
 (all threads) and peak resident memory come from the child's own rusage
 (``os.wait4``: ``ru_maxrss``, numpy, OpenCV and libc allocations alike). The
-read floor is reading the same images with ``cv2.imread`` on all cores
-(:func:`benchmarks.measure.task_read`, in this process), timed before and after
+read floor is reading the same images on all cores with the product's own decode
+(tifffile and imagecodecs into reused buffers, :func:`benchmarks.measure.task_read`,
+in this process; ``cv2.imread``'s time is reported beside it), timed before and after
 the commands; the ratio divides by the smaller of the two. On a shared machine the
 CPU-time ratio (command's CPU time over the read's, all threads) moves less than the wall ratio. ``--cold`` also runs
 the first command once with an empty numba cache (``NUMBA_CACHE_DIR`` set to a
@@ -87,19 +88,25 @@ def command_argv(name: str, dataset: Path, out: Path) -> list[str]:
     return [sys.executable, "-c", CLI] + [a.format(dir=dataset, out=out) for a in COMMANDS[name]]
 
 
-def read_floor(dataset: Path, repeat: int) -> tuple[float, float]:
-    """Reading every image of ``dataset`` with ``cv2.imread`` on all cores (best of ``repeat``).
+def read_floor(dataset: Path, repeat: int) -> tuple[float, float, float, float]:
+    """Reading every image of ``dataset`` on all cores as the product does (best of ``repeat``).
+
+    :func:`benchmarks.measure.task_read`: the product's decode (tifffile and
+    imagecodecs into reused buffers, the same decompression as the dataset
+    reader), and ``cv2.imread`` for reference.
 
     Returns
     -------
-    wall_s, cpu_s : float
-        Least wall time and least process CPU time (all threads), seconds.
+    wall_s, cpu_s, cv2_wall_s, cv2_cpu_s : float
+        Least wall time and least process CPU time (all threads), seconds, of
+        the product's read, then of ``cv2.imread``.
     """
-    from benchmarks.measure import CPU, task_read
+    from benchmarks.measure import task_read
     from ptpcore.rig import load_rig
 
     rig = load_rig(dataset / "rig.toml")
-    return task_read(dataset, rig, repeat, None)["read_cv2_s"], CPU[0]
+    r = task_read(dataset, rig, repeat, None)
+    return r["read_s"], r["read_cpu_s"], r["read_cv2_s"], r["read_cv2_cpu_s"]
 
 
 def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool = False) -> dict:
@@ -109,7 +116,8 @@ def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool =
     -------
     dict
         ``floor_s`` (the smaller floor), ``floor_cpu_s`` (its CPU time, all threads), ``floors_s``
-        (before, after), ``commands``: name -> {``wall_s``, ``cpu_s``, ``maxrss_mb`` (largest),
+        (before, after), ``floor_cv2_s`` and ``floor_cv2_cpu_s`` (the same read with ``cv2.imread``,
+        for reference), ``commands``: name -> {``wall_s``, ``cpu_s``, ``maxrss_mb`` (largest),
         ``ratio`` (wall / floor), ``cpu_ratio`` (CPU time / the floor's)},
         ``cold`` (first run with an empty numba cache, if asked), ``load`` (load averages before, after).
     """
@@ -135,6 +143,7 @@ def measure(dataset, names, repeat: int = 1, floor_repeat: int = 2, cold: bool =
         shutil.rmtree(work, ignore_errors=True)
     floors.append(read_floor(dataset, floor_repeat))
     floor, floor_cpu = min(f[0] for f in floors), min(f[1] for f in floors)
+    result.update(floor_cv2_s=min(f[2] for f in floors), floor_cv2_cpu_s=min(f[3] for f in floors))
     for r in runs.values():
         r["ratio"] = r["wall_s"] / floor
         r["cpu_ratio"] = r["cpu_s"] / floor_cpu
@@ -163,7 +172,8 @@ def main(argv=None) -> int:
     print(text)
     if args.json:
         Path(args.json).write_text(text + "\n")
-    print(f"read floor {res['floor_s']:.2f} s (before/after {res['floors_s'][0]:.2f}/{res['floors_s'][1]:.2f});"
+    print(f"read floor {res['floor_s']:.2f} s (before/after {res['floors_s'][0]:.2f}/{res['floors_s'][1]:.2f};"
+          f" cv2.imread {res['floor_cv2_s']:.2f} s, {res['floor_cv2_cpu_s']:.2f} s CPU);"
           f" load {res['load'][0][0]:.1f} -> {res['load'][1][0]:.1f}", file=sys.stderr)
     for name, r in res["commands"].items():
         print(f"{name:18s} {r['wall_s']:8.2f} s  {r['ratio']:6.2f}x read  cpu {r['cpu_s']:8.2f} s"

@@ -13,9 +13,12 @@ decode     one position's frames (in memory) -> DecodedPosition; floor: copy of 
 unwrap     wrapped phases -> coordinates + validity; floor: copy of the phase maps
 fit        SampleStack (K positions) -> poly LUT; floor: copy of the sample arrays
 evaluate   LUT at a z map; floor: copy of the LUT's coefficient arrays
-read       floors only: every image with cv2.imread on all cores, and with plain file reads
+read       floors only: every image decoded on all cores as the product does (ptpcore.io.read_into:
+           tifffile/imagecodecs), with cv2.imread, and the file bytes alone
+frames     per-frame decode time of position 0's files: cv2.imdecode against ptpcore.io.read_into,
+           on one thread and on the reader's pool
 calibrate  the whole calibration from the folder (images -> LUT), nothing else in the process
-calibrate-vs-read  the calibration interleaved with both read floors (time and CPU time)
+calibrate-vs-read  the calibration interleaved with the read floors (time and CPU time)
 spatial    the spatial-consistency check of one decoded position (both directions) against
            the decode with it and without it (``DecodeOptions(spatial_k=None)``)
 """
@@ -27,6 +30,7 @@ import json
 import os
 import resource
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -73,24 +77,135 @@ def read_cv2(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
         pass
 
 
-def read_raw(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
-    """The lower floor: the file bytes only (plain TIFF: the pixels), no decoding."""
+def read_product(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
+    """The floor: the product's own decode on all cores into a reused stack.
+
+    :func:`ptpcore.io.read_into` (tifffile and imagecodecs: the same decompression
+    the dataset reader does), ``cv2.imread`` for a file it declines (BMP, JPEG, colour).
+    """
     from ptpcore.io import read_into
 
     def one(i):
         if not read_into(paths[i], out[i]):
-            np.fromfile(paths[i], np.uint8)
+            out[i] = cv2.imread(str(paths[i]), cv2.IMREAD_UNCHANGED)
+    for _ in pool.map(one, range(len(paths))):
+        pass
+
+
+_RAW = threading.local()
+
+
+def read_raw(paths, out: np.ndarray, pool: ThreadPoolExecutor) -> None:
+    """The lower floor: the file bytes only, no decoding (into a buffer each thread reuses)."""
+    def one(i):
+        size = os.path.getsize(paths[i])
+        if getattr(_RAW, "buf", np.empty(0)).size < size:
+            _RAW.buf = np.empty(size, np.uint8)
+        with open(paths[i], "rb", buffering=0) as fh:
+            fh.readinto(memoryview(_RAW.buf)[:size])
     for _ in pool.map(one, range(len(paths))):
         pass
 
 
 def task_read(folder, rig, repeat, positions):
+    """Every image of the folder: the product's decode (the floor), ``cv2.imread`` and the raw bytes.
+
+    Returns
+    -------
+    dict
+        ``read_s`` / ``read_cpu_s``: :func:`read_product` (least wall / CPU time, all threads);
+        ``read_cv2_s`` / ``read_cv2_cpu_s``: ``cv2.imread``; ``read_raw_s`` / ``read_raw_cpu_s``:
+        the bytes only; ``images``.
+    """
     pos_paths = image_paths(folder, rig, positions)
     buf = np.empty((len(pos_paths[0]), *rig.camera.shape), np.uint8 if rig.camera.bit_depth <= 8 else np.uint16)
     with ThreadPoolExecutor(os.cpu_count()) as pool:
-        (t_cv, t_raw), _ = best_of(repeat, lambda: [read_cv2(p, buf, pool) for p in pos_paths],
-                                   lambda: [read_raw(p, buf, pool) for p in pos_paths])
-    return {"read_cv2_s": t_cv, "read_raw_s": t_raw, "images": sum(map(len, pos_paths))}
+        (t_new, t_cv, t_raw), _ = best_of(repeat, lambda: [read_product(p, buf, pool) for p in pos_paths],
+                                          lambda: [read_cv2(p, buf, pool) for p in pos_paths],
+                                          lambda: [read_raw(p, buf, pool) for p in pos_paths])
+    return {"read_s": t_new, "read_cpu_s": CPU[0], "read_cv2_s": t_cv, "read_cv2_cpu_s": CPU[1],
+            "read_raw_s": t_raw, "read_raw_cpu_s": CPU[2], "images": sum(map(len, pos_paths))}
+
+
+def _per_frame(paths, out, fn, workers: int, repeat: int) -> tuple[float, float]:
+    """Least wall and CPU time per frame (ms) of ``fn(path, out_slice)`` over ``paths``."""
+    def run():
+        if workers == 1:
+            for i, p in enumerate(paths):
+                fn(p, out[i])
+        else:
+            with ThreadPoolExecutor(workers) as pool:
+                for _ in pool.map(lambda i: fn(paths[i], out[i]), range(len(paths))):
+                    pass
+    (t,), _ = best_of(repeat, run)
+    return 1e3 * t / len(paths), 1e3 * CPU[0] / len(paths)
+
+
+def task_frames(folder, rig, repeat, positions):
+    """Per-frame decode time of position 0's files: OpenCV against the product's path.
+
+    ``cv2.imdecode`` of the file's bytes (what ``read_image`` did) and
+    :func:`ptpcore.io.read_into` (tifffile/imagecodecs into the caller's buffer),
+    each on one thread and on the reader's pool (``tile_workers()`` threads, one
+    file per thread); the pixels of both are compared. For TIFF also tifffile's own
+    decoder (``TiffPage.asarray(out=...)``): one file per pool thread
+    (``maxworkers=1``), and files in turn with ``maxworkers`` = the pool's size;
+    and the CPU time of reading a TIFF's structure by hand and with tifffile.
+    """
+    from ptpcore.io import read_into
+    from ptpcore.parallel import tile_workers
+
+    paths = image_paths(folder, rig, [0])[0]
+    dtype = np.uint8 if rig.camera.bit_depth <= 8 else np.uint16
+    ref = np.empty((len(paths), *rig.camera.shape), dtype)
+    out = np.zeros_like(ref)
+
+    def cv(p, o):
+        o[...] = cv2.imdecode(np.fromfile(p, np.uint8), cv2.IMREAD_UNCHANGED)
+
+    def new(p, o):
+        if not read_into(p, o):
+            raise RuntimeError(f"{p}: declined by read_into")
+    res = {"frames": len(paths), "file_mb": float(np.mean([os.path.getsize(p) for p in paths]) / 2**20),
+           "pool_threads": tile_workers()}
+    for workers in (1, tile_workers()):
+        tag = "1thread" if workers == 1 else "pool"
+        res[f"cv2_ms_{tag}"], res[f"cv2_cpu_ms_{tag}"] = _per_frame(paths, ref, cv, workers, repeat)
+        res[f"new_ms_{tag}"], res[f"new_cpu_ms_{tag}"] = _per_frame(paths, out, new, workers, repeat)
+    res["identical"] = bool(np.array_equal(ref, out))
+    if str(paths[0]).endswith((".tif", ".tiff")):  # tifffile's own decoder, rejected for compressed files
+        import tifffile
+
+        def tiff(workers):
+            def one(p, o):
+                with tifffile.TiffFile(p) as tf:
+                    tf.pages.first.asarray(out=o, maxworkers=workers)
+            return one
+        n = tile_workers()
+        res["tifffile_ms_pool"], res["tifffile_cpu_ms_pool"] = _per_frame(paths, out, tiff(1), n, repeat)
+        res["tifffile_ms_maxworkers"], res["tifffile_cpu_ms_maxworkers"] = _per_frame(paths, out, tiff(n), 1, repeat)
+        res["tifffile_identical"] = bool(np.array_equal(ref, out))
+        res.update(_header_costs(paths, repeat))
+    return res
+
+
+def _header_costs(paths, repeat: int) -> dict:
+    """CPU time (ms per file, one thread) of a TIFF's structure: the hand parsers against tifffile's page."""
+    import tifffile
+    from ptpcore.io.dataset import read_header
+    from ptpcore.io.images import tiff_layout
+
+    def layout(p, o):
+        with open(p, "rb", buffering=0) as fh:
+            tiff_layout(lambda offset, n: os.pread(fh.fileno(), n, offset), os.fstat(fh.fileno()).st_size)
+
+    def page(p, o):
+        with tifffile.TiffFile(p) as tf:
+            tf.pages.first.dataoffsets
+    out = [None] * len(paths)
+    return {"hand_layout_cpu_ms": _per_frame(paths, out, layout, 1, repeat)[1],
+            "hand_header_cpu_ms": _per_frame(paths, out, lambda p, o: read_header(p), 1, repeat)[1],
+            "tifffile_page_cpu_ms": _per_frame(paths, out, page, 1, repeat)[1]}
 
 
 class MemorySource:
@@ -219,11 +334,13 @@ def task_calibrate_vs_read(folder, rig, repeat, positions):
         return float(lut.valid.mean())
 
     with ThreadPoolExecutor(os.cpu_count()) as pool:
-        (t_cv, t_raw, t_cal), (_, _, valid) = best_of(
-            repeat, lambda: [read_cv2(p, buf, pool) for p in pos_paths],
+        (t_new, t_cv, t_raw, t_cal), (_, _, _, valid) = best_of(
+            repeat, lambda: [read_product(p, buf, pool) for p in pos_paths],
+            lambda: [read_cv2(p, buf, pool) for p in pos_paths],
             lambda: [read_raw(p, buf, pool) for p in pos_paths], cal)
-    return {"read_cv2_s": t_cv, "read_raw_s": t_raw, "calibrate_s": t_cal, "read_cv2_cpu_s": CPU[0],
-            "read_raw_cpu_s": CPU[1], "calibrate_cpu_s": CPU[2], "images": sum(map(len, pos_paths)),
+    return {"read_s": t_new, "read_cv2_s": t_cv, "read_raw_s": t_raw, "calibrate_s": t_cal, "read_cpu_s": CPU[0],
+            "read_cv2_cpu_s": CPU[1], "read_raw_cpu_s": CPU[2], "calibrate_cpu_s": CPU[3],
+            "images": sum(map(len, pos_paths)),
             "valid_pixels": valid, "spill": os.environ.get("PTP_BENCH_SPILL", "auto")}
 
 
@@ -250,7 +367,8 @@ def task_spatial(folder, rig, repeat, positions):
             "spatial_cpu_s": CPU[2], "spatial_share": t_sp / t_dec, "frames": len(paths)}
 
 
-TASKS = {"spatial": task_spatial, "read": task_read, "decode": task_decode, "unwrap": task_unwrap, "fit": task_fit,
+TASKS = {"spatial": task_spatial, "read": task_read, "frames": task_frames, "decode": task_decode,
+         "unwrap": task_unwrap, "fit": task_fit,
          "evaluate": task_evaluate, "calibrate": task_calibrate, "calibrate-vs-read": task_calibrate_vs_read}
 
 

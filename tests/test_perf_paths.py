@@ -178,27 +178,30 @@ def test_nested_tiles_run_serially():
 
 
 @pytest.mark.parametrize("depth", [8, 16])
-def test_read_into_reads_plain_tiffs_and_declines_the_rest(tmp_path, depth):
+def test_read_into_reads_grey_png_and_tiff_and_declines_the_rest(tmp_path, depth):
     rng = np.random.default_rng(depth)
     dtype = np.uint8 if depth == 8 else np.uint16
     img = rng.integers(0, 1 << depth, (37, 53), dtype=dtype)
     plain = tmp_path / "plain.tif"
     cv2.imwrite(str(plain), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])
-    out = np.empty_like(img)
-    assert read_into(plain, out)
-    np.testing.assert_array_equal(out, img)
     lzw = tmp_path / "lzw.tif"
     cv2.imwrite(str(lzw), img, [cv2.IMWRITE_TIFF_COMPRESSION, 5])
     png = tmp_path / "img.png"
     cv2.imwrite(str(png), img)
-    assert not read_into(lzw, out)
-    assert not read_into(png, out)
+    for path in (plain, lzw, png):
+        out = np.zeros_like(img)
+        assert read_into(path, out), path
+        np.testing.assert_array_equal(out, img)
+    colour = tmp_path / "colour.png"
+    cv2.imwrite(str(colour), np.dstack([img] * 3))
+    assert not read_into(colour, out)
     assert not read_into(plain, np.empty((37, 52), dtype))  # wrong size
     assert not read_into(plain, np.empty((37, 53), np.uint16 if depth == 8 else np.uint8))  # wrong depth
     assert not read_into(tmp_path / "missing.tif", out)
-    cut = tmp_path / "cut.tif"
-    cut.write_bytes(plain.read_bytes()[:200])
-    assert not read_into(cut, out)
+    for path in (plain, lzw, png):
+        cut = tmp_path / f"cut{path.suffix}"
+        cut.write_bytes(path.read_bytes()[:200])
+        assert not read_into(cut, out), path
 
 
 def _dataset(tmp_path, vr, ext):

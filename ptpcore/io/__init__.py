@@ -2,6 +2,7 @@
 fast readers and spill stores.
 
 - :mod:`.dataset` — frame sources (dataset folders, the virtual rig) and one-pass validation;
+- :mod:`.images` — grey PNG/TIFF decoded into a caller's buffer (tifffile, imagecodecs);
 - :mod:`.fastio` — page-cache mapped frame reads, block reads, the spill store for big sensors;
 - :mod:`.samples` — :class:`SampleStack`, every pixel's samples over all positions;
 - :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files;

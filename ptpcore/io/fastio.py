@@ -3,15 +3,14 @@
 Two things that decide whether a 5-12 megapixel calibration is limited by
 reading its images and fits a laptop's memory:
 
-- :func:`read_into`: an uncompressed, single-channel TIFF (what machine-vision
-  cameras save) is read with one ``readinto`` straight into a caller's
-  preallocated array, about ten times less CPU than a general decoder. Any
-  other file (PNG, compressed or multi-channel TIFF, odd layouts, wrong size
-  or depth) is declined, and the caller reads it with the full reader, which
-  also gives the proper error message.
-- :func:`map_frame`: the same files mapped instead of read: the pixels are
-  used where they lie in the operating system's page cache, with no copy at
-  all (a quarter of the CPU of ``read_into`` for a file already cached).
+- :func:`read_into` (from :mod:`ptpcore.io.images`): a grey PNG or TIFF
+  (uncompressed, LZW or deflate) decoded by tifffile/imagecodecs straight into
+  a caller's preallocated array, on any thread. Any other file (colour, odd
+  layouts, wrong size or depth, damaged) is declined, and the caller reads it
+  with the full reader, which also gives the proper error message.
+- :func:`map_frame`: an uncompressed grey TIFF mapped instead of read: the
+  pixels are used where they lie in the operating system's page cache, with
+  no copy at all (where they lie: :func:`ptpcore.io.images.tiff_layout`).
 - :class:`SpillStore`: the per-position ``(K, H, W)`` sample arrays written to
   a temporary file one position at a time, read back in pixel blocks for
   fitting, and exposed as ``numpy.memmap`` for everything else. Peak memory
@@ -33,134 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from ptpcore.atomic import disk_full_error, forget_temporary, is_disk_full, register_temporary
+from ptpcore.io.images import read_into, tiff_layout
 
 __all__ = ["read_into", "map_frame", "tiff_layout", "SpillStore", "read_block"]
 
-_TYPE_SIZE = {3: 2, 4: 4, 16: 8}
 _PREADV = hasattr(os, "preadv")
 _PWRITE = hasattr(os, "pwrite")
-_TYPE_CODE = {3: "H", 4: "I", 16: "Q"}
-
-
-def tiff_layout(read, size: int):
-    """Strip layout of a plain TIFF, or None.
-
-    Parameters
-    ----------
-    read : callable
-        ``read(offset, n) -> bytes`` of the file (the IFD may be anywhere,
-        libtiff writes it after the pixels).
-    size : int
-        The file's size in bytes.
-
-    Returns
-    -------
-    (width, height, bits, byteorder, [(file offset, nbytes), ...]) or None
-        None unless: classic TIFF, uncompressed, one sample per pixel, 8 or 16
-        bits unsigned, black-is-zero, top-left orientation, strips (not
-        tiles) that hold exactly the image rows, all inside the file.
-    """
-    head = read(0, 8)
-    if len(head) < 8 or head[:4] not in (b"II*\x00", b"MM\x00*"):
-        return None
-    bo = "<" if head[:2] == b"II" else ">"
-    (ifd,) = struct.unpack(bo + "I", head[4:8])
-    if ifd + 2 > size:
-        return None
-    (n,) = struct.unpack(bo + "H", read(ifd, 2))
-    entries = read(ifd + 2, 12 * n)
-    if len(entries) < 12 * n:
-        return None
-    tags: dict[int, tuple[int, ...]] = {}
-    for i in range(n):
-        tag, typ, count, value = struct.unpack(bo + "HHI4s", entries[12 * i:12 * i + 12])
-        if typ not in _TYPE_SIZE or count == 0 or count > 1_000_000:
-            continue
-        nbytes = _TYPE_SIZE[typ] * count
-        if nbytes <= 4:
-            data = value[:nbytes]
-        else:
-            (off,) = struct.unpack(bo + "I", value)
-            if off + nbytes > size:
-                return None
-            data = read(off, nbytes)
-            if len(data) < nbytes:
-                return None
-        tags[tag] = struct.unpack(f"{bo}{count}{_TYPE_CODE[typ]}", data)
-    try:
-        w, h = tags[256][0], tags[257][0]
-        offsets, counts = tags[273], tags[279]
-    except KeyError:
-        return None
-    bits = tags.get(258, (1,))
-    if (tags.get(259, (1,))[0] != 1 or tags.get(277, (1,))[0] != 1 or len(bits) != 1
-            or bits[0] not in (8, 16) or tags.get(339, (1,))[0] != 1 or tags.get(262, (1,))[0] != 1
-            or tags.get(274, (1,))[0] != 1 or 322 in tags or len(offsets) != len(counts)):
-        return None
-    row_bytes = w * bits[0] // 8
-    rps = min(tags.get(278, (h,))[0], h)
-    if rps < 1 or len(offsets) != -(-h // rps):
-        return None
-    runs = []
-    for i, (off, cnt) in enumerate(zip(offsets, counts)):
-        need = min(rps, h - i * rps) * row_bytes
-        if cnt < need or off + need > size:
-            return None
-        if runs and runs[-1][0] + runs[-1][1] == off:
-            runs[-1] = (runs[-1][0], runs[-1][1] + need)  # contiguous strips: one read
-        else:
-            runs.append((off, need))
-    return w, h, bits[0], bo, runs
-
-
-def read_into(path, out: np.ndarray) -> bool:
-    """Read a plain uncompressed TIFF straight into ``out``; False if declined.
-
-    Parameters
-    ----------
-    path : path
-    out : (H, W) uint8 or uint16, C-contiguous
-        Filled only if True is returned (partially on a short read, then
-        declined: read the file with the full reader).
-
-    Returns
-    -------
-    bool
-        True when the file is a TIFF of exactly ``out``'s size and depth in
-        the layout :func:`tiff_layout` accepts, and was read completely.
-    """
-    if out.ndim != 2 or out.dtype not in (np.uint8, np.uint16) or not out.flags.c_contiguous:
-        return False
-    try:
-        with open(path, "rb", buffering=0) as fh:
-            size = os.fstat(fh.fileno()).st_size
-
-            def read(offset: int, n: int) -> bytes:
-                fh.seek(offset)
-                return fh.read(n)
-
-            layout = tiff_layout(read, size)
-            if layout is None:
-                return False
-            w, h, bits, bo, runs = layout
-            if (h, w) != out.shape or bits != 8 * out.itemsize:
-                return False
-            buf = memoryview(out.reshape(-1).view(np.uint8))
-            pos = 0
-            for off, nbytes in runs:
-                fh.seek(off)
-                got = 0
-                while got < nbytes:
-                    n = fh.readinto(buf[pos + got:pos + nbytes])
-                    if not n:
-                        return False
-                    got += n
-                pos += nbytes
-    except (OSError, struct.error):
-        return False
-    if bits == 16 and (bo == "<") != np.little_endian:
-        out.byteswap(inplace=True)
-    return True
 
 
 def map_frame(path, shape, dtype) -> np.ndarray | None:
@@ -177,7 +54,7 @@ def map_frame(path, shape, dtype) -> np.ndarray | None:
     (H, W) array of ``dtype`` (read-only) or None
         The pixels where they lie in the file (the map is released with the
         last reference to the array). None unless the file is in the layout
-        :func:`read_into` accepts, of exactly this size and depth, with its
+        :func:`tiff_layout` accepts, of exactly this size and depth, with its
         pixels in one contiguous run at an offset aligned to the pixel size
         and, for 16 bits, in the machine's byte order: then read it with
         :func:`read_into` or the full reader.
@@ -198,7 +75,7 @@ def map_frame(path, shape, dtype) -> np.ndarray | None:
         with open(path, "rb", buffering=0) as fh:
             fd = fh.fileno()
             size = os.fstat(fd).st_size
-            layout = tiff_layout(lambda offset, n: os.pread(fd, n, offset), size)
+            layout = tiff_layout(lambda offset, n: os.pread(fd, n, offset), size)  # by hand: images.py says why
             if layout is None:
                 return None
             w, h, bits, bo, runs = layout

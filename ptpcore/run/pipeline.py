@@ -106,8 +106,9 @@ class _DatasetReader:
     Each set's N files are read in parallel: with the numba kernels, plain
     TIFFs are mapped (:func:`ptpcore.io.fastio.map_frame`: no copy, the kernels
     read the page cache); otherwise, or for a file that cannot be mapped, they
-    are read into a preallocated buffer (plain TIFFs with
-    :func:`ptpcore.io.fastio.read_into`, anything else with
+    are decoded into a preallocated buffer (grey PNG and TIFF, uncompressed,
+    LZW or deflate, with :func:`ptpcore.io.fastio.read_into`: tifffile and
+    imagecodecs, the GIL released; anything else with
     :func:`ptpcore.io.dataset.read_image`, which also names a bad file). At most
     ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much.
     """
