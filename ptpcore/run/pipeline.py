@@ -12,8 +12,12 @@ How it is fast on big sensors (``docs/performance.md`` has the numbers):
   residuals are computed only at the finest period, where they are used.
 - From a dataset folder, a reader thread reads the next sets while the
   current one is decoded: plain TIFFs are mapped (:func:`ptpcore.io.fastio.map_frame`,
-  with the numba kernels) or read straight into the buffers
-  (:func:`ptpcore.io.fastio.read_into`).
+  with the numba kernels); compressed TIFFs (LZW, deflate) and PNGs are decoded
+  straight into the buffers on every core (:func:`ptpcore.io.read_into`:
+  imagecodecs, the GIL released).
+- Between positions the C allocator's free pages go back to the system
+  (:func:`ptpcore.parallel.release_free_memory`), so the resident size does
+  not creep up position by position.
 - Unwrapping, pixel classification and the world coordinates run over the
   same row tiles, written straight into the sample stack.
 - Big sample stacks live in a temporary file (:class:`ptpcore.io.fastio.SpillStore`),
