@@ -14,7 +14,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 __all__ = ["TILE_PIXELS", "KERNEL_TILE_PIXELS", "tile_workers", "row_tiles", "run_tiles", "worker_pool",
-           "release_free_memory"]
+           "release_free_memory", "on_release"]
 
 
 TILE_PIXELS = 1 << 15
@@ -72,6 +72,13 @@ def run_tiles(fn, h: int, w: int, tile_pixels: int = TILE_PIXELS) -> None:
 
 
 _LIBC = None
+_RELEASERS: list = []
+
+
+def on_release(fn) -> None:
+    """Have :func:`release_free_memory` call ``fn()`` too (e.g. to drop mapped file pages)."""
+    if fn not in _RELEASERS:
+        _RELEASERS.append(fn)
 
 
 def release_free_memory() -> None:
@@ -82,9 +89,12 @@ def release_free_memory() -> None:
     at 2 MP x 6 positions the resident size grew by about 70 MB a position with nothing
     held (``tracemalloc`` saw 4 MB). ``malloc_trim(0)`` hands those pages back (a few
     milliseconds). Elsewhere than glibc (macOS, Windows, musl) it does nothing; no
-    library offers this, hence ctypes.
+    library offers this, hence ctypes. Functions registered with :func:`on_release` run first
+    (:mod:`ptpcore.io.fastio` drops the spilled samples' mapped pages).
     """
     global _LIBC
+    for release in _RELEASERS:
+        release()
     if _LIBC is None:
         try:
             import ctypes

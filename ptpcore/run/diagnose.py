@@ -64,13 +64,13 @@ def check_valid_fractions(samples, positions=None, min_fraction: float = MIN_VAL
     lines = []
     any_valid = False
     for k in ks:
-        r = samples.reasons[k]
+        r = samples.plane("reasons", k)  # a file read of a spilled stack, not its memory map
         any_valid |= bool(np.any(r == 0))
         line = position_report(f"position {k} (z = {samples.z[k]:g} mm)", r, min_fraction)
         if line:
             lines.append(line)
     if not any_valid:
-        name, frac = dominant_reason(np.stack([samples.reasons[k] for k in ks]))
+        name, frac = dominant_reason(np.stack([samples.plane("reasons", k) for k in ks]))
         raise DatasetError(f"no pixel is valid at any position; dominant reason: {name}"
                            f" ({100 * frac:.1f} % of pixels)")
     for line in lines:

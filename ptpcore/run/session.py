@@ -286,6 +286,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
         listed in reverse); positions that look stuck are a ``DataWarning``.
     """
     from ptpcore.io.dataset import DatasetSource
+    from ptpcore.parallel import release_free_memory
     from ptpcore.run.pipeline import collect_samples
 
     def sub(lo, hi):
@@ -310,6 +311,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
 
         check_valid_fractions(samples, session.positions)  # warns per position; no valid pixel: an error
         _check_decoded(samples, session)
+        release_free_memory()  # the checks' reads of the spilled samples leave the process (they stay in the file)
         session.samples = samples
         if path is not None:
             save_session(session, path)
@@ -324,6 +326,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
                                     progress=sub(0.9, 1.0), stage_sigma_mm=session.stage_sigma_um * 1e-3,
                                     level_bias=session.level_bias, footprint=session.footprint,
                                     robust=session.robust).lut
+        release_free_memory()
         if path is not None:
             save_session(session, path)
     if progress:
