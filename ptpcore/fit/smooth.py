@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import warnings
+import weakref
 
 import cv2
 import numpy as np
@@ -960,6 +961,14 @@ class _PixelFits:
             if isinstance(a, _RowSpill):
                 setattr(self, name, a.load())
 
+    def discard(self, *names: str) -> None:
+        """Drop the maps ``names`` unread (a spilled one's file is closed and gone at once)."""
+        for name in names:
+            a = getattr(self, name)
+            if isinstance(a, _RowSpill):
+                a.close()
+            setattr(self, name, None)
+
 
 _SPILL_FITS_PIXELS = CV_PIXELS
 """Above this many pixels the smooth pass writes the pixel fits to a temporary file while it
@@ -986,6 +995,9 @@ class _RowSpill:
         self._file = tempfile.TemporaryFile(prefix="ptp-fits-", dir=os.environ.get("PTP_SPILL_DIR") or None)
         self._file.truncate(int(np.prod(self.shape)) * 8)
         self._lock = threading.Lock()
+        # A spill dropped unread (the leave-one-out refits never read own_var, own_diag) closes its file
+        # when collected, without a ResourceWarning ("unclosed file" at the end of `ptp calibrate`).
+        self.close = weakref.finalize(self, self._file.close)
 
     def __setitem__(self, key, values) -> None:
         """``spill[i, ..., r0:r1] = values``: leading indices (int or ``:``), then a row slice."""
@@ -1018,7 +1030,7 @@ class _RowSpill:
                 if not n:
                     raise OSError("the pixel fits' temporary file ended early")
                 done += n
-            self._file.close()
+            self.close()
         return out
 
 
@@ -1459,6 +1471,7 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
     run = _SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
                       s.cv_bin, s.level_bias, s.footprint, cross_validate=False)
     run.fit_and_cross_validate_fine(lambda f, m: None)
+    run.fits.discard("own_var", "own_diag")
     return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)[0]
 
 
