@@ -41,6 +41,7 @@ from ptpcore.decode.display import level_bias_at
 from ptpcore.io.lutfile import Lut
 from ptpcore.fit.perpixel import _z_normalisation, fit_lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.parallel import release_free_memory
 from ptpcore.pinhole.camera import PinholeModel, fit_pinhole
 from ptpcore.rig.rigfile import Rig
 
@@ -1460,6 +1461,7 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
         _accumulate_left_out(s, k, coef, valid, {a: fit_var[a] * grow for a in "xy"}, loo_sq, count,
                              excess if interior else None, excess_sq, n_model)
         del coef
+        release_free_memory()  # each refit left ~50 MB resident at 5 MP (3.2 -> 3.6 GB over 21 refits)
     with np.errstate(all="ignore"):
         loo = {a: np.where(count > 0, np.sqrt(loo_sq[a] / count), np.nan).astype(np.float32) for a in "xy"}
     return loo, _model_error(excess, excess_sq, n_model)
