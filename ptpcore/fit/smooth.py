@@ -946,14 +946,15 @@ class _PixelFits:
     own_diag: np.ndarray
 
     @classmethod
-    def empty(cls, shape, d1: int, spill: bool = False) -> "_PixelFits":
+    def empty(cls, shape, d1: int, spill: bool = False, own: bool = True) -> "_PixelFits":
         """Uninitialised maps; with ``spill``, ``fit``, ``var``, ``own_var`` and ``own_diag`` are
-        :class:`_RowSpill` files (written by row ranges, :meth:`load` brings them back)."""
+        :class:`_RowSpill` files (written by row ranges, :meth:`load` brings them back). Without
+        ``own``, ``mean_var``, ``own_var`` and ``own_diag`` are None (not computed)."""
         h, w = shape
         big = _RowSpill if spill else (lambda s: np.empty(s))
         return cls(big((2, d1, h, w)), big((d1, h, w)), np.empty((h, w), np.int32),
-                   np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)),
-                   big((h, w)), big((h, w)))
+                   np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)) if own else None,
+                   big((h, w)) if own else None, big((h, w)) if own else None)
 
     def load(self, *names: str) -> None:
         """Bring the spilled maps ``names`` back into memory (no-op for maps already there)."""
@@ -962,13 +963,6 @@ class _PixelFits:
             if isinstance(a, _RowSpill):
                 setattr(self, name, a.load())
 
-    def discard(self, *names: str) -> None:
-        """Drop the maps ``names`` unread (a spilled one's file is closed and gone at once)."""
-        for name in names:
-            a = getattr(self, name)
-            if isinstance(a, _RowSpill):
-                a.close()
-            setattr(self, name, None)
 
 
 _SPILL_FITS_PIXELS = CV_PIXELS
@@ -1049,7 +1043,8 @@ class _SmoothPass:
     """
 
     def __init__(self, samples: SampleStack, rig: Rig, sel, z: np.ndarray, z_norm, rays, degree: int,
-                 scales_px, cv_bin, level_bias: bool, footprint: bool, cross_validate: bool = True):
+                 scales_px, cv_bin, level_bias: bool, footprint: bool, cross_validate: bool = True,
+                 own: bool = True):
         self.samples, self.rig, self.sel, self.z, self.rays = samples, rig, sel, z, rays
         self.level_bias, self.footprint = level_bias, footprint
         self.zc, self.zs = z_norm
@@ -1077,7 +1072,10 @@ class _SmoothPass:
         self.q_sum = np.zeros(scales.size)
         self.n_sum = np.zeros(scales.size)
         self.w_sum = np.zeros(scales.size)
-        self.fits = _PixelFits.empty(self.shape, self.d1, spill=h * w > _SPILL_FITS_PIXELS)
+        # The leave-one-out refits need the pixel fits only, not their own-range variances (own=False:
+        # a fifth of each refit's time at 5 MP went to moments that were thrown away).
+        self.own = own
+        self.fits = _PixelFits.empty(self.shape, self.d1, spill=h * w > _SPILL_FITS_PIXELS, own=own)
         dc, hc, wc = self.dc, self.hc, self.wc
         self.binned = [{"w": np.zeros((dc, hc, wc)), "mean": np.zeros((2, dc, hc, wc)),
                         "xbar": np.zeros((dc, hc, wc)), "ybar": np.zeros((dc, hc, wc)),
@@ -1110,13 +1108,15 @@ class _SmoothPass:
         zk = np.broadcast_to(z[:, None], valid.shape)
         f.pz_min[r0:r1] = np.min(np.where(valid, zk, np.inf), axis=0).reshape(rows, w)
         f.pz_max[r0:r1] = np.max(np.where(valid, zk, -np.inf), axis=0).reshape(rows, w)
-        with np.errstate(all="ignore"):
-            f.mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
         del zk
         (cx, cy), v, _, cov = _weighted_poly(self.t, [rx, ry], wts, degree, full=True)
         f.fit[0, :, r0:r1] = cx.reshape(d1, rows, w)
         f.fit[1, :, r0:r1] = cy.reshape(d1, rows, w)
         f.var[:, r0:r1] = v.reshape(d1, rows, w)
+        if not self.own:
+            return
+        with np.errstate(all="ignore"):
+            f.mean_var[r0:r1] = _nanmean0(sig * sig).reshape(rows, w)
         # The pixel's own fit's variance, averaged over its own calibrated
         # range, with the covariances (a pixel seen at a few positions at
         # one end of the range has strongly correlated coefficients).
@@ -1471,9 +1471,8 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
     """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) fitted without calibration position ``k``."""
     keep = np.arange(s.z.size) != k
     run = _SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
-                      s.cv_bin, s.level_bias, s.footprint, cross_validate=False)
+                      s.cv_bin, s.level_bias, s.footprint, cross_validate=False, own=False)
     run.fit_and_cross_validate_fine(lambda f, m: None)
-    run.fits.discard("own_var", "own_diag")
     return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)[0]
 
 
