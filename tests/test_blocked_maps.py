@@ -75,7 +75,8 @@ def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
     np.testing.assert_array_equal(got["y"], want)
 
 
-_LUT_MAPS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y", "sigma_x", "sigma_y")
+_LUT_MAPS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y", "loo_x", "loo_y",
+             "sigma_x", "sigma_y")
 
 
 def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
@@ -95,6 +96,17 @@ def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
     assert info.scale_px == ref_info.scale_px
     np.testing.assert_allclose(info.cv_rms_mm, ref_info.cv_rms_mm, rtol=1e-12)
     assert info.excess_sigma_mm == pytest.approx(ref_info.excess_sigma_mm, rel=1e-9, abs=1e-15)
+
+
+def test_smooth_lut_own_noise_in_a_file_keeps_its_bits(rough_rig, monkeypatch):
+    """The leave-one-out's per-sample noise estimates (one pass over the samples, ``_OwnNoise``)
+    give the same LUT from a temporary file as from memory, LOO and sigma maps included."""
+    vr, samples = rough_rig
+    ref, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
+    monkeypatch.setattr(smooth_mod, "_OWN_NOISE_BYTES", 0)
+    got, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
+    for name in _LUT_MAPS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
 
 
 def test_row_spill_round_trip():

@@ -1452,6 +1452,8 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
     n_model = np.zeros((h, w))
     # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
     grow = k_all / max(k_all - 1, 1)
+    report(0.0, "estimating each sample's noise from its pixel's own fit")
+    own_noise = _own_noise_all(s, [k for k in range(k_all) if s.z.min() < s.z[k] < s.z.max()])
     for k in range(k_all):
         report(k / k_all, f"leaving calibration position {k + 1} of {k_all} out")
         coef = _refit_without(s, k)
@@ -1459,7 +1461,7 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
         # range, and the fit without an end position extrapolates to it.
         interior = s.z.min() < s.z[k] < s.z.max()
         _accumulate_left_out(s, k, coef, valid, {a: fit_var[a] * grow for a in "xy"}, loo_sq, count,
-                             excess if interior else None, excess_sq, n_model)
+                             excess if interior else None, excess_sq, n_model, own_noise)
         del coef
         release_free_memory()  # each refit left ~50 MB resident at 5 MP (3.2 -> 3.6 GB over 21 refits)
     with np.errstate(all="ignore"):
@@ -1477,7 +1479,8 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
 
 
 def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fit_var: dict, loo_sq: dict,
-                         count: np.ndarray, excess: dict | None, excess_sq: dict, n_model: np.ndarray) -> None:
+                         count: np.ndarray, excess: dict | None, excess_sq: dict, n_model: np.ndarray,
+                         own_noise: "_OwnNoise") -> None:
     """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel sums.
 
     ``loo_sq`` and ``count`` (the leave-one-out map) always. Unless ``excess`` is None also, per
@@ -1485,7 +1488,7 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fi
     ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the sample's residual
     against its pixel's own weighted fit through all calibration positions and ``h`` its leverage
     there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever the noise
-    model's scale.
+    model's scale (``own_noise``, :func:`_own_noise_all`).
     """
     from ptpcore.io.fastio import read_block
 
@@ -1500,7 +1503,7 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fi
         ok_s, _sig, _, _ = _block_samples(s.samples, s.rig, pos, zk, r0, r1, None)
         fb = (footprint_bias(s.rays, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
                              read_block(s.samples.background, a0, a1, pos), r0, r1) if s.footprint else None)
-        own = _own_noise(s, k, r0, r1, powers) if excess is not None else None
+        own = own_noise.get(k, a0, a1) if excess is not None else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
             r = _corrected_absolute(s.samples, s.rig, i_axis, a0, a1, pos, zk, s.level_bias, fb)[0] - pred
@@ -1520,21 +1523,68 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fi
     _run_blocks(block, _row_blocks(h, w))
 
 
-def _own_noise(s: _LooSetup, k: int, r0: int, r1: int, powers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``r_own^2 / (1 - h)`` of position ``k``'s X and Y samples at rows ``[r0, r1)`` ((n,) each, mm^2; NaN
-    where the pixel has no fit of its own with freedom left, or the sample is not used)."""
-    _valid, _sig, wts, resid = _block_samples(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays, s.level_bias,
-                                              s.footprint)
+class _OwnNoise:
+    """``r_own^2 / (1 - h)`` of the calibration samples, X and Y, per position: ``(2, K, H * W)``
+    float64, in memory up to :data:`_OWN_NOISE_BYTES`, else in a temporary file (positional writes
+    and reads, :class:`ptpcore.io.fastio.SpillStore`: 1.7 GB at 5 MP x 21 positions)."""
+
+    def __init__(self, k: int, shape):
+        from ptpcore.io.fastio import SpillStore
+
+        h, w = shape
+        self.w = w
+        if 2 * k * h * w * 8 <= _OWN_NOISE_BYTES:
+            self.store, self.mem = None, np.full((2, k, h * w), np.nan)
+        else:
+            self.store = SpillStore(k, shape, {"x": np.float64, "y": np.float64}, {"x": np.nan, "y": np.nan})
+            self.mem = None
+
+    def put(self, axis: int, k: int, r0: int, r1: int, values: np.ndarray) -> None:
+        """Rows ``[r0, r1)`` of position ``k``, axis 0 (X) or 1 (Y): ``((r1 - r0) * W,)`` values."""
+        if self.mem is not None:
+            self.mem[axis, k, r0 * self.w:r1 * self.w] = values
+        else:
+            self.store.write_rows("xy"[axis], k, r0, values.reshape(r1 - r0, self.w))
+
+    def get(self, k: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels ``[start, stop)`` (flat) of position ``k``: the X and Y values."""
+        if self.mem is not None:
+            return self.mem[0, k, start:stop], self.mem[1, k, start:stop]
+        return self.store.read("x", start, stop, [k])[0], self.store.read("y", start, stop, [k])[0]
+
+
+_OWN_NOISE_BYTES = 1 << 28
+"""Above this size (256 MiB) :class:`_OwnNoise` goes to a temporary file."""
+
+
+def _own_noise_all(s: _LooSetup, positions) -> _OwnNoise:
+    """``r_own^2 / (1 - h)`` of every sample of calibration ``positions`` (indices into ``s.z``),
+    X and Y; NaN where the pixel has no fit of its own with freedom left, or the sample is not used.
+
+    Every pixel's own fit through all calibration positions is the same whichever position is
+    left out, so it is made once, block by block (the row blocks :func:`_accumulate_left_out`
+    reads them by), for all positions: one pass over the samples instead of one per position.
+    """
+    h, w = s.samples.shape
+    store = _OwnNoise(s.z.size, (h, w))
     t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
-    coefs, _v, n, cov = _weighted_poly(t_all, resid, wts, s.degree, full=True)
-    lev = wts[k] * np.einsum("i,ijp,j->p", powers, cov, powers)
-    use = (wts[k] > 0) & (n > s.degree + 1) & (lev < 1.0 - 1e-9)
-    out = []
-    for c, rv in zip(coefs, resid):
-        with np.errstate(all="ignore"):
-            r_own = rv[k] - np.einsum("j,jp->p", powers, c)
-            out.append(np.where(use, r_own * r_own / (1.0 - lev), np.nan))
-    return out[0], out[1]
+
+    def block(r0, r1):
+        _valid, _sig, wts, resid = _block_samples(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays, s.level_bias,
+                                                  s.footprint)
+        coefs, _v, n, cov = _weighted_poly(t_all, resid, wts, s.degree, full=True)
+        for k in positions:
+            powers = t_all[k] ** np.arange(s.degree + 1)
+            lev = wts[k] * np.einsum("i,ijp,j->p", powers, cov, powers)
+            use = (wts[k] > 0) & (n > s.degree + 1) & (lev < 1.0 - 1e-9)
+            for axis, (c, rv) in enumerate(zip(coefs, resid)):
+                with np.errstate(all="ignore"):
+                    r_own = rv[k] - np.einsum("j,jp->p", powers, c)
+                    store.put(axis, k, r0, r1, np.where(use, r_own * r_own / (1.0 - lev), np.nan))
+
+    if positions:
+        _run_blocks(block, _row_blocks(h, w))
+    return store
 
 
 def _model_error(excess: dict, excess_sq: dict, count: np.ndarray) -> _ModelError:
