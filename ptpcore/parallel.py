@@ -13,7 +13,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["TILE_PIXELS", "KERNEL_TILE_PIXELS", "tile_workers", "row_tiles", "run_tiles", "worker_pool",
+__all__ = ["TILE_PIXELS", "KERNEL_TILE_PIXELS", "tile_workers", "row_tiles", "run_tiles", "map_in_order", "worker_pool",
            "release_free_memory", "on_release"]
 
 
@@ -62,13 +62,20 @@ def run_tiles(fn, h: int, w: int, tile_pixels: int = TILE_PIXELS) -> None:
     Exceptions propagate. Called from inside a tile (nested), it runs serially
     so the pool cannot deadlock on itself.
     """
-    tiles = row_tiles(h, w, tile_pixels)
-    if len(tiles) == 1 or tile_workers() == 1 or getattr(_in_worker, "flag", False):
-        for r0, r1 in tiles:
-            fn(r0, r1)
-        return
-    for _ in worker_pool().map(lambda t: fn(*t), tiles):
+    for _ in map_in_order(lambda t: fn(*t), row_tiles(h, w, tile_pixels)):
         pass
+
+
+def map_in_order(fn, items):
+    """``fn(item)`` for every item on the tile pool; an iterator of the results, in order.
+
+    Serial when there is one item or one thread, and when called from inside a tile
+    (nested), so the pool cannot deadlock on itself. Exceptions propagate.
+    """
+    items = list(items)
+    if len(items) <= 1 or tile_workers() == 1 or getattr(_in_worker, "flag", False):
+        return map(fn, items)
+    return worker_pool().map(fn, items)
 
 
 _LIBC = None

@@ -37,7 +37,7 @@ import numpy as np
 from ptpcore.decode.phase import Reason
 from ptpcore.io.fastio import read_block
 from ptpcore.io.samples import SampleStack
-from ptpcore.parallel import release_free_memory
+from ptpcore.parallel import map_in_order, release_free_memory
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["K_SIGMA", "SCREEN_DEGREE", "MAX_PER_PIXEL", "SUSPECT_FRACTION", "RobustReport", "screen_samples",
@@ -240,16 +240,6 @@ def _screen_block(samples, rig, start, stop, idx, t, degree, k_sigma, stage_t_si
     return rejected, valid, scale
 
 
-def _blocks_in_order(fn, starts):
-    """``fn(start)`` for every block start, on the engine's tile pool, results in order (serially when
-    called from a tile, so the pool cannot wait on itself)."""
-    from ptpcore.parallel import _in_worker, tile_workers, worker_pool
-
-    if len(starts) == 1 or tile_workers() == 1 or getattr(_in_worker, "flag", False):
-        return map(fn, starts)
-    return worker_pool().map(fn, starts)
-
-
 def screen_samples(samples: SampleStack, rig: Rig, positions=None, *, k_sigma: float = K_SIGMA,
                    degree: int = SCREEN_DEGREE, stage_sigma_mm: float = 0.0) -> RobustReport:
     """Find the samples far outside their pixel's curve, and the suspect positions (module docstring).
@@ -296,7 +286,7 @@ def screen_samples(samples: SampleStack, rig: Rig, positions=None, *, k_sigma: f
             stop = min(start + _BLOCK, h * w)
             return (start, stop) + _screen_block(samples, rig, start, stop, idx, t, deg, k_sigma, stage_sigma_mm / zs)
 
-        for start, stop, rej, valid, scale in _blocks_in_order(screen, starts):
+        for start, stop, rej, valid, scale in map_in_order(screen, starts):
             bits[:, start // 8:-(-stop // 8)] = np.packbits(rej, axis=1)
             n_rej[start:stop] = rej.sum(axis=0)
             n_out += rej.sum(axis=1)

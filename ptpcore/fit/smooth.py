@@ -41,7 +41,7 @@ from ptpcore.decode.display import level_bias_at
 from ptpcore.io.lutfile import Lut
 from ptpcore.fit.perpixel import _z_normalisation, fit_lut
 from ptpcore.io.samples import SampleStack
-from ptpcore.parallel import release_free_memory
+from ptpcore.parallel import map_in_order, release_free_memory
 from ptpcore.pinhole.camera import PinholeModel, fit_pinhole
 from ptpcore.rig.rigfile import Rig
 
@@ -181,13 +181,7 @@ def _sample_blocks(h: int, w: int, k: int) -> list[tuple[int, int]]:
 
 def _run_blocks(fn, blocks) -> None:
     """``fn(r0, r1)`` for every block, on the engine's tile pool (results go to disjoint rows)."""
-    from ptpcore.parallel import tile_workers, worker_pool
-
-    if len(blocks) == 1 or tile_workers() == 1:
-        for b in blocks:
-            fn(*b)
-        return
-    for _ in worker_pool().map(lambda b: fn(*b), blocks):
+    for _ in map_in_order(lambda b: fn(*b), blocks):
         pass
 
 
@@ -964,7 +958,6 @@ class _PixelFits:
                 setattr(self, name, a.load())
 
 
-
 _SPILL_FITS_PIXELS = CV_PIXELS
 """Above this many pixels the smooth pass writes the pixel fits to a temporary file while it
 runs (at 5 MP and degree 3: 560 MB of float64 maps not held beside the folds' statistics)."""
@@ -990,8 +983,8 @@ class _RowSpill:
         self._file = tempfile.TemporaryFile(prefix="ptp-fits-", dir=os.environ.get("PTP_SPILL_DIR") or None)
         self._file.truncate(int(np.prod(self.shape)) * 8)
         self._lock = threading.Lock()
-        # A spill dropped unread (the leave-one-out refits never read own_var, own_diag) closes its file
-        # when collected, without a ResourceWarning ("unclosed file" at the end of `ptp calibrate`).
+        # A spill dropped unread closes its file when collected, without a ResourceWarning
+        # ("unclosed file" at the end of `ptp calibrate`, when the refits' own_var, own_diag were spilled).
         self.close = weakref.finalize(self, self._file.close)
 
     def __setitem__(self, key, values) -> None:
