@@ -261,13 +261,10 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
         wp = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
         apply_convention(wp, f.sign(d), f.origin(d))
         wp.black = black_clipped(stack)
-        if steps[j] >= 5:
-            # Harmonic-free noise: the finest level, else the level with most steps.
-            best = noise_parts.get(d)
-            if best is None or (j == last or steps[j] > best[1]) and best[0] != last:
-                part = harmonic_noise_samples(stack, stride, 1 if d == "x" else 0)
-                if part is not None:
-                    noise_parts[d] = (j, steps[j], part)
+        if j == _noise_level(steps):
+            part = harmonic_noise_samples(stack, stride, 1 if d == "x" else 0)
+            if part is not None:
+                noise_parts[d] = (j, steps[j], part)
         wrapped[(d, j)] = wp
     stack = None  # a set mapped from its files is unmapped once its phases are out
     levels = {d: [wrapped[(d, j)] for j in range(len(f.periods(d)))] for d in f.directions}
@@ -311,6 +308,15 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
         pos.info["reference_clipping"] = reference_clipping(refs, rig.camera.max_level)
     flag_more_reasons(rig, pos, options, pos.reasons)
     return pos
+
+
+def _noise_level(steps) -> int | None:
+    """The level whose set measures the harmonic-free noise: the finest when it has 5 steps or
+    more, else the (first) level with most steps of at least 5; None when no level has 5."""
+    if steps[-1] >= 5:
+        return len(steps) - 1
+    best = int(np.argmax(steps))
+    return best if steps[best] >= 5 else None
 
 
 def _noise_stride(rig: Rig) -> int:
