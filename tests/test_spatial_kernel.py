@@ -9,8 +9,18 @@ from ptpcore.decode.phase import fused_kernels
 pytestmark = pytest.mark.skipif(fused_kernels() is None, reason="numba kernels off")
 
 
+def test_the_generated_row_kernels_are_the_generators_output():
+    """``_median_rows.py`` is written by ``python -m ptpcore.decode.median_networks``: never edited by hand."""
+    from pathlib import Path
+
+    from ptpcore.decode import median_networks
+
+    written = Path(median_networks.__file__).with_name("_median_rows.py").read_text()
+    assert written == median_networks.render_module()
+
+
 def test_median_networks_select_the_middle_values():
-    from ptpcore.decode._spatial_kernel import NET24, NET25, SLOTS24, SLOTS25
+    from ptpcore.decode.median_networks import NET24, NET25, SLOTS24, SLOTS25
 
     rng = np.random.default_rng(0)
     for net, slots, m in ((NET25, SLOTS25, 25), (NET24, SLOTS24, 24)):
