@@ -58,11 +58,12 @@ def correct_all(samples: SampleStack, rig: Rig, positions=None, *, refine: bool 
     corrected : SampleStack
     applied : dict
     pose : StagePose or None
-    slopes : (2,) tuple of (H, W) float64
-        Every pixel's ``dX/dZ``, ``dY/dZ`` (of the glass-corrected samples).
+    slopes : (2,) tuple of (H, W) float64, or None
+        Every pixel's ``dX/dZ``, ``dY/dZ`` (of the glass-corrected samples); None unless ``refine``
+        (nothing else reads them).
     """
     samples, applied = correct_samples(samples, rig, positions)
-    slopes = pixel_slopes(samples, positions)
+    slopes = pixel_slopes(samples, positions) if refine else None
     pose = None
     if refine:
         if progress:
