@@ -61,11 +61,11 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
     """
     h, w = coord.shape
     pad = radius
-    cp, gcp, grp, rp = _padded_maps(coord, valid, pad)
     kern = _kernels()
     if kern is not None and window_offsets(radius, step) == window_offsets():
         # The kernels' row functions are written out for the default window.
-        return _residual_fused(kern, cp, gcp, grp, rp, pad)
+        return _residual_fused(kern, coord, valid, pad)
+    cp, gcp, grp, rp = _padded_maps(coord, valid, pad)
     c, resid = cp[pad:pad + h, pad:pad + w], rp[pad:pad + h, pad:pad + w]
     offs = window_offsets(radius, step)
     count = np.zeros((h, w), np.int16)
@@ -132,17 +132,18 @@ def _padded_maps(coord: np.ndarray, valid: np.ndarray, pad: int) -> tuple[np.nda
     return tuple(maps)
 
 
-def _residual_fused(kern, cp, gcp, grp, rp, pad: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`neighbourhood_residual` by the numba kernels, tile by tile (bit-equal), from the maps
-    of :func:`_padded_maps` (``rp`` is filled here)."""
+def _residual_fused(kern, coord: np.ndarray, valid: np.ndarray, pad: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`neighbourhood_residual` by the numba kernels, tile by tile (bit-equal); each padded map
+    is let go as soon as it has been read (at most four of them, 160 MB at 5 MP, at once)."""
     from ptpcore.parallel import run_tiles
 
-    h, w = cp.shape[0] - 2 * pad, cp.shape[1] - 2 * pad
+    h, w = coord.shape
+    cp, gcp, grp, rp = _padded_maps(coord, valid, pad)
     offs = np.array(window_offsets(), np.int64).reshape(-1, 2)
     resid = rp[pad:pad + h, pad:pad + w]
     count = np.empty((h, w), np.int16)
     run_tiles(lambda r0, r1: kern.residual_rows(cp, gcp, grp, offs, pad, MIN_NEIGHBOURS, r0, r1, resid, count), h, w)
-    del gcp, grp
+    del cp, gcp, grp
     out = np.empty((h, w))
     run_tiles(lambda r0, r1: kern.around_rows(rp, offs, pad, r0, r1, out), h, w)
     return out, count
@@ -171,15 +172,20 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     finite = np.isfinite(resid)
     if not finite.any():
         return np.zeros(coord.shape, bool), float("nan")
-    spread = ROBUST_SIGMA * float(np.median(np.abs(resid[finite])))
+    magnitude = np.abs(resid[finite])
+    spread = ROBUST_SIGMA * float(np.median(magnitude, overwrite_input=True))
+    del magnitude
     if sigma is None:
         sigma = spread
     # Where the map is less smooth than the noise (noise-free data, structure the
     # local plane does not follow), the robust spread of the residuals is the floor.
     sig = np.maximum(np.asarray(sigma, np.float64), spread)
-    # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
-    scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n, 1))
-    with np.errstate(invalid="ignore"):
-        flagged = finite & (np.abs(resid) > k * sig * scale)
+    flagged = np.empty(coord.shape, bool)
+    for r0 in range(0, coord.shape[0], ROWS_PER_CHUNK * 16):  # row bands: no whole-map temporaries
+        rows = slice(r0, r0 + ROWS_PER_CHUNK * 16)
+        # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
+        scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n[rows], 1))
+        with np.errstate(invalid="ignore"):
+            flagged[rows] = finite[rows] & (np.abs(resid[rows]) > k * (sig[rows] if sig.ndim else sig) * scale)
     used = float(np.nanmedian(sig)) if sig.ndim else float(sig)
     return flagged, used

@@ -424,19 +424,31 @@ def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, re
             acc.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
             model = acc.model()
             if model is not None:
-                n_fine = f.steps_of(d)[-1]
-                # The camera's noise and the display's rounding to integer levels (uniform, 1/12
-                # of a level squared; a level is B / amplitude camera DN).
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    var_dn = model.sigma_dn(fine.background) ** 2 + (fine.modulation / f.amplitude) ** 2 / 12.0
-                    sigma = (np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / fine.modulation
-                             * f.periods(d)[-1] / (2 * np.pi))
+                sigma = _coordinate_sigma(model, fine, f.steps_of(d)[-1], f.amplitude, f.periods(d)[-1])
                 t, n = levels[d]
                 source = "residual" if float(t) == float(f.periods(d)[-1]) else f"residual of period {t:g} px (N = {n})"
         flagged, used = spatial_outliers(dec.coord, valid, sigma, options.spatial_k)
+        del sigma
         _or(reasons, flagged, Reason.SPATIAL)
         pos.info["sigma"][d] = used
         pos.info["noise_source"][d] = source
+
+
+def _coordinate_sigma(model, fine, n_fine: int, amplitude: float, period: float) -> np.ndarray:
+    """Predicted 1-sigma of the decoded coordinate (px), (H, W) float64, from the noise ``model`` and
+    the finest level's background and modulation; row bands, no whole-map temporaries."""
+    h, w = fine.modulation.shape
+    sigma = np.empty((h, w))
+    band = max(1, (1 << 18) // max(w, 1))
+    for r0 in range(0, h, band):
+        rows = slice(r0, r0 + band)
+        bg, mod = fine.background[rows], fine.modulation[rows]
+        # The camera's noise and the display's rounding to integer levels (uniform, 1/12
+        # of a level squared; a level is B / amplitude camera DN).
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var_dn = model.sigma_dn(bg) ** 2 + (mod / amplitude) ** 2 / 12.0
+            sigma[rows] = np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / mod * period / (2 * np.pi)
+    return sigma
 
 
 def _or(reasons: np.ndarray, cond: np.ndarray, bit: int) -> None:
