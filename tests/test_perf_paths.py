@@ -7,7 +7,6 @@ reference: the straightforward implementation kept here, the frame-by-frame
 wide enough (4096 px: 8 rows per tile) that every path crosses tile borders.
 """
 
-import functools
 
 import cv2
 import numpy as np
@@ -445,10 +444,14 @@ def test_numba_store_equals_the_numpy_path_exactly(realistic, kernels):
         dec = {d: decode_direction(levels[d], f.periods_px, f.carrier(d) * rig.stage.z_mm[k]) for d in levels}
         pos = finish_position(rig, k, dec)
         fx, fy = levels["x"][-1], levels["y"][-1]
-        for s, fn in zip(stacks, (_store_rows, functools.partial(_store_rows_fused, kernels))):
+        for s, fused in zip(stacks, (False, True)):
             dest = {"x": s.x[k], "y": s.y[k], "reasons": s.reasons[k], "modulation": s.modulation[k],
                     "background": s.background[k]}
-            run_tiles(lambda r0, r1: fn(rig, pos, fx, fy, s, dest, r0, r1), *shape)
+            if fused:  # into each tile's rows (as a spilled run does, into a scratch of the tile)
+                run_tiles(lambda r0, r1: _store_rows_fused(kernels, rig, pos, fx, fy, s,
+                                                           {n: a[r0:r1] for n, a in dest.items()}, r0, r1), *shape)
+            else:
+                run_tiles(lambda r0, r1: _store_rows(rig, pos, fx, fy, s, dest, r0, r1), *shape)
     for name in ("x", "y", "x_ref", "y_ref", "reasons", "modulation", "background"):
         np.testing.assert_array_equal(getattr(stacks[1], name), getattr(stacks[0], name), err_msg=name)
 

@@ -27,7 +27,6 @@ How it is fast on big sensors (``docs/performance.md`` has the numbers):
 
 from __future__ import annotations
 
-import functools
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -254,10 +253,11 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
         if buffers is not None:
             out = buffers.get((d, j))
             if out is None:
+                # No residual_var: nothing after decoding reads it (the noise comes from
+                # harmonic_noise_samples); 20 MB a direction less at 5 MP.
                 out = buffers[(d, j)] = WrappedPhase(
                     np.empty((h, w), np.float32), np.empty((h, w), np.float32),
-                    np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool),
-                    np.empty((h, w), np.float32) if photometry and len(stack) > 3 else None)
+                    np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool), None)
         wp = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
         apply_convention(wp, f.sign(d), f.origin(d))
         wp.black = black_clipped(stack)
@@ -536,10 +536,11 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                            spill_dir)
         samples = SampleStack(z_all, np.empty((0, *shape), np.float32), np.empty((0, *shape), np.float32),
                               np.full(shape, np.nan), np.full(shape, np.nan), np.empty((0, *shape), np.uint8))
-        # One set of position maps: each row tile writes its rows of them to the file
-        # as soon as it has stored them (while they are in the cache; positional
-        # writes from the tile pool). The noise model's binning gets a thread of its own.
-        spill_maps = {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
+        # Each row tile writes its rows of the position's maps to the file as soon as it has
+        # stored them (while they are in the cache; positional writes from the tile pool): with
+        # the kernels into a scratch of the tile's rows, else into one set of whole maps.
+        # The noise model's binning gets a thread of its own.
+        spill_maps = None if fused_kernels() else {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
         writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-noise")
     else:
         samples = SampleStack.empty(rig.stage.z_mm, shape)
@@ -564,17 +565,22 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             else:
                 dest = spill_maps
             kern = fused_kernels()
-            put = _store_rows if kern is None else functools.partial(_store_rows_fused, kern)
 
             def rows(r0: int, r1: int, kk=k, pos=pos, fx=fine_x, fy=fine_y, dest=dest) -> None:
-                put(rig, pos, fx, fy, samples, dest, r0, r1)
+                if kern is None:
+                    _store_rows(rig, pos, fx, fy, samples, dest, r0, r1)
+                    tile = {name: a[r0:r1] for name, a in dest.items()}
+                else:
+                    tile = ({name: a[r0:r1] for name, a in dest.items()} if dest is not None else
+                            {name: np.empty((r1 - r0, shape[1]), dt) for name, (dt, _off) in store.layout.items()})
+                    _store_rows_fused(kern, rig, pos, fx, fy, samples, tile, r0, r1)
                 if store is not None:
-                    for name, a in dest.items():
-                        store.write_rows(name, kk, r0, a[r0:r1])
+                    for name, a in tile.items():
+                        store.write_rows(name, kk, r0, a)
 
             run_tiles(rows, *shape, TILE_PIXELS if kern is None else KERNEL_TILE_PIXELS)
             if store is not None:
-                for name in dest:
+                for name in store.layout:
                     store.mark_written(name, k)
             for d, part in pos.info.get("noise_samples", {}).items():
                 valid = pos.reasons[part["rows"]][:, part["cols"]].ravel() == 0
@@ -658,17 +664,20 @@ def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: Wr
 
 
 def _store_rows_fused(kern, rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
-                      samples: SampleStack, dest: dict, r0: int, r1: int) -> None:
-    """:func:`_store_rows` with the numba kernel :func:`ptpcore.decode._fused.store_rows` (bit-equal)."""
+                      samples: SampleStack, tile: dict, r0: int, r1: int) -> None:
+    """:func:`_store_rows` with the numba kernel :func:`ptpcore.decode._fused.store_rows` (bit-equal),
+    into ``tile``: the ``(r1 - r0, W)`` rows of each map (views of whole maps, or a tile's scratch)."""
     a, b, _ = rig.stage.direction
     px, py = rig.lcd.pitch_mm
     z = pos.z_mm
     with_bg = fine_x.background is not None and fine_y.background is not None
     bgx = fine_x.background if with_bg else fine_x.modulation
     bgy = fine_y.background if with_bg else fine_y.modulation
-    kern.store_rows(r0, r1, pos.reasons, pos.u, pos.v, float(px), float(py), float(a * z), float(b * z),
-                    samples.x_ref, samples.y_ref, fine_x.modulation, fine_y.modulation, bgx, bgy, with_bg,
-                    dest["x"], dest["y"], dest["reasons"], dest["modulation"], dest["background"])
+    rows = slice(r0, r1)
+    kern.store_rows(0, r1 - r0, pos.reasons[rows], pos.u[rows], pos.v[rows], float(px), float(py), float(a * z),
+                    float(b * z), samples.x_ref[rows], samples.y_ref[rows], fine_x.modulation[rows],
+                    fine_y.modulation[rows], bgx[rows], bgy[rows], with_bg,
+                    tile["x"], tile["y"], tile["reasons"], tile["modulation"], tile["background"])
 
 
 def calibrate(source, *, model: str = "poly", degree: int = 3, options: DecodeOptions = DecodeOptions(),
