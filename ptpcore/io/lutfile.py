@@ -27,6 +27,7 @@ from scipy.interpolate import PchipInterpolator
 from ptpcore import __version__
 from ptpcore.atomic import atomic_path, disk_full_error, write_bytes_atomic
 from ptpcore.errors import FileFormatError
+from ptpcore.io.h5chunks import create_compressed
 from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
 __all__ = [
@@ -384,23 +385,22 @@ def _write_lut_group(group, lut: Lut) -> None:
         m.attrs["degree"] = lut.degree
     for key, val in lut.extra_attrs.items():
         m.attrs[key] = val
-    opts = dict(chunks=True, compression="gzip", compression_opts=1, shuffle=True)
     # np.asarray, not astype: no copy of a big sensor's maps that already have the stored type.
-    group.create_dataset("x", data=np.asarray(lut.x, np.float64), **opts)
-    group.create_dataset("y", data=np.asarray(lut.y, np.float64), **opts)
+    create_compressed(group, "x", np.asarray(lut.x, np.float64))
+    create_compressed(group, "y", np.asarray(lut.y, np.float64))
     if lut.z_nodes is not None:
         group["z_nodes"] = np.asarray(lut.z_nodes, dtype=np.float64)
-    group.create_dataset("valid", data=lut.valid.astype(np.uint8), **opts)
+    create_compressed(group, "valid", lut.valid.astype(np.uint8))
     q = group.create_group("quality")
-    q.create_dataset("n_positions", data=np.asarray(lut.n_positions, np.uint16), **opts)
-    q.create_dataset("z_min", data=np.asarray(lut.pixel_z_min, np.float32), **opts)
-    q.create_dataset("z_max", data=np.asarray(lut.pixel_z_max, np.float32), **opts)
+    create_compressed(q, "n_positions", np.asarray(lut.n_positions, np.uint16))
+    create_compressed(q, "z_min", np.asarray(lut.pixel_z_min, np.float32))
+    create_compressed(q, "z_max", np.asarray(lut.pixel_z_max, np.float32))
     for name in ("rms_x", "rms_y", "loo_x", "loo_y", "sigma_x", "sigma_y"):
         val = getattr(lut, name)
         if val is not None:
-            q.create_dataset(name, data=np.asarray(val, np.float32), **opts)
+            create_compressed(q, name, np.asarray(val, np.float32))
     if lut.n_rejected is not None:
-        q.create_dataset("n_rejected", data=np.minimum(lut.n_rejected, 65535).astype(np.uint16), **opts)
+        create_compressed(q, "n_rejected", np.minimum(lut.n_rejected, 65535).astype(np.uint16))
     group.create_group("rig").attrs["toml"] = lut.rig_toml
     if lut.provenance or lut.stage_pose is not None:
         prov = group.create_group("provenance")
