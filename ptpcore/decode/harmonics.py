@@ -27,6 +27,10 @@ import numpy as np
 __all__ = ["noise_bins", "harmonic_noise_samples", "coherent_harmonic", "MeasuredHarmonics", "measured_harmonics"]
 
 
+BAND_VALUES = 1 << 21
+"""Frame values per band of :func:`harmonic_noise_samples` (16 MB of float64, 48 MB complex)."""
+
+
 def noise_bins(n_steps: int) -> list[int]:
     """The harmonic bins ``2 .. ceil(N/2) - 1`` that carry a noise estimate (empty for N <= 4)."""
     return list(range(2, (n_steps + 1) // 2))
@@ -66,8 +70,27 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
         return None
     rows = np.arange(0, h, stride)
     cols = np.arange(0, w - 1, stride)
-    stack = np.stack([np.asarray(f)[rows][:, np.concatenate([cols, cols + 1])] for f in frames]).astype(np.float64)
-    m = cols.size
+    pairs = np.concatenate([cols, cols + 1])
+    out = {name: np.empty((rows.size, cols.size)) for name in ("background", "var", "harmonic", "modulation")}
+    # Bands of sampled rows: every quantity is a pixel pair's own, and the whole-grid stack (8 frames
+    # of float64, then complex) was 300 MB of transients at 5 MP.
+    band = max(1, BAND_VALUES // max(1, n * pairs.size))
+    for b0 in range(0, rows.size, band):
+        stack = np.stack([np.asarray(f)[rows[b0:b0 + band]][:, pairs] for f in frames]).astype(np.float64)
+        for name, val in _pair_noise(stack, bins, cols.size).items():
+            out[name][b0:b0 + band] = val
+    if axis == 0:  # back to (rows, cols) of the image
+        out = {k: v.T for k, v in out.items()}
+        rows, cols = cols, rows
+    out = {k: v.ravel() for k, v in out.items()}
+    out.update(dof=2 * len(bins), rows=rows, cols=cols)
+    return out
+
+
+def _pair_noise(stack: np.ndarray, bins: list[int], m: int) -> dict:
+    """:func:`harmonic_noise_samples`' maps of a band of sampled rows: ``stack`` (N, rows, 2 m) holds the
+    first pixels of the pairs, then their neighbours."""
+    n = stack.shape[0]
     delta = 2.0 * np.pi * np.arange(n) / n
     x = {hh: np.tensordot(np.exp(-1j * hh * delta), stack, axes=(0, 0)) for hh in [1, *bins]}
     x1 = x[1]
@@ -75,8 +98,8 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
     with np.errstate(invalid="ignore", divide="ignore"):
         unit = x1 / amp1
     p, q = slice(0, m), slice(m, 2 * m)
-    acc = np.zeros((rows.size, m))
-    harm = np.zeros((rows.size, m))
+    acc = np.zeros((stack.shape[1], m))
+    harm = np.zeros((stack.shape[1], m))
     for hh in bins:
         rot = unit ** hh
         zq = x[hh][:, q] * np.conj(rot[:, q])  # demodulated at q
@@ -84,16 +107,9 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
             pred = zq * (amp1[:, p] / amp1[:, q]) * rot[:, p]  # carried to p
         acc += np.abs(x[hh][:, p] - pred) ** 2
         harm = np.maximum(harm, (2.0 / n) * np.abs(x[hh][:, p]))
-    var = acc / (2.0 * n * len(bins))
     bg = stack.mean(axis=0)
-    out = {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": var, "harmonic": harm,
-           "modulation": (2.0 / n) * amp1[:, p]}
-    if axis == 0:  # back to (rows, cols) of the image
-        out = {k: v.T for k, v in out.items()}
-        rows, cols = cols, rows
-    out = {k: v.ravel() for k, v in out.items()}
-    out.update(dof=2 * len(bins), rows=rows, cols=cols)
-    return out
+    return {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": acc / (2.0 * n * len(bins)), "harmonic": harm,
+            "modulation": (2.0 / n) * amp1[:, p]}
 
 
 def coherent_harmonic(frames, harmonic: int = 2, block: int = 8) -> dict:
