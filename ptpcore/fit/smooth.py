@@ -1776,7 +1776,7 @@ def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, nois
 
 
 def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
-                    stage_sigma_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                    stage_sigma_mm: float = 0.0, scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Predicted 1-sigma maps (mm) of a plain, unweighted ``poly`` LUT.
 
     The variance of the fitted value at each calibrated node, propagated from
@@ -1787,6 +1787,8 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     Built in row blocks from the (possibly spilled) samples: never a whole
     ``(K, H, W)`` array.
 
+    ``scale``: :func:`sigma_scale` of these samples and positions when already known.
+
     Returns
     -------
     sigma_x, sigma_y : (H, W) float32
@@ -1794,7 +1796,8 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     from ptpcore.fit.sigma import _normalised_heights, predicted_poly_sigma_flat
 
     positions = list(range(samples.z.size)) if positions is None else list(positions)
-    scale = sigma_scale(samples, rig, positions)
+    if scale is None:
+        scale = sigma_scale(samples, rig, positions)
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
     # RMS over the calibrated range: evaluate on a fine uniform grid of z.
