@@ -451,26 +451,6 @@ def _binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0)
     return wsum, mean, xbar, ybar
 
 
-def _binned_points_banded(weights: np.ndarray, values: np.ndarray, b: int):
-    """:func:`_binned_points` of a whole map in bands of whole bins, on the tile pool (the same
-    numbers: every bin is its own pixels' sums), without whole-map temporaries."""
-    h, w = weights.shape
-    hc, wc = -(-h // b), -(-w // b)
-    wsum, xbar, ybar = np.empty((hc, wc)), np.empty((hc, wc)), np.empty((hc, wc))
-    mean = np.empty((values.shape[0], hc, wc))
-    band = max(b, (_BLOCK_PIXELS // max(w, 1)) // b * b)
-
-    def one(r0: int) -> None:
-        c0, r1 = r0 // b, min(h, r0 + band)
-        ws, mn, xb, yb = _binned_points(weights[r0:r1], values[:, r0:r1], b, r0)
-        c1 = c0 + ws.shape[0]
-        wsum[c0:c1], mean[:, c0:c1], xbar[c0:c1], ybar[c0:c1] = ws, mn, xb, yb
-
-    for _ in map_in_order(one, range(0, h, band)):
-        pass
-    return wsum, mean, xbar, ybar
-
-
 def _binned_sigma(scale_px: float, b: int, interpolated: bool) -> float:
     """Gaussian sigma (in bins) on a grid of ``b x b`` bins that smooths like ``scale_px`` per pixel.
 
@@ -495,29 +475,19 @@ def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: 
     vals = np.where(weights > 0, values, 0.0)
     stacked = vals.ndim == 3
     vals = vals if stacked else vals[None]
-    wsum, mean, xbar, ybar = _binned_points_banded(weights, vals, b)
-    del vals
+    wsum, mean, xbar, ybar = _binned_points(weights, vals, b)
     hc, wc = wsum.shape
     cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
     cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
     out_c, var_c = _ll_grid(mean, wsum, _binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
                             ybar / scale_px, with_variance)
-    # Each map back to the pixels on its own core (OpenCV's resize releases the GIL).
-    coarse = list(out_c) + ([] if var_c is None else [var_c])
-    out = np.empty((len(coarse), h, w))
-    for _ in map_in_order(lambda i: _upsample(coarse[i], b, h, w, out=out[i]), range(len(coarse))):
-        pass
-    var = None
-    if var_c is not None:
-        var = out[-1]
-        var[~np.isfinite(out[0])] = np.nan
-        out = out[:-1]
+    out = np.stack([_upsample(o, b, h, w) for o in out_c])
+    var = None if var_c is None else np.where(np.isfinite(out[0]), _upsample(var_c, b, h, w), np.nan)
     return (out if stacked else out[0]), var
 
 
-def _upsample(coarse: np.ndarray, b: int, h: int, w: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Bilinear interpolation of a map of ``b x b`` bin centres back to ``(h, w)`` pixels (into ``out``
-    when given).
+def _upsample(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
+    """Bilinear interpolation of a map of ``b x b`` bin centres back to ``(h, w)`` pixels.
 
     Linearly extrapolated half a bin past the outer centres (exact for planes up
     to the image edge); pixels next to a bin without a value take their own bin's value.
@@ -530,12 +500,10 @@ def _upsample(coarse: np.ndarray, b: int, h: int, w: int, out: np.ndarray | None
     p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
     p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
     lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
-    if out is not None:
-        out[...] = lin
-        lin = out
-    rows, cols = np.nonzero(np.isnan(lin))
-    if rows.size:
-        lin[rows, cols] = coarse[rows // b, cols // b]
+    bad = np.isnan(lin)
+    if bad.any():
+        near = np.repeat(np.repeat(coarse, b, axis=0), b, axis=1)[:h, :w]
+        lin[bad] = near[bad]
     return lin
 
 
