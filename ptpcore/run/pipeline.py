@@ -526,7 +526,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     z_all = np.asarray(rig.stage.z_mm, dtype=float)
     if spill is None:
         spill = k_total * shape[0] * shape[1] * 17 > SPILL_BYTES
-    store = None
+    store = spill_maps = None
     if spill:
         from ptpcore.io.fastio import SpillStore
 
@@ -536,10 +536,8 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
                            spill_dir)
         samples = SampleStack(z_all, np.empty((0, *shape), np.float32), np.empty((0, *shape), np.float32),
                               np.full(shape, np.nan), np.full(shape, np.nan), np.empty((0, *shape), np.uint8))
-        # Each row tile writes its rows of the position's maps to the file as soon as it has
-        # stored them (while they are in the cache; positional writes from the tile pool): with
-        # the kernels into a scratch of the tile's rows, else into one set of whole maps.
-        # The noise model's binning gets a thread of its own.
+        # Whole position maps only for the numpy path (_store_position). The noise model's binning
+        # gets a thread of its own.
         spill_maps = None if fused_kernels() else {name: np.empty(shape, dt) for name, (dt, _off) in store.layout.items()}
         writer = ThreadPoolExecutor(1, thread_name_prefix="ptp-noise")
     else:
@@ -557,31 +555,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             # Without a listener the position's maps are scratch: reuse them.
             pos = _decode_sets(rig, k, sets, options, on_position is not None,
                                None if on_position else buffers, source)
-            fine_x = pos.directions["x"].wrapped[-1]
-            fine_y = pos.directions["y"].wrapped[-1]
-            if store is None:
-                dest = {"x": samples.x[k], "y": samples.y[k], "reasons": samples.reasons[k],
-                        "modulation": samples.modulation[k], "background": samples.background[k]}
-            else:
-                dest = spill_maps
-            kern = fused_kernels()
-
-            def rows(r0: int, r1: int, kk=k, pos=pos, fx=fine_x, fy=fine_y, dest=dest) -> None:
-                if kern is None:
-                    _store_rows(rig, pos, fx, fy, samples, dest, r0, r1)
-                    tile = {name: a[r0:r1] for name, a in dest.items()}
-                else:
-                    tile = ({name: a[r0:r1] for name, a in dest.items()} if dest is not None else
-                            {name: np.empty((r1 - r0, shape[1]), dt) for name, (dt, _off) in store.layout.items()})
-                    _store_rows_fused(kern, rig, pos, fx, fy, samples, tile, r0, r1)
-                if store is not None:
-                    for name, a in tile.items():
-                        store.write_rows(name, kk, r0, a)
-
-            run_tiles(rows, *shape, TILE_PIXELS if kern is None else KERNEL_TILE_PIXELS)
-            if store is not None:
-                for name in store.layout:
-                    store.mark_written(name, k)
+            _store_position(rig, pos, k, samples, store, spill_maps)
             for d, part in pos.info.get("noise_samples", {}).items():
                 valid = pos.reasons[part["rows"]][:, part["cols"]].ravel() == 0
                 args = (part["background"], part["var"], valid & np.isfinite(part["var"]), part["dof"])
@@ -632,6 +606,41 @@ def _neighbourhood_noise_dn(rig: Rig, pos: DecodedPosition) -> list[float]:
         n = f.steps_of(d)[-1]
         out.append(sigma_u * b / (np.sqrt(2.0 / n) * f.periods(d)[-1] / (2 * np.pi)))
     return out
+
+
+def _store_position(rig: Rig, pos: DecodedPosition, k: int, samples: SampleStack, store,
+                    spill_maps: dict | None) -> None:
+    """Position ``k``'s samples (``pos``) into ``samples`` (in memory) or the spill ``store``, row tile by row tile.
+
+    Each tile writes its rows to the file as soon as it has stored them (while they are in the
+    cache; positional writes from the tile pool): with the kernels from a scratch of the tile's
+    rows, else from ``spill_maps``, one set of whole maps.
+    """
+    shape = rig.camera.shape
+    fine_x, fine_y = pos.directions["x"].wrapped[-1], pos.directions["y"].wrapped[-1]
+    if store is None:
+        dest = {"x": samples.x[k], "y": samples.y[k], "reasons": samples.reasons[k],
+                "modulation": samples.modulation[k], "background": samples.background[k]}
+    else:
+        dest = spill_maps
+    kern = fused_kernels()
+
+    def rows(r0: int, r1: int) -> None:
+        if kern is None:
+            _store_rows(rig, pos, fine_x, fine_y, samples, dest, r0, r1)
+            tile = {name: a[r0:r1] for name, a in dest.items()}
+        else:
+            tile = ({name: a[r0:r1] for name, a in dest.items()} if dest is not None else
+                    {name: np.empty((r1 - r0, shape[1]), dt) for name, (dt, _off) in store.layout.items()})
+            _store_rows_fused(kern, rig, pos, fine_x, fine_y, samples, tile, r0, r1)
+        if store is not None:
+            for name, a in tile.items():
+                store.write_rows(name, k, r0, a)
+
+    run_tiles(rows, *shape, TILE_PIXELS if kern is None else KERNEL_TILE_PIXELS)
+    if store is not None:
+        for name in store.layout:
+            store.mark_written(name, k)
 
 
 def _store_rows(rig: Rig, pos: DecodedPosition, fine_x: WrappedPhase, fine_y: WrappedPhase,
