@@ -17,7 +17,6 @@ import numpy as np
 from numba import njit
 
 from ptpcore.decode._median_rows import carried_median24_row, median24_row, median25_row
-from ptpcore.decode.median_networks import NET24, NET25, SLOTS24, SLOTS25  # noqa: F401  (the tests' handle)
 
 _OPTS = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 

@@ -31,6 +31,10 @@ ROWS_PER_CHUNK = 16
 wide, 16 rows keep them near 8 MB each; every pixel's median is its own, whatever the chunk)."""
 
 
+FLAG_ROWS = 256
+"""Rows per band of :func:`spatial_outliers`' flagging (a few MB of temporaries at 5 MP)."""
+
+
 def _nanmedian0(stack: np.ndarray) -> np.ndarray:
     """``np.nanmedian(stack, axis=0)`` by one sort (NaN sort last): many times faster."""
     s = np.sort(stack, axis=0)
@@ -181,8 +185,8 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     # local plane does not follow), the robust spread of the residuals is the floor.
     sig = np.maximum(np.asarray(sigma, np.float64), spread)
     flagged = np.empty(coord.shape, bool)
-    for r0 in range(0, coord.shape[0], ROWS_PER_CHUNK * 16):  # row bands: no whole-map temporaries
-        rows = slice(r0, r0 + ROWS_PER_CHUNK * 16)
+    for r0 in range(0, coord.shape[0], FLAG_ROWS):  # row bands: no whole-map temporaries
+        rows = slice(r0, r0 + FLAG_ROWS)
         # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
         scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n[rows], 1))
         with np.errstate(invalid="ignore"):
