@@ -38,8 +38,11 @@ def chunk_shape(shape: tuple, itemsize: int) -> tuple:
 def _encoded(data: np.ndarray, chunks: tuple, start: tuple) -> bytes:
     """One chunk as HDF5's shuffle + deflate filters would store it (edge chunks zero-padded to full size)."""
     src = data[tuple(slice(s, s + c) for s, c in zip(start, chunks))]
-    block = np.zeros(chunks, data.dtype)
-    block[tuple(slice(0, n) for n in src.shape)] = src
+    if src.shape == chunks:
+        block = np.ascontiguousarray(src)
+    else:
+        block = np.zeros(chunks, data.dtype)
+        block[tuple(slice(0, n) for n in src.shape)] = src
     raw = block.reshape(-1).view(np.uint8)
     if data.dtype.itemsize > 1:  # the shuffle filter: byte 0 of every element, then byte 1, ...
         raw = np.ascontiguousarray(raw.reshape(-1, data.dtype.itemsize).T)
