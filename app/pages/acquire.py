@@ -261,9 +261,10 @@ class AcquirePage(StudioPage):
                 st = s.positions[k]
                 self.model.update_position(PositionStatus(k, st.z_mm, "running"))
         elif kind == "frame":
-            _, k, spec, img, overlay, sat_frac = payload
+            _, k, spec, img, overlay, sat_frac, step, camera_shape = payload
             d, j, t, n, big_n = spec
-            self.frame_view.set_map(img, levels=(0, s.rig.camera.max_level), cmap="CET-L1", label="grey level")
+            self.frame_view.set_map(img, levels=(0, s.rig.camera.max_level), cmap="CET-L1", label="grey level",
+                                    step=step, extent=camera_shape)
             self._overlay = overlay
             self._overlay_toggled()
             self.frame_label.setText(

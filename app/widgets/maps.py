@@ -116,16 +116,21 @@ class MapView(pg.GraphicsLayoutWidget):
             plain_axes(self.bar)
         self.data: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
+        self._step = 1  # camera pixels per map pixel along each side (a reduced preview)
+        self._cmap_name: str | None = None  # the colour map last set by name
         self.scene().sigMouseMoved.connect(self._on_moved)
         self.scene().sigMouseClicked.connect(self._on_clicked)
 
     # ---- content ----------------------------------------------------------
     def set_map(self, data: np.ndarray, levels: tuple[float, float] | None = None,
                 cmap: pg.ColorMap | str | None = None, label: str | None = None,
-                keep_view: bool = True) -> tuple[float, float]:
+                keep_view: bool = True, step: int = 1, extent: tuple[int, int] | None = None) -> tuple[float, float]:
         """Show a scalar map; returns the colour levels used.
 
-        ``levels`` default to the 1st-99th percentiles of a subsample.
+        ``levels`` default to the 1st-99th percentiles of a subsample. A reduced map
+        (:func:`ptpcore.evaluate.views.reduce_for_display`) gives its ``step`` (each of its
+        pixels a ``step x step`` block of camera pixels) and ``extent``, the camera shape (H, W)
+        it covers; an overlay set afterwards is taken at the same step.
         """
         data = np.asarray(data)
         if data.ndim != 2:
@@ -134,7 +139,11 @@ class MapView(pg.GraphicsLayoutWidget):
             levels = views.robust_levels(data)
         self.data = data
         if isinstance(cmap, str):
-            cmap = colormap(cmap)
+            # The colour bar rebuilds its lookup table on every setColorMap: not for each live frame.
+            name, cmap = cmap, (None if cmap == self._cmap_name else colormap(cmap))
+            self._cmap_name = name
+        else:
+            self._cmap_name = None
         if self.bar is not None:
             if cmap is not None:
                 self.bar.setColorMap(cmap)
@@ -146,12 +155,14 @@ class MapView(pg.GraphicsLayoutWidget):
         elif cmap is not None:
             self.image.setColorMap(cmap)
         self.image.setImage(data, levels=levels, autoLevels=False)
-        self._place(data.shape, keep_view)
+        self._step = step
+        self._place(data.shape, keep_view, extent)
         return levels
 
     def set_rgba(self, rgba: np.ndarray, keep_view: bool = True) -> None:
         """Show an (H, W, 4) uint8 image as it is (no colour bar)."""
         self.data = None
+        self._step = 1
         self.image.setImage(rgba, autoLevels=False, levels=(0, 255))
         self._place(rgba.shape[:2], keep_view)
 
@@ -161,14 +172,19 @@ class MapView(pg.GraphicsLayoutWidget):
             self.overlay.clear()
             return
         self.overlay.setImage(rgba, autoLevels=False, levels=(0, 255))
-        self.overlay.setRect(QRectF(-0.5, -0.5, rgba.shape[1], rgba.shape[0]))
+        self.overlay.setRect(self._covered(rgba.shape))
 
-    def _place(self, shape, keep_view: bool) -> None:
+    def _covered(self, shape) -> QRectF:
+        """The view rectangle of a map of ``shape`` at the current step (whole blocks of a reduced map)."""
         h, w = shape[:2]
-        self.image.setRect(QRectF(-0.5, -0.5, w, h))
+        return QRectF(-0.5, -0.5, w * self._step, h * self._step)
+
+    def _place(self, shape, keep_view: bool, extent=None) -> None:
+        h, w = extent if extent is not None else shape[:2]
         if self._shape != (h, w) or not keep_view:
             self._shape = (h, w)
             self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
+        self.image.setRect(self._covered(shape))
 
     def clear_map(self) -> None:
         """Show nothing (the data it showed are gone)."""

@@ -23,6 +23,9 @@ __all__ = [
     "reason_text",
     "mask_rgba",
     "subsample",
+    "DISPLAY_PIXELS",
+    "display_step",
+    "reduce_for_display",
     "robust_levels",
     "histogram",
     "PixelSeries",
@@ -128,6 +131,48 @@ def mask_rgba(mask: np.ndarray, colour=(255, 0, 0, 200)) -> np.ndarray:
     out = np.zeros((*mask.shape, 4), np.uint8)
     out[mask] = colour
     return out
+
+
+DISPLAY_PIXELS = 1 << 20
+"""A live preview larger than this (about a megapixel: more than a screen shows) is reduced first."""
+
+
+def display_step(shape, max_pixels: int = DISPLAY_PIXELS) -> int:
+    """The smallest whole reduction factor that brings an image of ``shape`` (H, W, ...) to ``max_pixels``.
+
+    1 for images that are small enough.
+    """
+    h, w = shape[:2]
+    step = 1
+    while -(-h // step) * -(-w // step) > max_pixels:
+        step += 1
+    return step
+
+
+def reduce_for_display(image: np.ndarray, step: int, how: str = "mean") -> np.ndarray:
+    """``image`` (H, W) reduced ``step`` times along each side: (ceil(H/step), ceil(W/step)).
+
+    Block ``(i, j)`` is camera rows ``[i step, (i+1) step)`` and columns ``[j step, (j+1) step)``
+    (the last ones padded by repeating the edge). ``how="mean"``: the block's mean (OpenCV's
+    area interpolation at a whole factor), in the image's dtype; ``how="any"``: whether any
+    pixel of the block is set (a bool mask: one saturated pixel stays visible).
+    A preview of a 5-12 MP frame drawn at full size costs the GUI thread an image
+    pyramid on every frame; reduced here (on the worker thread) it costs nothing.
+    """
+    a = np.asarray(image)
+    if step <= 1:
+        return a
+    if how not in ("mean", "any"):
+        raise ValueError(f"how must be 'mean' or 'any', not {how!r}")
+    h, w = a.shape[:2]
+    hs, ws = -(-h // step), -(-w // step)
+    if (hs * step, ws * step) != (h, w):
+        a = np.pad(a, ((0, hs * step - h), (0, ws * step - w)), mode="edge")
+    if how == "any":
+        return a.reshape(hs, step, ws, step).any(axis=(1, 3))
+    import cv2
+
+    return cv2.resize(a, (ws, hs), interpolation=cv2.INTER_AREA)
 
 
 def subsample(values: np.ndarray, max_samples: int = 250_000) -> np.ndarray:
