@@ -36,7 +36,7 @@ from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
 from .widgets.maps import axis_label
-from .session import FramePreview, LiveSettings, PositionStatus
+from .session import FramePreview, LiveSettings
 from .worker import Job
 
 __all__ = ["LivePanel", "StageAsker", "ReadingDialog", "build_devices", "live_capture_job",
@@ -222,7 +222,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
             truth = camera._base.truth()
 
         def decoded(pos):
-            ctx.emit(("position", PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons), pos))
+            ctx.emit(session.position_message(pos))
 
         samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
                                   on_position=decoded)

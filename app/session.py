@@ -219,6 +219,24 @@ class Session:
         h, w = self.rig.camera.shape
         return 1 if h * w > _DECODED_CACHE_PIXELS else _DECODED_CACHE
 
+    def position_message(self, pos) -> tuple:
+        """The ``("position", status, decoded)`` message of a decoded position for the GUI thread.
+
+        ``decoded`` is the :class:`ptpcore.decode.phase.DecodedPosition` for the Phase maps page,
+        or None: above :data:`_DECODED_CACHE_PIXELS` only the last position's travels (the page
+        keeps one; every level's maps are 617 MB at 5 MP), so that each of the others is let go
+        as soon as its samples are stored rather than queued for the GUI thread.
+        """
+        status = PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons)
+        last = pos.index == self.rig.stage.n_positions - 1
+        return ("position", status, pos if last or self.decoded_cache_size() > 1 else None)
+
+    def release_decoded(self) -> None:
+        """Before a long fit on a big sensor: let the cached decoded positions go (the Phase maps
+        page decodes again when it is shown); below :data:`_DECODED_CACHE_PIXELS` they stay."""
+        if self.decoded_cache_size() == 1:
+            self.decoded.clear()
+
     def cache_decoded(self, decoded) -> None:
         """Keep ``decoded`` (a :class:`ptpcore.decode.phase.DecodedPosition`), dropping the oldest first."""
         self.decoded.pop(decoded.index, None)
@@ -254,6 +272,7 @@ class SessionModel(QObject):
     samplesChanged = Signal()
     positionsChanged = Signal()
     decodedChanged = Signal(int)
+    decodedReleased = Signal()
     lutChanged = Signal()
     compareChanged = Signal()
     exportsChanged = Signal()
@@ -389,6 +408,13 @@ class SessionModel(QObject):
     def set_decoded(self, decoded) -> None:
         self.session.cache_decoded(decoded)
         self.decodedChanged.emit(decoded.index)
+
+    def release_decoded(self) -> None:
+        """Before a long job on a big sensor: the decoded positions' maps go (:meth:`Session.release_decoded`);
+        ``decodedReleased`` tells the pages that hold one."""
+        if self.session.decoded and self.session.decoded_cache_size() == 1:
+            self.session.release_decoded()
+            self.decodedReleased.emit()
 
     def set_samples(self, samples, truth=None) -> None:
         self.version += 1

@@ -1,11 +1,12 @@
 """Where a ``ptp`` command's memory peaks: its stacks at each new resident-memory maximum.
 
     python -m benchmarks.peak_stacks [--step-mb 50] [--top 8] -- calibrate DIR --out F [...]
+    python -m benchmarks.peak_stacks [--step-mb 50] [--top 8] -- wizard DIR [--model auto]
 
 Runs :func:`ptpcore.cli.main` in this process with a sampler thread that reads
 ``/proc/self/statm`` every few milliseconds; whenever the resident size passes the
 previous maximum by ``--step-mb``, it records every thread's stack (innermost frames
-of our code). At the end it prints the largest maxima with their stacks, the last
+of our code); ``wizard`` runs :mod:`benchmarks.wizard_job` (offscreen) instead. At the end it prints the largest maxima with their stacks, the last
 one being the command's peak. A breakdown for finding what to put in row blocks:
 the headline numbers come from :mod:`benchmarks.commands` (a fresh process, the
 child's own ``ru_maxrss``). Linux only (``/proc``).
@@ -31,7 +32,8 @@ def _rss_mb() -> float:
 def _our_stack(frame, depth: int = 7) -> list[str]:
     """The innermost ``depth`` frames that belong to ptpcore, ptp_studio or app."""
     lines = []
-    for fs in reversed(traceback.extract_stack(frame)):
+    # No source lines (lookup_lines=False): reading them from this thread can stall the GUI's.
+    for fs in traceback.StackSummary.extract(traceback.walk_stack(frame), lookup_lines=False):
         if any(p in fs.filename for p in ("ptpcore", "ptp_studio", "/app/")):
             lines.append(f"{fs.filename.split('/')[-2]}/{fs.filename.split('/')[-1]}:{fs.lineno} {fs.name}")
             if len(lines) == depth:
@@ -73,7 +75,12 @@ def main(argv=None) -> int:
     ap.add_argument("ptp", nargs=argparse.REMAINDER, help="the ptp command's arguments (after --)")
     args = ap.parse_args(argv)
     ptp_args = args.ptp[1:] if args.ptp[:1] == ["--"] else args.ptp
-    from ptpcore.cli import main as ptp_main
+    if ptp_args[:1] == ["wizard"]:
+        from benchmarks.wizard_job import main as ptp_main
+
+        ptp_args = ptp_args[1:]
+    else:
+        from ptpcore.cli import main as ptp_main
 
     sampler = PeakSampler(args.step_mb)
     sampler.start()

@@ -69,7 +69,7 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
             src = DatasetSource(write_folder)
 
         def on_position(pos):
-            ctx.emit(("position", PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons), pos))
+            ctx.emit(session.position_message(pos))
 
         samples = collect_samples(TappedSource(src, ctx),
                                   progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
@@ -283,7 +283,8 @@ class AcquirePage(StudioPage):
         elif kind == "position":
             _, status, decoded = payload
             self.model.update_position(status)
-            self.model.set_decoded(decoded)
+            if decoded is not None:
+                self.model.set_decoded(decoded)
 
     def _start_live(self) -> Job | None:
         """Build the devices (GUI thread), then capture and decode in one job."""

@@ -207,6 +207,7 @@ class ComparePage(StudioPage):
                 corrected_samples(samples, rig)
             return compare(fixed, rig, progress=ctx.progress, **args)
 
+        self.model.release_decoded()  # 617 MB of phase maps at 5 MP, not needed by the fit
         job = Job(work, "running the comparison")
         job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
         return self.run_job(job)

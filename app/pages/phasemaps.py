@@ -126,6 +126,7 @@ class PhaseMapsPage(StudioPage):
         self.view.hovered.connect(self._hovered)
         model.samplesChanged.connect(self._fill_choices)
         model.decodedChanged.connect(self._decoded_arrived)
+        model.decodedReleased.connect(self._released)
         model.rigChanged.connect(self._fill_choices)
         self._fill_choices()
 
@@ -150,6 +151,15 @@ class PhaseMapsPage(StudioPage):
         for c in (self.pos_combo, self.dir_combo, self.level_combo):
             c.blockSignals(False)
         self.decoded = None
+
+    def _released(self) -> None:
+        """The session let its decoded maps go (a long job on a big sensor): so does the page;
+        :meth:`on_enter` decodes the chosen position again."""
+        self.decoded = None
+        self._per_direction = (None, {})
+        self.shown = None
+        self.current = None
+        self.view.clear_map()
 
     def dataset_changed(self) -> None:
         # Maps of another dataset's positions: gone (on_enter decodes the chosen one again).
