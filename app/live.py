@@ -225,7 +225,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
             ctx.emit(session.position_message(pos))
 
         samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
-                                  on_position=decoded)
+                                  on_position=decoded, full_positions=session.full_positions())
         from .pages.acquire import check_and_report
 
         check_and_report(samples, ctx)

@@ -223,13 +223,17 @@ class Session:
         """The ``("position", status, decoded)`` message of a decoded position for the GUI thread.
 
         ``decoded`` is the :class:`ptpcore.decode.phase.DecodedPosition` for the Phase maps page,
-        or None: above :data:`_DECODED_CACHE_PIXELS` only the last position's travels (the page
-        keeps one; every level's maps are 617 MB at 5 MP), so that each of the others is let go
-        as soon as its samples are stored rather than queued for the GUI thread.
+        or None above :data:`_DECODED_CACHE_PIXELS`: there every level's maps of one position are
+        617 MB at 5 MP (1.5 GB at 12 MP), so the acquisition decodes none in full
+        (:meth:`full_positions`) and the page decodes the one it shows when it is opened.
         """
         status = PositionStatus.decoded(pos.index, pos.z_mm, pos.reasons)
-        last = pos.index == self.rig.stage.n_positions - 1
-        return ("position", status, pos if last or self.decoded_cache_size() > 1 else None)
+        return ("position", status, pos if self.decoded_cache_size() > 1 else None)
+
+    def full_positions(self):
+        """``collect_samples``'s ``full_positions`` for the wizard: None (every position, for the
+        Phase maps page) on small sensors, none above :data:`_DECODED_CACHE_PIXELS`."""
+        return None if self.decoded_cache_size() > 1 else []
 
     def release_decoded(self) -> None:
         """Before a long fit on a big sensor: let the cached decoded positions go (the Phase maps

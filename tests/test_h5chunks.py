@@ -46,3 +46,38 @@ def test_small_and_empty_arrays_are_written_the_plain_way(tmp_path):
     with h5py.File(tmp_path / "c.h5", "r") as f:
         np.testing.assert_array_equal(f["v"][()], np.arange(5.0))
         assert f["e"].shape == (0, 4)
+
+
+@pytest.mark.parametrize("shape, dtype", [((3, 2, 517, 333), np.float32), ((3, 517, 333), np.uint16)])
+def test_a_slab_is_stored_as_h5py_stores_it(tmp_path, shape, dtype):
+    """write_compressed(dset, i, x) leaves the same chunks as ``dset[i] = x`` (byte for byte where the
+    chunk is whole: a ragged edge chunk's padding is zeros here, the fill value in h5py's); unwritten
+    slabs keep the fill."""
+    rng = np.random.default_rng(2)
+    data = (rng.standard_normal(shape) * 100).astype(dtype)
+    chunks = (1,) * (len(shape) - 2) + (50, shape[-1])  # ragged last chunk of rows
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        ours, theirs = (f.create_dataset(n, shape, dtype, chunks=chunks, compression="gzip",
+                                         compression_opts=h5chunks.GZIP_LEVEL, shuffle=True, fillvalue=7)
+                        for n in ("ours", "theirs"))
+        for i in range(shape[0] - 1):
+            h5chunks.write_compressed(ours, i, data[i])
+            theirs[i] = data[i]
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        np.testing.assert_array_equal(f["ours"][:-1], data[:-1])
+        assert (f["ours"][-1] == 7).all()
+        a, b = f["ours"].id, f["theirs"].id
+        assert a.get_num_chunks() == b.get_num_chunks()
+        for n in range(a.get_num_chunks()):
+            ca, cb = a.get_chunk_info(n), b.get_chunk_info(n)
+            assert ca.chunk_offset == cb.chunk_offset
+            if ca.chunk_offset[-2] + chunks[-2] <= shape[-2]:
+                assert a.read_direct_chunk(ca.chunk_offset)[1] == b.read_direct_chunk(cb.chunk_offset)[1]
+
+
+def test_other_datasets_are_written_the_plain_way(tmp_path):
+    data = np.arange(60.0).reshape(6, 10)
+    with h5py.File(tmp_path / "p.h5", "w") as f:
+        d = f.create_dataset("lzf", (2, 6, 10), np.float64, chunks=(1, 3, 10), compression="lzf")
+        h5chunks.write_compressed(d, 1, data)
+        np.testing.assert_array_equal(d[1], data)

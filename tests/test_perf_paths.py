@@ -498,3 +498,27 @@ def test_numba_poly_fit_equals_the_numpy_path(positions, kernels, numpy_path):
     for name in ("x", "y", "rms_x", "rms_y", "loo_x", "loo_y", "pixel_z_min", "pixel_z_max", "valid",
                  "n_positions"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name), err_msg=name)
+
+
+def test_frames_tapped_and_full_maps_for_chosen_positions(tmp_path, small_rig):
+    """on_frame sees every frame of the dataset reader's sets; with full_positions only those
+    positions reach on_position with every level's maps; the samples do not change."""
+    src = _dataset(tmp_path, small_rig, ".tif")
+    plain = collect_samples(src, spill=True, spill_dir=tmp_path)
+    frames, full = [], {}
+
+    def on_frame(k, spec, img):
+        assert img.shape == small_rig.rig.camera.shape
+        frames.append((k, spec[0], spec[1], spec[3]))
+
+    def on_position(pos):  # whether a coarse level kept its background map
+        full[pos.index] = pos.directions["x"].wrapped[0].background is not None
+
+    tapped = collect_samples(src, spill=True, spill_dir=tmp_path, on_frame=on_frame, on_position=on_position,
+                             full_positions=[5])
+    per_position = small_rig.rig.fringes.frames_per_position
+    assert len(frames) == 6 * per_position and len(set(frames)) == len(frames)
+    assert [k for k, *_ in frames] == sorted(k for k, *_ in frames)  # position by position
+    assert full == {0: False, 1: False, 2: False, 3: False, 4: False, 5: True}
+    for name in ("x", "y", "reasons", "modulation", "background"):
+        np.testing.assert_array_equal(getattr(tapped, name), getattr(plain, name), err_msg=name)

@@ -19,33 +19,25 @@ from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["AcquirePage", "TappedSource", "acquisition_job"]
+__all__ = ["AcquirePage", "acquisition_job", "frame_tap"]
 
-class TappedSource:
-    """A frame source that lets frames through and shows some of them to the GUI.
+def frame_tap(ctx, max_level: int, interval: float = 0.12):
+    """The ``on_frame`` of :func:`ptpcore.run.collect_samples` for a job: says which position
+    started (``("start", k)``), lets the job be cancelled between frames and shows at most one
+    frame every ``interval`` seconds (:class:`~ptp_studio.session.FramePreview`, reduced on the
+    worker thread). The frames come from the engine's own readers (a dataset folder's: threaded,
+    buffers reused), as ``ptp calibrate`` reads them."""
+    preview = FramePreview(ctx, max_level, interval)
+    started = [None]
 
-    At most one frame every ``interval`` seconds is copied and sent, with its
-    saturation overlay computed here on the worker thread.
-    """
+    def on_frame(k: int, spec, img) -> None:
+        if started[0] != k:
+            started[0] = k
+            ctx.emit(("start", k))
+        ctx.check()
+        preview(k, spec, img)
 
-    def __init__(self, source, ctx, interval: float = 0.12):
-        self.source = source
-        self.rig = source.rig
-        self.ctx = ctx
-        self.preview = FramePreview(ctx, source.rig.camera.max_level, interval)
-
-    def frames(self, k: int):
-        self.ctx.emit(("start", k))
-        for spec, img in self.source.frames(k):
-            self.ctx.check()
-            self.preview(k, spec, img)
-            yield spec, img
-
-    def __getattr__(self, name: str):
-        # Gray-code and reference frames (ptp-dataset/2) straight from the source, when it has them.
-        if name in ("gray_frames", "reference_frames"):
-            return getattr(self.source, name)
-        raise AttributeError(name)
+    return on_frame
 
 
 def acquisition_job(session, write_folder: Path | None = None) -> Job:
@@ -71,9 +63,9 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
         def on_position(pos):
             ctx.emit(session.position_message(pos))
 
-        samples = collect_samples(TappedSource(src, ctx),
-                                  progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
-                                  on_position=on_position)
+        samples = collect_samples(src, progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
+                                  on_position=on_position, on_frame=frame_tap(ctx, rig.camera.max_level),
+                                  full_positions=session.full_positions())
         check_and_report(samples, ctx)
         ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
         truth = session_truth(kind, rig, settings, seed, folder if kind == "folder" else write_folder)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ptpcore.parallel import map_in_order
 
-__all__ = ["create_compressed", "chunk_shape", "GZIP_LEVEL"]
+__all__ = ["create_compressed", "write_compressed", "chunk_shape", "GZIP_LEVEL"]
 
 GZIP_LEVEL = 1
 CHUNK_BYTES = 1 << 20
@@ -78,3 +78,33 @@ def create_compressed(group, name: str, data):
         for start, payload in zip(batch, map_in_order(lambda s: _encoded(data, chunks, s), batch)):
             dset.id.write_direct_chunk(start, payload)
     return dset
+
+
+def write_compressed(dset, index: int, data) -> None:
+    """``dset[index] = data``, its chunks compressed on the tile pool.
+
+    For a dataset written one leading index at a time (a position of a ``ptp-decoded/1``
+    file): chunked ``(1, ...)`` along its first axis, gzip at :data:`GZIP_LEVEL` with the
+    shuffle filter. Any other dataset is written the plain way.
+
+    Parameters
+    ----------
+    dset : h5py.Dataset
+    index : int
+        Along the first axis.
+    data : array_like
+        Shape ``dset.shape[1:]``, converted to ``dset.dtype``.
+    """
+    data = np.ascontiguousarray(data, dtype=dset.dtype)
+    ours = (dset.chunks is not None and dset.chunks[0] == 1 and dset.compression == "gzip"
+            and dset.compression_opts == GZIP_LEVEL and dset.shuffle and not dset.fletcher32
+            and dset.scaleoffset is None and data.ndim >= 2)
+    if not ours or data.shape != dset.shape[1:]:
+        dset[index] = data
+        return
+    chunks = dset.chunks[1:]
+    starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
+    for b in range(0, len(starts), BATCH):
+        batch = starts[b:b + BATCH]
+        for start, payload in zip(batch, map_in_order(lambda s: _encoded(data, chunks, s), batch)):
+            dset.id.write_direct_chunk((index, *start), payload)

@@ -490,7 +490,7 @@ def world_xy(rig: Rig, pos: DecodedPosition) -> tuple[np.ndarray, np.ndarray]:
 
 def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positions=None,
                     progress: Progress | None = None, on_position=None, spill: bool | None = None,
-                    spill_dir=None) -> SampleStack:
+                    spill_dir=None, on_frame=None, full_positions=None) -> SampleStack:
     """Decode every position and gather each pixel's samples.
 
     Parameters
@@ -505,7 +505,18 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     on_position : callable, optional
         ``on_position(decoded)`` after each position (e.g. a GUI preview); the
         decoded position then carries background and noise maps of every
-        level (otherwise only of the finest, which is all the samples need).
+        level (otherwise only of the finest, which is all the samples need),
+        in arrays of its own. Call it on the calling thread; it must not keep
+        the maps of a position outside ``full_positions`` (they are reused).
+    full_positions : collection of int, optional
+        With ``on_position``: only these positions' maps are complete and their
+        own (default: every position's). A big sensor's GUI that shows one
+        position's phase maps needs one set, not one per position (617 MB at 5 MP).
+    on_frame : callable, optional
+        ``on_frame(k, (d, j, period, n, N), image (H, W))`` for every frame of
+        position ``k`` once its set (the N phase steps of one period) is read
+        (e.g. a live preview); may raise to cancel. The image is the reader's
+        buffer: copy what is kept.
     spill : bool, optional
         Keep the ``(K, H, W)`` arrays in a temporary file (``numpy.memmap``)
         instead of memory. Default: when they would exceed :data:`SPILL_BYTES`.
@@ -552,9 +563,11 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
             if progress:
                 progress(i / len(todo), f"decoding position {k + 1}/{k_total} (z = {rig.stage.z_mm[k]:g} mm)")
             sets = reader.sets_of(k) if reader else _source_sets(source, k)
+            if on_frame is not None:
+                sets = _tapped(sets, rig, k, on_frame)
             # Without a listener the position's maps are scratch: reuse them.
-            pos = _decode_sets(rig, k, sets, options, on_position is not None,
-                               None if on_position else buffers, source)
+            full = on_position is not None and (full_positions is None or k in full_positions)
+            pos = _decode_sets(rig, k, sets, options, full, None if full else buffers, source)
             _store_position(rig, pos, k, samples, store, spill_maps)
             for d, part in pos.info.get("noise_samples", {}).items():
                 valid = pos.reasons[part["rows"]][:, part["cols"]].ravel() == 0
@@ -588,6 +601,16 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     if progress:
         progress(1.0, "decoding done")
     return samples
+
+
+def _tapped(sets, rig: Rig, k: int, on_frame):
+    """The sets of position ``k`` unchanged, each frame shown to ``on_frame`` first."""
+    f = rig.fringes
+    for (d, j), stack in sets:
+        period = f.periods(d)[j]
+        for n in range(len(stack)):
+            on_frame(k, (d, j, period, n, len(stack)), stack[n])
+        yield (d, j), stack
 
 
 def _neighbourhood_noise_dn(rig: Rig, pos: DecodedPosition) -> list[float]:

@@ -21,8 +21,8 @@ def test_decoded_positions_kept(size, kept):
 
 @pytest.mark.parametrize("size, big", [((320, 240), False), ((2448, 2048), True)])
 def test_only_the_last_position_travels_and_a_fit_lets_it_go(qtbot, size, big):
-    """Above 2 MP the acquisition sends the Phase maps page only the last position's maps, and a
-    fit starting releases them (the page too); small sensors keep everything."""
+    """Above 2 MP the acquisition decodes no position's maps in full nor sends any (the Phase maps
+    page decodes the one it shows), and a fit starting releases a cached one; small sensors keep them."""
     import numpy as np
 
     from ptp_studio.session import Session, SessionModel
@@ -34,10 +34,11 @@ def test_only_the_last_position_travels_and_a_fit_lets_it_go(qtbot, size, big):
     assert [m[0] for m in sent] == ["position"] * n
     assert [m[1].index for m in sent] == list(range(n)) and all(m[1].state == "done" for m in sent)
     travelled = [m[1].index for m in sent if m[2] is not None]
-    assert travelled == ([n - 1] if big else list(range(n)))
+    assert travelled == ([] if big else list(range(n)))
+    assert s.full_positions() == ([] if big else None)
 
     model = SessionModel(s)
-    model.set_decoded(sent[-1][2])
+    model.set_decoded(SimpleNamespace(index=n - 1))  # as the Phase maps page's own decode leaves it
     with qtbot.waitSignal(model.decodedReleased, timeout=1000, raising=False) as blocker:
         model.release_decoded()
     assert blocker.signal_triggered == big
