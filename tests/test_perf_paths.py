@@ -522,3 +522,31 @@ def test_frames_tapped_and_full_maps_for_chosen_positions(tmp_path, small_rig):
     assert full == {0: False, 1: False, 2: False, 3: False, 4: False, 5: True}
     for name in ("x", "y", "reasons", "modulation", "background"):
         np.testing.assert_array_equal(getattr(tapped, name), getattr(plain, name), err_msg=name)
+
+
+@pytest.mark.parametrize("spatial", [True, False])
+def test_positions_decoded_in_a_row_equal_one_by_one(tmp_path, small_rig, spatial):
+    """decode_positions (one reader, reused maps; ptp decode) gives decode_position's coordinates and
+    reasons, without the spatial flags when asked (ptp decode checks each direction alone)."""
+    from ptpcore.run.pipeline import decode_positions
+
+    src = _dataset(tmp_path, small_rig, ".tif")
+    rig = src.rig
+    t, n = rig.fringes.periods("x")[-1], rig.fringes.steps_of("x")[-1]
+    for step, change in ((0, 40), (1, -40)):  # a 2 x 2 px blemish at position 1: spatial outliers there
+        path = tmp_path / rig.image_name(1, "x", t, step, n)
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        img[60:62, 80:82] = np.clip(img[60:62, 80:82].astype(int) + change, 0, 255)
+        cv2.imwrite(str(path), img, [cv2.IMWRITE_TIFF_COMPRESSION, 1])
+    src = DatasetSource(tmp_path)
+    assert (decode_position(src, 1).reasons[60:62, 80:82] & Reason.SPATIAL).all()
+    seen = []
+    for pos in decode_positions(src, [4, 1, 2], spatial=spatial):
+        ref = decode_position(src, pos.index)
+        want = ref.reasons if spatial else ref.reasons & np.uint8(~Reason.SPATIAL & 0xFF)
+        np.testing.assert_array_equal(pos.reasons, want)
+        for d in "xy":
+            np.testing.assert_array_equal(pos.directions[d].coord, ref.directions[d].coord)
+            np.testing.assert_array_equal(pos.directions[d].wrapped[-1].background, ref.directions[d].wrapped[-1].background)
+        seen.append(pos.index)
+    assert seen == [4, 1, 2]

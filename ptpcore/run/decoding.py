@@ -11,6 +11,8 @@ and a decode that keeps no pixel fails.
 
 from __future__ import annotations
 
+import contextlib
+
 import warnings
 from dataclasses import dataclass, field
 from typing import Callable
@@ -195,32 +197,35 @@ def _position_maps(rig, pos, per_direction: dict, run: DecodeRun, min_fraction: 
 
 def _decode_into(source, todo, options, min_fraction, check_conventions, progress, sink) -> DecodeRun:
     """Decode ``todo`` position by position into ``sink`` (``sink.write(i, u, v, mod, bg, reasons)``)."""
-    from ptpcore.run.pipeline import decode_position
+    from ptpcore.run.pipeline import decode_positions
 
     rig = source.rig
     run, tally, checked = DecodeRun(None), _ReasonTally(), False
     present = ["xy".index(d) for d in rig.fringes.directions]
-    for i, k in enumerate(todo):
-        if progress:
-            progress(i / len(todo), f"decoding position {k + 1}/{rig.stage.n_positions}")
-        pos = decode_position(source, k, options)
-        maps = _position_maps(rig, pos, direction_reasons(rig, pos, options), run, min_fraction)
-        tally.add(maps[4][present])
-        if check_conventions and (not checked or any(run.valid_fraction[(k, d)] < min_fraction
-                                                     for d in rig.fringes.directions)):
-            if not checked:
-                harmonics = _harmonics_warning(rig, pos)
-                if harmonics:
-                    run.warnings.append(f"position {k} (z = {rig.stage.z_mm[k]:g} mm): {harmonics}")
-            checked = True
-            findings = convention_check(rig, pos, options)
-            if findings:
-                raise DatasetError("; ".join(fd.message(str(getattr(source, "folder", "dataset")) + "/rig.toml")
-                                             for fd in findings))
-        del pos
-        sink.write(i, *maps)
-        del maps
-        release_free_memory()  # the position's transients (see ptpcore.parallel)
+    # direction_reasons runs the spatial check of each direction alone: the decoder's own check (both
+    # directions' flags together; only the positions' combined reasons, not written here) would be lost work.
+    with contextlib.closing(decode_positions(source, todo, options, spatial=False)) as decoded:
+        for i, k in enumerate(todo):
+            if progress:
+                progress(i / len(todo), f"decoding position {k + 1}/{rig.stage.n_positions}")
+            pos = next(decoded)
+            maps = _position_maps(rig, pos, direction_reasons(rig, pos, options), run, min_fraction)
+            tally.add(maps[4][present])
+            if check_conventions and (not checked or any(run.valid_fraction[(k, d)] < min_fraction
+                                                         for d in rig.fringes.directions)):
+                if not checked:
+                    harmonics = _harmonics_warning(rig, pos)
+                    if harmonics:
+                        run.warnings.append(f"position {k} (z = {rig.stage.z_mm[k]:g} mm): {harmonics}")
+                checked = True
+                findings = convention_check(rig, pos, options)
+                if findings:
+                    raise DatasetError("; ".join(fd.message(str(getattr(source, "folder", "dataset")) + "/rig.toml")
+                                                 for fd in findings))
+            del pos
+            sink.write(i, *maps)
+            del maps
+            release_free_memory()  # the position's transients (see ptpcore.parallel)
     if not tally.any_valid:
         name, frac = tally.dominant()
         raise DatasetError(f"no pixel is valid in any decoded position and direction; dominant reason: {name}"

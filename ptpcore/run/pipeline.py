@@ -30,6 +30,7 @@ from __future__ import annotations
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -477,6 +478,42 @@ def decode_position(source, k: int, options: DecodeOptions = DecodeOptions()) ->
         finally:
             reader.close()
     return _decode_sets(rig, k, _source_sets(source, k), options, True, source=source)
+
+
+def decode_positions(source, positions, options: DecodeOptions = DecodeOptions(), *, spatial: bool = True):
+    """Decode positions one after the other, as ``ptp decode`` needs them: a generator.
+
+    One reader for all of them (a dataset folder's is read ahead across positions), and
+    every position decoded into the same maps: the background of the finest level only
+    (what the samples and a ``ptp-decoded/1`` file keep; :func:`decode_position` has every
+    level's). Each yielded position is valid until the next is asked for.
+
+    Parameters
+    ----------
+    source : FrameSource
+    positions : sequence of int
+    options : DecodeOptions
+    spatial : bool
+        False: no spatial-consistency flags in the positions' ``reasons`` (a caller that
+        classifies each direction alone, as ``ptp decode`` does, runs its own check).
+
+    Yields
+    ------
+    DecodedPosition
+    """
+    rig: Rig = source.rig
+    if not spatial:
+        options = replace(options, spatial_k=None)
+    todo = list(positions)
+    reader = _DatasetReader(source, todo) if _is_dataset(source) and todo else None
+    buffers: dict = {}
+    try:
+        for k in todo:
+            sets = reader.sets_of(k) if reader else _source_sets(source, k)
+            yield _decode_sets(rig, k, sets, options, False, buffers, source)
+    finally:
+        if reader:
+            reader.close()
 
 
 def world_xy(rig: Rig, pos: DecodedPosition) -> tuple[np.ndarray, np.ndarray]:
