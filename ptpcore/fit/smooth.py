@@ -884,7 +884,17 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     fits.load("own_var", "own_diag")
     noise = _smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
-    sig, loo, merr = _uncertainty(setup, gfit, leak_w, fits, valid, noise, stage_var, uncertainty, report)
+    # What only the uncertainty needs goes in with it (released there once used); the LUT's
+    # coefficients wait in a file while its leave-one-out runs: 440 MB at 5 MP and degree 3.
+    inputs = {"leak_w": leak_w, "noise": noise}
+    leak_w = noise = coef = None
+    parked = _RowSpill.park(fits.fit) if fits.fit[0, 0].size > _SPILL_FITS_PIXELS else None
+    if parked is not None:
+        fits.fit = None
+    sig, loo, merr = _uncertainty(setup, gfit, inputs, fits, valid, stage_var, uncertainty, report)
+    if parked is not None:
+        fits.fit = parked.load()
+    coef = {"x": fits.fit[0], "y": fits.fit[1]}
     lut = _assemble_lut(degree, (zc, zs), z, coef, valid, fits, q, loo, sig, rig_toml, scale)
     report(1.0, "smooth LUT fitted")
     return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
@@ -1006,6 +1016,13 @@ class _RowSpill:
             with self._lock:
                 self._file.seek(plane * self._plane + r0 * self._row_bytes)
                 self._file.write(data.data.cast("B"))
+
+    @classmethod
+    def park(cls, array: np.ndarray) -> "_RowSpill":
+        """A copy of a float64 ``(*lead, H, W)`` array in a new spill (:meth:`load` brings it back)."""
+        spill = cls(array.shape)
+        spill[(slice(None),) * (array.ndim - 2) + (slice(0, array.shape[-2]),)] = array
+        return spill
 
     def load(self) -> np.ndarray:
         """The whole array, read into memory; the file is closed."""
@@ -1377,15 +1394,16 @@ class _ModelError:
     limit_mm: float
 
 
-def _uncertainty(setup: _LooSetup, gfit, leak_w: np.ndarray, fits: "_PixelFits", valid: np.ndarray,
-                 noise: np.ndarray, stage_var: dict, full: bool, report):
+def _uncertainty(setup: _LooSetup, gfit, inputs: dict, fits: "_PixelFits", valid: np.ndarray,
+                 stage_var: dict, full: bool, report):
     """The smooth LUT's sigma maps, leave-one-out maps and model-error term.
 
-    ``sigma^2 = noise^2 + stage + leak + model``: the propagated phase noise (``noise``,
+    ``sigma^2 = noise^2 + stage + leak + model``: the propagated phase noise (``inputs["noise"]``,
     (H, W) mm), the stage readings' term (``stage_var``, :func:`_stage_variance`), the global
-    model's error passed on by the smoothing (:func:`_global_leak_variance`) and the model
-    error the leave-one-out resolves (:func:`_leave_one_out`). Without ``full`` only the
-    first two, and NaN leave-one-out maps.
+    model's error passed on by the smoothing (:func:`_global_leak_variance`, with the smoothing
+    weights ``inputs["leak_w"]``) and the model error the leave-one-out resolves
+    (:func:`_leave_one_out`). Without ``full`` only the first two, and NaN leave-one-out maps.
+    ``inputs`` is emptied once its maps are used (not held through the leave-one-out).
 
     Returns
     -------
@@ -1395,9 +1413,13 @@ def _uncertainty(setup: _LooSetup, gfit, leak_w: np.ndarray, fits: "_PixelFits",
     leak = {}
     if full:
         report(0.91, "propagating the global model's uncertainty")
-        leak = _global_leak_variance(gfit, s.rays, leak_w, s.scale, s.cv_bin, fits.pz_min, fits.pz_max, s.z_norm)
+        leak = _global_leak_variance(gfit, s.rays, inputs["leak_w"], s.scale, s.cv_bin, fits.pz_min, fits.pz_max,
+                                     s.z_norm)
+    noise = inputs.pop("noise")
+    inputs.clear()
     fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
                + np.nan_to_num(leak.get(a, 0.0), nan=0.0) for a in "xy"}
+    del noise, leak
     if full:
         loo, merr = _leave_one_out(s, valid, fit_var, lambda f, m: report(0.92 + 0.07 * f, m))
     else:
@@ -1438,11 +1460,11 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
     h, w = s.samples.shape
     k_all = s.z.size
     loo_sq = {a: np.zeros((h, w)) for a in "xy"}
-    count = np.zeros((h, w))
+    count = np.zeros((h, w), np.int32)  # counts: exact in any type (the float64 sums saw the same values)
     # Per pixel and axis: sums of x and x^2, x a sample's excess over the noise (_accumulate_left_out).
     excess = {a: np.zeros((h, w)) for a in "xy"}
     excess_sq = {a: np.zeros((h, w)) for a in "xy"}
-    n_model = np.zeros((h, w))
+    n_model = np.zeros((h, w), np.int32)
     # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
     grow = k_all / max(k_all - 1, 1)
     report(0.0, "estimating each sample's noise from its pixel's own fit")
