@@ -1017,6 +1017,21 @@ class _RowSpill:
                 self._file.seek(plane * self._plane + r0 * self._row_bytes)
                 self._file.write(data.data.cast("B"))
 
+    def plane(self, index: int) -> np.ndarray:
+        """One ``(H, W)`` plane (flat index over the leading axes), read into memory."""
+        return self._read(int(index) * self._plane, np.empty(self.shape[-2:]))
+
+    def _read(self, offset: int, out: np.ndarray) -> np.ndarray:
+        buf, done = out.data.cast("B"), 0
+        with self._lock:
+            self._file.seek(offset)
+            while done < len(buf):
+                n = self._file.readinto(buf[done:])
+                if not n:
+                    raise OSError("the pixel fits' temporary file ended early")
+                done += n
+        return out
+
     @classmethod
     def park(cls, array: np.ndarray) -> "_RowSpill":
         """A copy of a float64 ``(*lead, H, W)`` array in a new spill (:meth:`load` brings it back)."""
@@ -1026,16 +1041,8 @@ class _RowSpill:
 
     def load(self) -> np.ndarray:
         """The whole array, read into memory; the file is closed."""
-        out = np.empty(self.shape)
-        buf, done = out.data.cast("B"), 0
-        with self._lock:
-            self._file.seek(0)
-            while done < len(buf):
-                n = self._file.readinto(buf[done:])
-                if not n:
-                    raise OSError("the pixel fits' temporary file ended early")
-                done += n
-            self.close()
+        out = self._read(0, np.empty(self.shape))
+        self.close()
         return out
 
 
@@ -1277,28 +1284,34 @@ class _SmoothPass:
         return float(self.scales[best]), score_, excess_var
 
 
-def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float) -> tuple[dict, tuple]:
+def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: float, zs: float,
+                           variance: bool = True) -> tuple[dict, tuple]:
     """The pixel fits smoothed at ``scale`` plus the global ray: ``{"x", "y"}`` (D+1, H, W) coefficients in t,
     and the global rays used.
 
     Smooths ``fits.fit`` and ``fits.var`` in place (the final smoothing runs on bins of at
     most the cross-validation's side and at most a quarter of the scale); spilled maps are
-    brought back first. ``rays`` is a callable returning the global rays
+    brought back first. Without ``variance`` (the leave-one-out refits: coefficients only)
+    ``fits.var`` only weights the smoothing, read a plane at a time, and is not smoothed.
+    ``rays`` is a callable returning the global rays
     (:func:`_global_rays`) or the rays themselves: a callable is called after the
     smoothing, so that the rays are not held during it (160 MB at 5 MP).
     """
-    fits.load("fit", "var")
+    fits.load("fit", *(("var",) if variance else ()))
     fit, var = fits.fit, fits.var
-    d1, h, w = var.shape
+    d1, h, w = fit.shape[1:]
     fb = 1
     while fb * 2 <= b and fb * 2 * 4 <= scale:
         fb *= 2
     for j in range(d1):
-        vj = var[j]
+        vj = var.plane(j) if isinstance(var, _RowSpill) else var[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
-        fit[:, j], var[j] = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, True)
-        del wj
+        del vj
+        fit[:, j], smoothed_var = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, variance)
+        if variance:
+            var[j] = smoothed_var
+        del wj, smoothed_var
     coef = {"x": fit[0], "y": fit[1]}
     rays = rays() if callable(rays) else rays
     gx0, gy0, gsx, gsy = rays
@@ -1490,7 +1503,7 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
     run = _SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
                       s.cv_bin, s.level_bias, s.footprint, cross_validate=False, own=False)
     run.fit_and_cross_validate_fine(lambda f, m: None)
-    return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm)[0]
+    return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm, variance=False)[0]
 
 
 def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fit_var: dict, loo_sq: dict,
