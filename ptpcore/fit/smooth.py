@@ -1750,8 +1750,11 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
     fb = 1
     while fb * 2 <= b and fb * 2 * 4 <= scale:
         fb *= 2
-    with np.errstate(all="ignore"):
-        mom = _range_moments(((pz_min - zc) / zs).astype(np.float64), ((pz_max - zc) / zs).astype(np.float64), 2)
+    def moments(r0, r1):  # of the pixels' calibrated ranges, rows [r0, r1) (not held whole: 120 MB at 5 MP)
+        with np.errstate(all="ignore"):
+            return _range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
+                                  ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
+
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
     # The change of a pinhole's rays is smooth over the image: computed on a grid of every
     # LEAK_GRID_PX-th pixel and interpolated (cubic).
@@ -1770,10 +1773,12 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
                 c[0, 2 * i + ai], c[1, 2 * i + ai] = d0 + d1 * zc, d1 * zs  # the change as coefficients in t
         for j in range(2):
             c[j] -= _smooth_binned(np.nan_to_num(c[j]), weights[j], scale, fb, False)[0]
-        for i in range(len(group)):
-            for ai, a in enumerate("xy"):
-                l0, l1 = c[0, 2 * i + ai], c[1, 2 * i + ai]
-                out[a] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
+        for r0, r1 in _row_blocks(h, w):
+            mom = moments(r0, r1)
+            for i in range(len(group)):
+                for ai, a in enumerate("xy"):
+                    l0, l1 = c[0, 2 * i + ai, r0:r1], c[1, 2 * i + ai, r0:r1]
+                    out[a][r0:r1] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
         del c
     return out
 
