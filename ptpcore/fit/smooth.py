@@ -888,12 +888,9 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     # coefficients wait in a file while its leave-one-out runs: 440 MB at 5 MP and degree 3.
     inputs = {"leak_w": leak_w, "noise": noise}
     leak_w = noise = coef = None
-    parked = _RowSpill.park(fits.fit) if fits.fit[0, 0].size > _SPILL_FITS_PIXELS else None
-    if parked is not None:
-        fits.fit = None
+    fits.park("fit")
     sig, loo, merr = _uncertainty(setup, gfit, inputs, fits, valid, stage_var, uncertainty, report)
-    if parked is not None:
-        fits.fit = parked.load()
+    fits.load("fit")
     coef = {"x": fits.fit[0], "y": fits.fit[1]}
     lut = _assemble_lut(degree, (zc, zs), z, coef, valid, fits, q, loo, sig, rig_toml, scale)
     report(1.0, "smooth LUT fitted")
@@ -959,6 +956,12 @@ class _PixelFits:
         return cls(big((2, d1, h, w)), big((d1, h, w)), np.empty((h, w), np.int32),
                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)) if own else None,
                    big((h, w)) if own else None, big((h, w)) if own else None)
+
+    def park(self, name: str) -> None:
+        """Map ``name`` to a temporary file until :meth:`load`, above :data:`_SPILL_FITS_PIXELS` pixels."""
+        a = getattr(self, name)
+        if isinstance(a, np.ndarray) and a.shape[-2] * a.shape[-1] > _SPILL_FITS_PIXELS:
+            setattr(self, name, _RowSpill.park(a))
 
     def load(self, *names: str) -> None:
         """Bring the spilled maps ``names`` back into memory (no-op for maps already there)."""
