@@ -83,7 +83,7 @@ class FramePreview:
             self._last = now
             sat = frame >= self.max_level
             step = display_step(frame.shape)
-            image = reduce_for_display(frame, step).copy() if step > 1 else frame.copy()
+            image = reduce_for_display(frame, step) if step > 1 else frame.copy()  # a new array, or the reader's buffer copied
             overlay = mask_rgba(reduce_for_display(sat, step, "any"), SATURATION_RGBA)
             self.ctx.emit(("frame", k, spec, image, overlay, float(sat.mean()), step, frame.shape[:2]))
 
