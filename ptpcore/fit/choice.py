@@ -428,6 +428,7 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
     except ValueError as exc:  # too few positions to hold any out: the simplest model, and why
         choice = ModelChoice([CandidateError("poly", 1, np.nan, np.nan, np.nan, "not judged")], 0, [],
                              np.nan, 0, f"poly degree 1 without a choice: {exc}")
+    release_free_memory()  # the candidates' freed heap, before the final fit maps its own arrays
     lut = fit_model(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
                     stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
     lut.extra_attrs["chosen_by"] = "held-out positions"
