@@ -72,12 +72,17 @@ def create_compressed(group, name: str, data):
     chunks = chunk_shape(data.shape, data.dtype.itemsize)
     dset = group.create_dataset(name, shape=data.shape, dtype=data.dtype, chunks=chunks, compression="gzip",
                                 compression_opts=GZIP_LEVEL, shuffle=True)
+    _write_chunks(dset, data, chunks, ())
+    return dset
+
+
+def _write_chunks(dset, data: np.ndarray, chunks: tuple, lead: tuple) -> None:
+    """Every chunk of ``data`` compressed on the tile pool, in batches, stored at ``lead + its start``."""
     starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
     for b in range(0, len(starts), BATCH):
         batch = starts[b:b + BATCH]
         for start, payload in zip(batch, map_in_order(lambda s: _encoded(data, chunks, s), batch)):
-            dset.id.write_direct_chunk(start, payload)
-    return dset
+            dset.id.write_direct_chunk(lead + start, payload)
 
 
 def write_compressed(dset, index: int, data) -> None:
@@ -102,9 +107,4 @@ def write_compressed(dset, index: int, data) -> None:
     if not ours or data.shape != dset.shape[1:]:
         dset[index] = data
         return
-    chunks = dset.chunks[1:]
-    starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
-    for b in range(0, len(starts), BATCH):
-        batch = starts[b:b + BATCH]
-        for start, payload in zip(batch, map_in_order(lambda s: _encoded(data, chunks, s), batch)):
-            dset.id.write_direct_chunk((index, *start), payload)
+    _write_chunks(dset, data, dset.chunks[1:], (index,))
