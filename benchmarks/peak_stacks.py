@@ -25,8 +25,14 @@ _PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def _rss_mb() -> float:
+    return _rss_split_mb()[0]
+
+
+def _rss_split_mb() -> tuple[float, float]:
+    """Resident size and its file-backed part (mapped files, e.g. the spilled samples), MB."""
     with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * _PAGE / 2 ** 20
+        fields = fh.read().split()
+    return int(fields[1]) * _PAGE / 2 ** 20, int(fields[2]) * _PAGE / 2 ** 20
 
 
 def _our_stack(frame, depth: int = 7) -> list[str]:
@@ -56,7 +62,7 @@ class PeakSampler(threading.Thread):
         names = {}
         recorded = -self.step_mb
         while not self.stop_event.wait(self.interval_s):
-            rss = _rss_mb()
+            rss, file_mb = _rss_split_mb()
             if rss > self.peak:
                 if rss > recorded + self.step_mb:
                     recorded = rss
@@ -64,7 +70,8 @@ class PeakSampler(threading.Thread):
                     frames = sys._current_frames()
                     stacks = {names.get(i, str(i)): _our_stack(f) for i, f in frames.items()
                               if i != threading.get_ident()}
-                    self.records.append((rss, time.perf_counter() - self.t0, {k: v for k, v in stacks.items() if v}))
+                    self.records.append((rss, time.perf_counter() - self.t0, {k: v for k, v in stacks.items() if v},
+                                         file_mb))
                 self.peak = rss
 
 
@@ -91,8 +98,8 @@ def main(argv=None) -> int:
         sampler.join()
     print(f"\nexit {code}; peak RSS {sampler.peak:.0f} MB (sampled), ru_maxrss "
           f"{__import__('resource').getrusage(0).ru_maxrss / 1024:.0f} MB", file=sys.stderr)
-    for rss, t, stacks in sorted(sampler.records, key=lambda r: r[0])[-args.top:]:
-        print(f"--- {rss:.0f} MB at {t:.1f} s", file=sys.stderr)
+    for rss, t, stacks, file_mb in sorted(sampler.records, key=lambda r: r[0])[-args.top:]:
+        print(f"--- {rss:.0f} MB at {t:.1f} s ({file_mb:.0f} MB of it file-backed)", file=sys.stderr)
         for name, stack in stacks.items():
             print(f"  [{name}] " + " <- ".join(stack[:4]), file=sys.stderr)
     return code

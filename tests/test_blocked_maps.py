@@ -82,7 +82,8 @@ _LUT_MAPS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rm
 def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
     """The smooth pass's memory layout (issue 15) does not change the LUT: the folds' maps as a window
     of 8-row strips sliding down the image against one strip over the whole image, sample blocks of
-    one row against the default, and the pixel fits spilled to a file against held in memory. The
+    one row against the default, and the pixel fits and the leave-one-out's sums spilled to a file
+    against held in memory. The
     cross-validation scores are sums over strips: the same to rounding (1e-12 relative)."""
     vr, samples = rough_rig
     monkeypatch.setattr(smooth_mod, "_STRIP_ROWS", 10 ** 6)
@@ -117,6 +118,7 @@ def test_row_spill_round_trip():
     for r0, r1 in ((0, 3), (3, 4), (4, 7)):
         spill[0, :, r0:r1] = want[0, :, r0:r1]
         spill[1, :, r0:r1] = want[1, :, r0:r1]
+    np.testing.assert_array_equal(spill.rows(4, 2, 6), want[1, 1, 2:6])  # plane 4 = [1, 1]
     np.testing.assert_array_equal(spill.load(), want)
     flat = smooth_mod._RowSpill((7, 5))
     flat[0:7] = want[1, 2]

@@ -442,7 +442,9 @@ def _binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0)
     rows = np.arange(r0, r0 + h, dtype=float)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(wsum > 0, 1.0 / wsum, 0.0)
-        mean = _bin(weights * values, b) * inv
+        # One map at a time: the (n, H, W) product is not held whole (77 MB at 5 MP for X and Y).
+        binned = np.stack([_bin(weights * v, b) for v in values]) if values.ndim == 3 else _bin(weights * values, b)
+        mean = binned * inv
         hc, wc = wsum.shape
         cx = np.arange(wc) * b + (b - 1) / 2.0
         cy = r0 + np.arange(hc) * b + (b - 1) / 2.0
@@ -476,12 +478,15 @@ def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: 
     stacked = vals.ndim == 3
     vals = vals if stacked else vals[None]
     wsum, mean, xbar, ybar = _binned_points(weights, vals, b)
+    del vals  # not held while the bins go back to pixels
     hc, wc = wsum.shape
     cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
     cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
     out_c, var_c = _ll_grid(mean, wsum, _binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
                             ybar / scale_px, with_variance)
-    out = np.stack([_upsample(o, b, h, w) for o in out_c])
+    out = np.empty((len(out_c), h, w))
+    for i, o in enumerate(out_c):  # into one array: no list of maps beside their stack
+        out[i] = _upsample(o, b, h, w)
     var = None if var_c is None else np.where(np.isfinite(out[0]), _upsample(var_c, b, h, w), np.nan)
     return (out if stacked else out[0]), var
 
@@ -1024,6 +1029,10 @@ class _RowSpill:
         """One ``(H, W)`` plane (flat index over the leading axes), read into memory."""
         return self._read(int(index) * self._plane, np.empty(self.shape[-2:]))
 
+    def rows(self, index: int, r0: int, r1: int) -> np.ndarray:
+        """Rows ``[r0, r1)`` of one plane (flat index over the leading axes): ``(r1 - r0, W)``, read into memory."""
+        return self._read(int(index) * self._plane + int(r0) * self._row_bytes, np.empty((r1 - r0, self.shape[-1])))
+
     def _read(self, offset: int, out: np.ndarray) -> np.ndarray:
         buf, done = out.data.cast("B"), 0
         with self._lock:
@@ -1433,19 +1442,21 @@ def _uncertainty(setup: _LooSetup, gfit, inputs: dict, fits: "_PixelFits", valid
                                      s.z_norm)
     noise = inputs.pop("noise")
     inputs.clear()
-    fit_var = {a: np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
-               + np.nan_to_num(leak.get(a, 0.0), nan=0.0) for a in "xy"}
+    sums = _LooSums(valid.shape)
+    for a in "xy":
+        sums.put("fit_var", a, np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
+                 + np.nan_to_num(leak.pop(a, 0.0), nan=0.0))
     del noise, leak
     if full:
-        loo, merr = _leave_one_out(s, valid, fit_var, lambda f, m: report(0.92 + 0.07 * f, m))
+        loo, merr = _leave_one_out(s, valid, sums, lambda f, m: report(0.92 + 0.07 * f, m))
     else:
         loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
         merr = _ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
-    sig = {a: np.sqrt(fit_var[a] + merr.var[a]).astype(np.float32) for a in "xy"}
+    sig = {a: np.sqrt(sums.get("fit_var", a) + merr.var[a]).astype(np.float32) for a in "xy"}
     return sig, loo, merr
 
 
-def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -> tuple[dict, _ModelError]:
+def _leave_one_out(setup: _LooSetup, valid: np.ndarray, sums: "_LooSums", report) -> tuple[dict, _ModelError]:
     """Leave-one-position-out of the smooth LUT, and the model error its residuals reveal.
 
     For every calibration position ``k`` the smooth LUT is fitted again
@@ -1461,9 +1472,9 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
     setup : _LooSetup
     valid : (H, W) bool
         The smooth LUT's valid pixels.
-    fit_var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2
-        The LUT's predicted variance from the sample noise (and stage readings),
-        RMS over the calibrated range.
+    sums : _LooSums
+        Holds ``fit_var``, the LUT's predicted variance from the sample noise (and stage readings),
+        RMS over the calibrated range (mm^2); gets the refits' residual sums.
     report : callable ``(fraction, message)``
 
     Returns
@@ -1473,14 +1484,7 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
     model : _ModelError
     """
     s = setup
-    h, w = s.samples.shape
     k_all = s.z.size
-    loo_sq = {a: np.zeros((h, w)) for a in "xy"}
-    count = np.zeros((h, w), np.int32)  # counts: exact in any type (the float64 sums saw the same values)
-    # Per pixel and axis: sums of x and x^2, x a sample's excess over the noise (_accumulate_left_out).
-    excess = {a: np.zeros((h, w)) for a in "xy"}
-    excess_sq = {a: np.zeros((h, w)) for a in "xy"}
-    n_model = np.zeros((h, w), np.int32)
     # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
     grow = k_all / max(k_all - 1, 1)
     report(0.0, "estimating each sample's noise from its pixel's own fit")
@@ -1491,13 +1495,14 @@ def _leave_one_out(setup: _LooSetup, valid: np.ndarray, fit_var: dict, report) -
         # Only interior positions measure the model error: the LUT is used inside its calibrated
         # range, and the fit without an end position extrapolates to it.
         interior = s.z.min() < s.z[k] < s.z.max()
-        _accumulate_left_out(s, k, coef, valid, {a: fit_var[a] * grow for a in "xy"}, loo_sq, count,
-                             excess if interior else None, excess_sq, n_model, own_noise)
+        _accumulate_left_out(s, k, coef, valid, sums, grow, interior, own_noise)
         del coef
         release_free_memory()  # each refit left ~50 MB resident at 5 MP (3.2 -> 3.6 GB over 21 refits)
-    with np.errstate(all="ignore"):
-        loo = {a: np.where(count > 0, np.sqrt(loo_sq[a] / count), np.nan).astype(np.float32) for a in "xy"}
-    return loo, _model_error(excess, excess_sq, n_model)
+    loo = {}
+    for a in "xy":
+        with np.errstate(all="ignore"):
+            loo[a] = np.where(sums.count > 0, np.sqrt(sums.get("loo_sq", a) / sums.count), np.nan).astype(np.float32)
+    return loo, _model_error(sums)
 
 
 def _refit_without(s: _LooSetup, k: int) -> dict:
@@ -1509,17 +1514,17 @@ def _refit_without(s: _LooSetup, k: int) -> dict:
     return _smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm, variance=False)[0]
 
 
-def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fit_var: dict, loo_sq: dict,
-                         count: np.ndarray, excess: dict | None, excess_sq: dict, n_model: np.ndarray,
-                         own_noise: "_OwnNoise") -> None:
-    """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel sums.
+def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "_LooSums", grow: float,
+                         interior: bool, own_noise: "_OwnNoise") -> None:
+    """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
 
-    ``loo_sq`` and ``count`` (the leave-one-out map) always. Unless ``excess`` is None also, per
-    sample, ``x = r^2 - r_own^2 / (1 - h) - fit_var`` (:func:`_model_error`) into ``excess`` and
+    ``loo_sq`` and ``count`` (the leave-one-out map) always. For an ``interior`` position also, per
+    sample, ``x = r^2 - r_own^2 / (1 - h) - grow fit_var`` (:func:`_model_error`) into ``excess`` and
     ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the sample's residual
     against its pixel's own weighted fit through all calibration positions and ``h`` its leverage
     there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever the noise
-    model's scale (``own_noise``, :func:`_own_noise_all`).
+    model's scale (``own_noise``, :func:`_own_noise_all`); ``grow`` scales ``fit_var`` to a fit
+    with one position less.
     """
     from ptpcore.io.fastio import read_block
 
@@ -1534,24 +1539,76 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, fi
         ok_s, _sig, _, _ = _block_samples(s.samples, s.rig, pos, zk, r0, r1, None)
         fb = (footprint_bias(s.rays, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
                              read_block(s.samples.background, a0, a1, pos), r0, r1) if s.footprint else None)
-        own = own_noise.get(k, a0, a1) if excess is not None else None
+        own = own_noise.get(k, a0, a1) if interior else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
             r = _corrected_absolute(s.samples, s.rig, i_axis, a0, a1, pos, zk, s.level_bias, fb)[0] - pred
             ok = ok_s[0] & valid[r0:r1].reshape(-1) & np.isfinite(r)
-            loo_sq[a][r0:r1] += np.where(ok, r * r, 0.0).reshape(r1 - r0, w)
+            sums.add("loo_sq", a, r0, r1, np.where(ok, r * r, 0.0).reshape(r1 - r0, w))
             if i_axis == 0:
-                count[r0:r1] += ok.reshape(r1 - r0, w)
+                sums.count[r0:r1] += ok.reshape(r1 - r0, w)
             if own is None:
                 continue
-            x = r * r - own[i_axis] - fit_var[a][r0:r1].reshape(-1)
+            x = r * r - own[i_axis] - (sums.rows("fit_var", a, r0, r1) * grow).reshape(-1)
             ok &= np.isfinite(x)
-            excess[a][r0:r1] += np.where(ok, x, 0.0).reshape(r1 - r0, w)
-            excess_sq[a][r0:r1] += np.where(ok, x * x, 0.0).reshape(r1 - r0, w)
+            sums.add("excess", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
+            sums.add("excess_sq", a, r0, r1, np.where(ok, x * x, 0.0).reshape(r1 - r0, w))
             if i_axis == 0:
-                n_model[r0:r1] += ok.reshape(r1 - r0, w)
+                sums.n_model[r0:r1] += ok.reshape(r1 - r0, w)
 
     _run_blocks(block, _row_blocks(h, w))
+
+
+class _LooSums:
+    """The leave-one-out's per-pixel float64 sums, X and Y (``loo_sq``, ``excess``, ``excess_sq``) and
+    the predicted variance they are judged by (``fit_var``), with the counts ``count`` and
+    ``n_model`` ((H, W) int32, in memory).
+
+    Above :data:`_SPILL_FITS_PIXELS` the sums wait in a temporary file (:class:`_RowSpill`) while the
+    refits run, and each refit's residuals are added row block by row block: at 5 MP they are 310 MB
+    that each refit's own maps would otherwise sit on top of. Adding ``old + new`` read back from the
+    file gives the very bits the in-memory ``+=`` gives.
+    """
+
+    NAMES = ("loo_sq", "excess", "excess_sq", "fit_var")
+
+    def __init__(self, shape):
+        h, w = shape
+        self.count = np.zeros((h, w), np.int32)  # counts: exact in any type (the float64 sums saw the same values)
+        self.n_model = np.zeros((h, w), np.int32)
+        n = len(self.NAMES) * 2
+        self._spill = _RowSpill((n, h, w)) if h * w > _SPILL_FITS_PIXELS else None
+        self._mem = np.zeros((n, h, w)) if self._spill is None else None  # the file starts as zeros too
+
+    def _index(self, name: str, axis: str) -> int:
+        return 2 * self.NAMES.index(name) + "xy".index(axis)
+
+    def rows(self, name: str, axis: str, r0: int, r1: int) -> np.ndarray:
+        """Rows ``[r0, r1)`` of one sum, ``(r1 - r0, W)`` (a copy when spilled, else a view)."""
+        i = self._index(name, axis)
+        return self._spill.rows(i, r0, r1) if self._spill is not None else self._mem[i, r0:r1]
+
+    def add(self, name: str, axis: str, r0: int, r1: int, values: np.ndarray) -> None:
+        """Add ``values`` ``(r1 - r0, W)`` to rows ``[r0, r1)`` of one sum (blocks of disjoint rows may
+        come from several threads)."""
+        i = self._index(name, axis)
+        if self._spill is None:
+            self._mem[i, r0:r1] += values
+        else:
+            self._spill[i, r0:r1] = self._spill.rows(i, r0, r1) + values
+
+    def put(self, name: str, axis: str, values: np.ndarray) -> None:
+        """Set one whole ``(H, W)`` sum."""
+        i = self._index(name, axis)
+        if self._spill is None:
+            self._mem[i] = values
+        else:
+            self._spill[i, 0:values.shape[0]] = values
+
+    def get(self, name: str, axis: str) -> np.ndarray:
+        """One whole ``(H, W)`` sum (read into memory when spilled)."""
+        i = self._index(name, axis)
+        return self._spill.plane(i) if self._spill is not None else self._mem[i]
 
 
 class _OwnNoise:
@@ -1618,7 +1675,7 @@ def _own_noise_all(s: _LooSetup, positions) -> _OwnNoise:
     return store
 
 
-def _model_error(excess: dict, excess_sq: dict, count: np.ndarray) -> _ModelError:
+def _model_error(sums: "_LooSums") -> _ModelError:
     """The model-error variance per region from the leave-one-out residuals' excess over the noise.
 
     A left-out sample's residual ``r`` is its own noise, the left-out fit's
@@ -1634,16 +1691,18 @@ def _model_error(excess: dict, excess_sq: dict, count: np.ndarray) -> _ModelErro
     standard error from the spread of ``x``. It is kept where it exceeds 2
     standard errors (the data resolve it) and interpolated bilinearly between
     the regions' centres; elsewhere the model error is below what the data can
-    tell from the noise and left out.
+    tell from the noise and left out. ``sums`` holds ``x`` and ``x^2`` summed per pixel
+    (``excess``, ``excess_sq``) and their count (``n_model``).
     """
+    count = sums.n_model
     h, w = count.shape
     side = max(1, int(np.ceil(max(h, w) / MODEL_ERROR_REGIONS)))
     n = _bin(count, side)
     var, limits = {}, []
     for a in "xy":
         with np.errstate(all="ignore"):
-            b2 = _bin(excess[a], side) / n
-            spread = np.maximum(_bin(excess_sq[a], side) / n - b2 * b2, 0.0)
+            b2 = _bin(sums.get("excess", a), side) / n
+            spread = np.maximum(_bin(sums.get("excess_sq", a), side) / n - b2 * b2, 0.0)
             se = np.sqrt(spread / np.maximum(n - 1, 1))
         resolved = (n > 1) & (b2 > 2.0 * se)
         limits.append(np.where(n > 1, 2.0 * se, np.nan))
@@ -1709,12 +1768,13 @@ LEAK_GRID_PX = 8
 """Grid step (px) on which :func:`_global_leak_variance` recomputes the perturbed global rays."""
 
 LEAK_GROUP = 1
-"""Parameter directions whose change maps :func:`_global_leak_variance` smooths at once (2 per direction).
+"""Parameter directions whose change maps :func:`_global_leak_variance` used to smooth at once.
 
-One at a time (issue 15): four at once held ``(2, 8, H, W)`` float64 maps and their smoothed
-copies, the smooth command's peak (about 1.3 GB at 5 MP); each map is smoothed alone either way,
-so the sigma maps are bit-identical (checked on the mild preset, 160 px, 9 positions), about
-10 % slower at 160 px."""
+One direction and one axis at a time (issue 15): four directions at once held ``(2, 8, H, W)``
+float64 maps and their smoothed copies, the smooth command's peak (about 1.3 GB at 5 MP); one
+direction's X and Y together were still the smooth command's peak before its leave-one-out (1.76
+GB at 5 MP x 21). Each map is smoothed alone either way, so the sigma maps are bit-identical.
+Kept for the record; the loop no longer reads it."""
 
 
 def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
@@ -1766,23 +1826,20 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
     cols = np.arange(-step, w + 2 * step, step, dtype=float)[: (w - 1) // step + 4]
     base = _rays_at(gfit.model, cols, rows)
     dirs = [np.sqrt(li) * vi for li, vi in zip(lam, vec.T) if li > 0]
-    for g0 in range(0, len(dirs), LEAK_GROUP):  # a few directions' maps smoothed together (shared moments)
-        group = dirs[g0:g0 + LEAK_GROUP]
-        c = np.empty((2, 2 * len(group), h, w))  # [coefficient j][direction, axis]
-        for i, dv in enumerate(group):
-            moved = _rays_at(_pinhole_from_params(gfit.param_names, gfit.param_values + dv), cols, rows)
-            for ai, (i0, i1) in enumerate(((0, 2), (1, 3))):
-                d0, d1 = (_upsample_grid(moved[q] - base[q], step, h, w) for q in (i0, i1))
-                c[0, 2 * i + ai], c[1, 2 * i + ai] = d0 + d1 * zc, d1 * zs  # the change as coefficients in t
-        for j in range(2):
-            c[j] -= _smooth_binned(np.nan_to_num(c[j]), weights[j], scale, fb, False)[0]
-        for r0, r1 in _row_blocks(h, w):
-            mom = moments(r0, r1)
-            for i in range(len(group)):
-                for ai, a in enumerate("xy"):
-                    l0, l1 = c[0, 2 * i + ai, r0:r1], c[1, 2 * i + ai, r0:r1]
-                    out[a][r0:r1] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
-        del c
+    for dv in dirs:  # one direction and one axis at a time (LEAK_GROUP): the remainders add per pixel in this order
+        moved = _rays_at(_pinhole_from_params(gfit.param_names, gfit.param_values + dv), cols, rows)
+        for a, (i0, i1) in zip("xy", ((0, 2), (1, 3))):
+            d0, d1 = (_upsample_grid(moved[q] - base[q], step, h, w) for q in (i0, i1))
+            c = np.empty((2, 1, h, w))  # [coefficient j][map]
+            c[0, 0], c[1, 0] = d0 + d1 * zc, d1 * zs  # the change as coefficients in t
+            del d0, d1
+            for j in range(2):
+                c[j] -= _smooth_binned(np.nan_to_num(c[j]), weights[j], scale, fb, False)[0]
+            for r0, r1 in _row_blocks(h, w):
+                mom = moments(r0, r1)
+                l0, l1 = c[0, 0, r0:r1], c[1, 0, r0:r1]
+                out[a][r0:r1] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
+            del c
     return out
 
 
