@@ -39,3 +39,35 @@ def test_step_one_and_bad_mode():
     assert reduce_for_display(img, 1) is img
     with pytest.raises(ValueError, match="how must be"):
         reduce_for_display(img, 2, "median")
+
+
+def test_prepare_display_reduces_and_keeps_the_full_maps_levels_and_histogram():
+    from ptpcore.evaluate.views import histogram, prepare_display, robust_levels
+
+    rng = np.random.default_rng(2)
+    data = rng.gamma(2.0, 1.5, size=(2048, 2448)).astype(np.float32)
+    data[:40] = np.nan
+    shown = prepare_display(data)
+    assert shown.step == 3 and shown.extent == (2048, 2448)
+    np.testing.assert_array_equal(shown.image, reduce_for_display(data, 3))
+    assert shown.levels == robust_levels(data)  # the full map's, not the reduced one's
+    edges, counts = histogram(data)
+    np.testing.assert_array_equal(shown.hist_edges, edges)
+    np.testing.assert_array_equal(shown.hist_counts, counts)
+    assert np.isnan(shown.image[:13]).all() and np.isfinite(shown.image[14:]).all()  # block 13 holds row 40
+
+
+def test_prepare_display_of_counts_bins_one_value_each_and_takes_any_integer_type():
+    from ptpcore.evaluate.views import prepare_display
+
+    counts_map = np.repeat(np.arange(3, 9, dtype=np.int32), 200)[:, None] * np.ones(1799, np.int32)  # 1200 x 1799, 3..8
+    shown = prepare_display(counts_map, integer=True)
+    assert shown.levels == (2.5, 8.5)
+    np.testing.assert_array_equal(shown.hist_edges, np.arange(2.5, 9.0, 1.0))
+    assert shown.hist_counts.sum() > 0 and (shown.hist_counts > 0).all()
+    assert shown.step == 2 and shown.image.dtype == np.float32
+    np.testing.assert_allclose(shown.image, reduce_for_display(counts_map.astype(np.float32), 2))
+    small = prepare_display(np.ones((4, 5), np.uint8), integer=True)
+    assert small.step == 1 and small.image.dtype == np.uint8 and small.levels == (0.5, 1.5)
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        prepare_display(np.zeros(5))

@@ -10,8 +10,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
                                QPushButton, QSpinBox, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, robust_levels,
-                              smooth_degree_for, split_positions)
+from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, prepare_display,
+                              robust_levels, smooth_degree_for, split_positions)
 from ptpcore.fit.corrected import correct_all
 from ptpcore.fit.glass import corrected_samples, describe_corrections
 
@@ -41,6 +41,28 @@ def saved_verdict(report) -> str:
     return "A comparison is saved in the session file: run it again to see it here."
 
 
+
+def compare_heatmaps(rr, methods) -> tuple[dict, tuple[float, float], dict]:
+    """Every method's per-pixel error map against one reference, ready to draw (no widget: any thread).
+
+    Parameters
+    ----------
+    rr : the reference's report (``CompareResult.references[ref]``)
+    methods : the methods compared
+
+    Returns
+    -------
+    maps : dict method -> (H, W) float32, µm
+    levels : (0, hi), the colour levels all methods share (99th percentile of their values)
+    displays : dict method -> :class:`ptpcore.evaluate.views.DisplayMap` (no histogram)
+    """
+    maps = {m: (rr.methods[m].heatmap_mm * 1e3).astype(np.float32) for m in methods}
+    every = np.concatenate([v[np.isfinite(v)].ravel()[:: max(1, v.size // 200_000)] for v in maps.values()])
+    levels = robust_levels(every, 0.0, 99.0) if every.size else (0.0, 1.0)
+    levels = (0.0, levels[1])
+    return maps, levels, {m: prepare_display(maps[m], levels=levels, with_histogram=False) for m in methods}
+
+
 class ComparePage(StudioPage):
     key = "compare"
     heading = "Compare"
@@ -50,6 +72,8 @@ class ComparePage(StudioPage):
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
+        self._prepared_for = None  # the comparison whose heatmaps the job prepared
+        self._prepared: dict = {}  # reference -> compare_heatmaps(...)
         self.calibrate_page = None  # set by the wizard: the LUT settings to compare with
         self.settings_note = ""
         grid = QGridLayout(self.body)
@@ -205,12 +229,19 @@ class ComparePage(StudioPage):
         def work(ctx):
             fixed = correct_all(samples, rig, refine=refine, progress=ctx.progress)[0] if refine else \
                 corrected_samples(samples, rig)
-            return compare(fixed, rig, progress=ctx.progress, **args)
+            result = compare(fixed, rig, progress=ctx.progress, **args)
+            # The heatmaps of the reference shown first, ready to draw: not on the GUI thread (issue 15).
+            ref = "truth" if "truth" in result.references else "measured"
+            return result, {ref: compare_heatmaps(result.references[ref], result.methods)}
 
         self.model.release_decoded()  # 617 MB of phase maps at 5 MP, not needed by the fit
         job = Job(work, "running the comparison")
-        job.finished.connect(lambda r: gen == self.model.generation and self.model.set_compare(r))
+        job.finished.connect(lambda out: gen == self.model.generation and self._compared(*out))
         return self.run_job(job)
+
+    def _compared(self, result, prepared: dict) -> None:
+        self._prepared_for, self._prepared = result, prepared
+        self.model.set_compare(result)
 
     def lut_settings(self) -> dict:
         """compare()'s model keywords from the Calibrate page's LUT (its model, degree and corrections)."""
@@ -377,16 +408,15 @@ class ComparePage(StudioPage):
             f"{len(r.pairs['same_height'])} same height, {len(r.pairs['across_heights'])} across heights."
             f"{smooth}{notes}{noise}")
 
-        # heatmaps on one shared scale across every method
-        maps = {m: (rr.methods[m].heatmap_mm * 1e3).astype(np.float32) for m in methods}
-        every = np.concatenate([v[np.isfinite(v)].ravel()[:: max(1, v.size // 200_000)] for v in maps.values()])
-        levels = robust_levels(every, 0.0, 99.0) if every.size else (0.0, 1.0)
-        levels = (0.0, levels[1])
+        # heatmaps on one shared scale across every method (drawn as the job prepared them, when it did)
+        ready = self._prepared.get(ref) if self._prepared_for is r else None
+        maps, levels, displays = ready if ready is not None else compare_heatmaps(rr, methods)
         self.heat_maps = maps
         for m in METHODS:
             self.heat[m].setVisible(m in methods)
         for m in methods:
-            self.heat[m].set_map(maps[m], levels=levels, cmap="inferno")
+            d = displays[m]
+            self.heat[m].set_map(d.image, levels=levels, cmap="inferno", step=d.step, extent=d.extent, full=maps[m])
             self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]}: RMS {_fmt(rr.methods[m].coordinate.rms_um)} µm")
         self.heat_bar.setLevels(levels)
         self.heat_bar.rounding = max(levels[1] / 1000, 1e-9)

@@ -117,20 +117,28 @@ class MapView(pg.GraphicsLayoutWidget):
         self.data: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
         self._step = 1  # camera pixels per map pixel along each side (a reduced preview)
+        self._full: np.ndarray | None = None  # the camera-resolution map behind a reduced one (set_map(full=))
+        self._reduced: tuple[np.ndarray, int] | None = None  # the reduced image and its step, while full is set
+        self._detail: tuple[int, int, int, int] | None = None  # rows r0:r1, cols c0:c1 shown at full resolution
         self._cmap_name: str | None = None  # the colour map last set by name
+        self.plot.vb.sigRangeChanged.connect(self._update_detail)
         self.scene().sigMouseMoved.connect(self._on_moved)
         self.scene().sigMouseClicked.connect(self._on_clicked)
 
     # ---- content ----------------------------------------------------------
     def set_map(self, data: np.ndarray, levels: tuple[float, float] | None = None,
                 cmap: pg.ColorMap | str | None = None, label: str | None = None,
-                keep_view: bool = True, step: int = 1, extent: tuple[int, int] | None = None) -> tuple[float, float]:
+                keep_view: bool = True, step: int = 1, extent: tuple[int, int] | None = None,
+                full: np.ndarray | None = None) -> tuple[float, float]:
         """Show a scalar map; returns the colour levels used.
 
         ``levels`` default to the 1st-99th percentiles of a subsample. A reduced map
         (:func:`ptpcore.evaluate.views.reduce_for_display`) gives its ``step`` (each of its
         pixels a ``step x step`` block of camera pixels) and ``extent``, the camera shape (H, W)
-        it covers; an overlay set afterwards is taken at the same step.
+        it covers; an overlay set afterwards is taken at the same step. ``full``, the map at
+        camera resolution behind a reduced one, is shown instead (the part in view) once the
+        view is zoomed in to at most :data:`ptpcore.evaluate.views.DISPLAY_PIXELS` camera pixels:
+        every pixel stays inspectable, and the GUI thread never draws a whole 5-12 MP map.
         """
         data = np.asarray(data)
         if data.ndim != 2:
@@ -156,13 +164,18 @@ class MapView(pg.GraphicsLayoutWidget):
             self.image.setColorMap(cmap)
         self.image.setImage(data, levels=levels, autoLevels=False)
         self._step = step
+        self._full = full if step > 1 else None
+        self._reduced = (data, step) if self._full is not None else None
+        self._detail = None
         self._place(data.shape, keep_view, extent)
+        self._update_detail()
         return levels
 
     def set_rgba(self, rgba: np.ndarray, keep_view: bool = True) -> None:
         """Show an (H, W, 4) uint8 image as it is (no colour bar)."""
         self.data = None
         self._step = 1
+        self._full = self._reduced = self._detail = None
         self.image.setImage(rgba, autoLevels=False, levels=(0, 255))
         self._place(rgba.shape[:2], keep_view)
 
@@ -186,8 +199,37 @@ class MapView(pg.GraphicsLayoutWidget):
             self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
         self.image.setRect(self._covered(shape))
 
+    def _update_detail(self, *_) -> None:
+        """Show the part of the full map in view at camera resolution when zoomed in far enough,
+        the reduced map otherwise (see :meth:`set_map`)."""
+        if self._full is None or self._shape is None:
+            return
+        h, w = self._shape
+        (x0, x1), (y0, y1) = self.plot.vb.viewRange()
+        c0, c1 = max(0, int(math.floor(x0 + 0.5))), min(w, int(math.ceil(x1 + 0.5)))
+        r0, r1 = max(0, int(math.floor(y0 + 0.5))), min(h, int(math.ceil(y1 + 0.5)))
+        if c1 <= c0 or r1 <= r0 or (r1 - r0) * (c1 - c0) > views.DISPLAY_PIXELS:
+            if self._detail is not None:  # zoomed out again
+                self._detail = None
+                self._show_part(self._reduced[0], QRectF(-0.5, -0.5, self._reduced[0].shape[1] * self._reduced[1],
+                                                         self._reduced[0].shape[0] * self._reduced[1]))
+            return
+        d = self._detail
+        if d is not None and d[0] <= r0 and r1 <= d[1] and d[2] <= c0 and c1 <= d[3]:
+            return  # the part shown still covers the view
+        # A quarter view's margin on each side (at most 2.25 megapixels): panning a little does not cut a new part.
+        mr, mc = (r1 - r0) // 4, (c1 - c0) // 4
+        self._detail = (max(0, r0 - mr), min(h, r1 + mr), max(0, c0 - mc), min(w, c1 + mc))
+        r0, r1, c0, c1 = self._detail
+        self._show_part(self._full[r0:r1, c0:c1], QRectF(c0 - 0.5, r0 - 0.5, c1 - c0, r1 - r0))
+
+    def _show_part(self, image: np.ndarray, rect: QRectF) -> None:
+        self.image.setImage(image, levels=self.image.getLevels(), autoLevels=False)
+        self.image.setRect(rect)
+
     def clear_map(self) -> None:
         """Show nothing (the data it showed are gone)."""
+        self._full = self._reduced = self._detail = None
         self.data = None
         self.image.clear()
         self.overlay.clear()
@@ -277,6 +319,7 @@ class HeatmapPanel(QWidget):
         self.unit = ""
         self.scale = 1.0
         self.value_text: Callable[[int, int], str] | None = None
+        self.data: np.ndarray | None = None  # the full map (the view may show it reduced)
         self.view.hovered.connect(self._hovered)
         self.view.pixelClicked.connect(self.pixelClicked)
         self.hist_edges = np.zeros(0)
@@ -284,12 +327,14 @@ class HeatmapPanel(QWidget):
 
     def set_map(self, data: np.ndarray, *, title: str, unit: str = "", cmap: str = "viridis",
                 levels: tuple[float, float] | None = None, integer: bool = False,
-                value_text: Callable[[int, int], str] | None = None) -> None:
+                value_text: Callable[[int, int], str] | None = None,
+                prepared: views.DisplayMap | None = None) -> None:
         """Show ``data`` (already in display units: µm, px, counts).
 
         Parameters
         ----------
         data : (H, W) array
+            The full map: the readout shows its values.
         title : str
         unit : str
             Shown on the colour bar, histogram axis and readout.
@@ -300,25 +345,21 @@ class HeatmapPanel(QWidget):
             Integer-valued map (counts): one histogram bin per value.
         value_text : callable (row, col) -> str, optional
             Custom readout text.
+        prepared : ptpcore.evaluate.views.DisplayMap, optional
+            ``data`` already reduced, with its levels and histogram
+            (:func:`ptpcore.evaluate.views.prepare_display`, on a worker thread); computed here otherwise.
         """
+        if prepared is None:
+            prepared = views.prepare_display(data, integer=integer, levels=levels)
         self.unit = unit
         self.value_text = value_text
         self.title.setText(title)
-        if levels is None and integer:
-            sub = views.subsample(data)
-            finite = sub[np.isfinite(sub)] if sub.dtype.kind == "f" else sub
-            lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-            levels = (lo - 0.5, hi + 0.5)
-        used = self.view.set_map(data, levels=levels, cmap=cmap, label=unit)
+        self.data = data
+        self.view.set_map(prepared.image, levels=prepared.levels, cmap=cmap, label=unit, step=prepared.step,
+                          extent=prepared.extent, full=data)
         if self.hist is not None:
-            if integer:
-                lo, hi = used
-                bins = int(max(1, min(round(hi - lo), 200)))
-                edges, counts = views.histogram(data, (lo, hi), bins=bins)
-            else:
-                edges, counts = views.histogram(data)
-            self.hist_edges, self.hist_counts = edges, counts
-            self.hist_curve.setData(edges, counts)
+            self.hist_edges, self.hist_counts = prepared.hist_edges, prepared.hist_counts
+            self.hist_curve.setData(self.hist_edges, self.hist_counts)
             self.hist.setLabel("bottom", unit or "value")
             self._levels_moved()
 
@@ -326,6 +367,7 @@ class HeatmapPanel(QWidget):
         """Empty the heatmap, its histogram and readout; ``title`` says why."""
         self.title.setText(title)
         self.value_text = None
+        self.data = None
         self.view.clear_map()
         if self.hist is not None:
             self.hist_edges, self.hist_counts = np.zeros(0), np.zeros(0)
@@ -345,7 +387,7 @@ class HeatmapPanel(QWidget):
         if self.value_text is not None:
             text = self.value_text(row, col)
         else:
-            v = self.view.data[row, col] if self.view.data is not None else np.nan
+            v = self.data[row, col] if self.data is not None else np.nan
             text = f"{v:.4g} {self.unit}".strip() if np.isfinite(v) else "no value (invalid pixel)"
         self.readout.setText(f"row {row}, col {col}: {text}")
 
