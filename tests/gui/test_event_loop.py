@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from gui_helpers import run_job
@@ -105,3 +106,59 @@ def test_the_poly_job_never_blocks_the_event_loop(wizard, qtbot):
                    " loaded machine")
 def test_the_smooth_job_never_blocks_the_event_loop(wizard, qtbot):
     _check(_acquire_then_fit(wizard, qtbot, "smooth"))
+
+
+def _synthetic_lut(h: int, w: int, n_pos: int):
+    """A degree-1 poly LUT of an ``h x w`` camera with plausible quality maps (no fit: the GUI's part only)."""
+    from ptpcore.io.lutfile import Lut
+
+    rng = np.random.default_rng(0)
+    valid = np.ones((h, w), bool)
+    valid[: h // 50] = False  # invalid rows at the top, as a LUT with a bezel in view has
+    noise = lambda: rng.gamma(4.0, 0.5e-3, size=(h, w)).astype(np.float32)  # noqa: E731 - mm
+    coef = np.broadcast_to(np.array([0.0, 1.0])[:, None, None], (2, h, w))  # not read by the page
+    return Lut(kind="poly", degree=1, z_center=30.0, z_scale=30.0, z_min=0.0, z_max=60.0, x=coef, y=coef,
+               z_nodes=None, valid=valid, n_positions=np.full((h, w), n_pos, np.uint16),
+               pixel_z_min=np.zeros((h, w), np.float32), pixel_z_max=np.full((h, w), 60.0, np.float32),
+               rms_x=noise(), rms_y=noise(), loo_x=noise(), loo_y=noise(), sigma_x=noise(), sigma_y=noise())
+
+
+@pytest.mark.slow
+def test_a_twelve_megapixel_lut_reaches_the_calibrate_page_without_blocking(qtbot):
+    """Issue 15 at 12 MP (4000 x 3000): the fit job hands its LUT to the Calibrate page, which shows its
+    maps, histogram and statistics within the bound. What the job's thread prepares (``lut_view``: the
+    statistics and each map reduced with its levels and histogram) is made here beforehand; the GUI
+    thread's part is timed, with the window shown so that the maps are painted. Without samples (a
+    12 MP stack would not fit the suite) the residual field's arrows are not drawn. Measured: 16-32 ms;
+    48-150 ms with the maps drawn whole and prepared on the GUI thread (the code before 2026-11-26)."""
+    from PySide6.QtCore import QTimer
+
+    from ptp_studio.pages.calibrate import lut_view
+    from ptp_studio.session import Session
+    from ptp_studio.wizard import StudioWizard
+
+    h, w = 3000, 4000
+    session = Session.from_preset("realistic", (w, h))
+    lut = _synthetic_lut(h, w, session.rig.stage.n_positions)
+    view = lut_view(lut, None)  # the job's part
+    wiz = StudioWizard(session)
+    qtbot.addWidget(wiz)
+    wiz.resize(1300, 850)
+    wiz.show()
+    qtbot.waitExposed(wiz)
+    wiz.go_to("calibrate")
+    page = wiz.page_by_key["calibrate"]
+    qtbot.wait(300)
+    with Heartbeat() as hb:
+        hb.phase = "handing the result to the page"
+        QTimer.singleShot(50, lambda: page._fitted(lut, None, view, None, page.fit_settings()))
+        qtbot.waitUntil(lambda: wiz.model.session.lut is lut, timeout=5000)
+        qtbot.wait(500)  # the paints that follow
+    _check({"12 MP LUT hand-over": hb.worst()})
+    assert page.heatmap.data is not None and page.heatmap.data.shape == (h, w)
+    assert page.heatmap.view.image.image.shape[0] * page.heatmap.view.image.image.shape[1] <= (1 << 20)
+    for key in ("rms_y", "n_positions", "sigma_x"):  # switching maps afterwards: prepared, as quick
+        with Heartbeat() as hb:
+            QTimer.singleShot(10, lambda key=key: page.show_map(key))
+            qtbot.wait(300)
+        _check({f"showing {key}": hb.worst()})
