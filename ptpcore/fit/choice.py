@@ -307,7 +307,7 @@ def _noise_variance_sum(samples, rig, k, common, slope2, stage_sigma_mm, sigma_f
     """
     if samples.noise is None or samples.modulation is None:
         return float("nan")
-    s = sigma_fn(samples.subset([k]), rig)[0][common]
+    s = sigma_fn(samples.position(k), rig)[0][common]
     total = 2.0 * float(np.sum(s * s))
     if stage_sigma_mm and slope2 is not None:
         total += float(np.nansum(slope2[common.ravel()])) * stage_sigma_mm ** 2
