@@ -119,6 +119,7 @@ def test_row_spill_round_trip():
         spill[0, :, r0:r1] = want[0, :, r0:r1]
         spill[1, :, r0:r1] = want[1, :, r0:r1]
     np.testing.assert_array_equal(spill.rows(4, 2, 6), want[1, 1, 2:6])  # plane 4 = [1, 1]
+    np.testing.assert_array_equal(spill.row_block(3, 5), want[:, :, 3:5])
     np.testing.assert_array_equal(spill.load(), want)
     flat = smooth_mod._RowSpill((7, 5))
     flat[0:7] = want[1, 2]

@@ -873,7 +873,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
     t, b = run.t, run.b
     run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP) are not held while smoothing
-    fits.load("fit", "var")
+    fits.load("fit")  # fits.var stays in its file, a plane at a time (150 MB at 5 MP and degree 3)
     leak_w = _smoothing_weights(fits, 2)  # before the smoothing changes fits.var in place
     coef, rays = _smoothed_coefficients(fits, scale, b, lambda: _global_rays(gfit.model, samples.shape), zc, zs)
     stage_var = _stage_variance(rays, rig, t, degree, stage_sigma_mm)
@@ -1032,6 +1032,12 @@ class _RowSpill:
     def rows(self, index: int, r0: int, r1: int) -> np.ndarray:
         """Rows ``[r0, r1)`` of one plane (flat index over the leading axes): ``(r1 - r0, W)``, read into memory."""
         return self._read(int(index) * self._plane + int(r0) * self._row_bytes, np.empty((r1 - r0, self.shape[-1])))
+
+    def row_block(self, r0: int, r1: int) -> np.ndarray:
+        """Rows ``[r0, r1)`` of every plane: ``(*lead, r1 - r0, W)``, read into memory."""
+        n = int(np.prod(self.shape[:-2]))
+        out = np.stack([self.rows(i, r0, r1) for i in range(n)]) if n else np.empty((0, r1 - r0, self.shape[-1]))
+        return out.reshape(*self.shape[:-2], r1 - r0, self.shape[-1])
 
     def _read(self, offset: int, out: np.ndarray) -> np.ndarray:
         buf, done = out.data.cast("B"), 0
@@ -1302,14 +1308,15 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
     and the global rays used.
 
     Smooths ``fits.fit`` and ``fits.var`` in place (the final smoothing runs on bins of at
-    most the cross-validation's side and at most a quarter of the scale); spilled maps are
-    brought back first. Without ``variance`` (the leave-one-out refits: coefficients only)
-    ``fits.var`` only weights the smoothing, read a plane at a time, and is not smoothed.
+    most the cross-validation's side and at most a quarter of the scale); a spilled ``fit`` is
+    brought back first, a spilled ``var`` is read and written back a plane at a time. Without
+    ``variance`` (the leave-one-out refits: coefficients only) ``fits.var`` only weights the
+    smoothing and is not smoothed.
     ``rays`` is a callable returning the global rays
     (:func:`_global_rays`) or the rays themselves: a callable is called after the
     smoothing, so that the rays are not held during it (160 MB at 5 MP).
     """
-    fits.load("fit", *(("var",) if variance else ()))
+    fits.load("fit")
     fit, var = fits.fit, fits.var
     d1, h, w = fit.shape[1:]
     fb = 1
@@ -1321,7 +1328,9 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
             wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
         del vj
         fit[:, j], smoothed_var = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, variance)
-        if variance:
+        if variance and isinstance(var, _RowSpill):
+            var[j, 0:h] = smoothed_var
+        elif variance:
             var[j] = smoothed_var
         del wj, smoothed_var
     coef = {"x": fit[0], "y": fit[1]}
@@ -1720,7 +1729,7 @@ def _smoothing_weights(fits: "_PixelFits", n: int) -> np.ndarray:
     smooths ``fits.var`` in place)."""
     out = np.zeros((n, *fits.var.shape[1:]))
     for j in range(min(n, fits.var.shape[0])):
-        vj = fits.var[j]
+        vj = fits.var.plane(j) if isinstance(fits.var, _RowSpill) else fits.var[j]
         with np.errstate(divide="ignore", invalid="ignore"):
             out[j] = np.where(np.isfinite(fits.fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
     return out
@@ -1863,7 +1872,8 @@ def _smooth_sigma_maps(fits: _PixelFits, zc: float, zs: float, degree: int, nois
         with np.errstate(all="ignore"):
             mom = _range_moments(((fits.pz_min[r0:r1] - zc) / zs).astype(np.float64),
                                  ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
-            smooth_diag = np.einsum("jhw,jhw->hw", fits.var[:, r0:r1], mom[2 * np.arange(d1)])
+            var = fits.var.row_block(r0, r1) if isinstance(fits.var, _RowSpill) else fits.var[:, r0:r1]
+            smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
             own_diag = fits.own_diag[r0:r1]
             s2 = fits.own_var[r0:r1] * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
             # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
