@@ -3,9 +3,11 @@
 Every map is an ``(H, W)`` array indexed ``[row, col]`` (pyqtgraph runs in
 row-major mode) drawn so that view coordinates are camera pixel coordinates
 with pixel centres at integers (METHOD.md section 2). Large maps stay fluid:
-``ImageItem(autoDownsample=True)``, colour levels computed once with numpy on
-a subsample (:func:`ptpcore.evaluate.views.robust_levels`), histograms likewise; no
-per-pixel Python anywhere.
+drawn reduced to about a megapixel (:func:`ptpcore.evaluate.views.prepare_display`, on
+the job's thread where a job made the map) and at camera resolution only for the part
+in view once zoomed in; ``ImageItem(autoDownsample=True)``; colour levels computed once
+with numpy on a subsample (:func:`ptpcore.evaluate.views.robust_levels`), histograms
+likewise; no per-pixel Python anywhere.
 """
 
 from __future__ import annotations
