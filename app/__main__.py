@@ -54,7 +54,7 @@ def main(argv=None) -> int:
         os.environ["QT_QPA_PLATFORM"] = "offscreen"
     from PySide6.QtWidgets import QApplication
 
-    from .wizard import StudioWizard, configure_app
+    from .wizard import StudioWizard, configure_app, freeze_startup_objects
 
     if args.tour:
         _quiet_offscreen_warnings()
@@ -76,6 +76,7 @@ def main(argv=None) -> int:
     session.reset_positions()
     wiz = StudioWizard(session)
     wiz.show()
+    freeze_startup_objects()
     if args.session:  # read in the background; a bad file is reported on the Rig page
         wiz.open_session(args.session)
     return app.exec()

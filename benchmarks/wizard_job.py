@@ -36,13 +36,14 @@ def run(dataset: Path, model: str, degree: int) -> dict:
     from PySide6.QtWidgets import QApplication
 
     from ptp_studio.session import Session
-    from ptp_studio.wizard import StudioWizard
+    from ptp_studio.wizard import StudioWizard, freeze_startup_objects
     from ptpcore.rig import load_rig
 
     app = QApplication.instance() or QApplication([])
     wiz = StudioWizard(Session.from_preset("realistic"))
     wiz.resize(1300, 850)
     wiz.show()
+    freeze_startup_objects()  # as ptp-studio does at start-up
     wiz.model.import_dataset(dataset, load_rig(dataset / "rig.toml"))
     gaps: list[tuple[float, str]] = []  # (gap s, the job's latest progress message then)
     last = [None]
