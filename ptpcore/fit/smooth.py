@@ -1776,16 +1776,6 @@ def _upsample_grid(coarse: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
 LEAK_GRID_PX = 8
 """Grid step (px) on which :func:`_global_leak_variance` recomputes the perturbed global rays."""
 
-LEAK_GROUP = 1
-"""Parameter directions whose change maps :func:`_global_leak_variance` used to smooth at once.
-
-One direction and one axis at a time (issue 15): four directions at once held ``(2, 8, H, W)``
-float64 maps and their smoothed copies, the smooth command's peak (about 1.3 GB at 5 MP); one
-direction's X and Y together were still the smooth command's peak before its leave-one-out (1.76
-GB at 5 MP x 21). Each map is smoothed alone either way, so the sigma maps are bit-identical.
-Kept for the record; the loop no longer reads it."""
-
-
 def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
                           z_norm) -> dict:
     """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
@@ -1835,7 +1825,10 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
     cols = np.arange(-step, w + 2 * step, step, dtype=float)[: (w - 1) // step + 4]
     base = _rays_at(gfit.model, cols, rows)
     dirs = [np.sqrt(li) * vi for li, vi in zip(lam, vec.T) if li > 0]
-    for dv in dirs:  # one direction and one axis at a time (LEAK_GROUP): the remainders add per pixel in this order
+    # One direction and one axis at a time (issue 15): the directions' maps smoothed together were the
+    # smooth command's peak; each map is smoothed alone either way, and the remainders add per pixel
+    # in the same order.
+    for dv in dirs:
         moved = _rays_at(_pinhole_from_params(gfit.param_names, gfit.param_values + dv), cols, rows)
         for a, (i0, i1) in zip("xy", ((0, 2), (1, 3))):
             d0, d1 = (_upsample_grid(moved[q] - base[q], step, h, w) for q in (i0, i1))
