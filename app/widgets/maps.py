@@ -120,7 +120,6 @@ class MapView(pg.GraphicsLayoutWidget):
         self._shape: tuple[int, int] | None = None
         self._step = 1  # camera pixels per map pixel along each side (a reduced preview)
         self._full: np.ndarray | None = None  # the camera-resolution map behind a reduced one (set_map(full=))
-        self._reduced: tuple[np.ndarray, int] | None = None  # the reduced image and its step, while full is set
         self._detail: tuple[int, int, int, int] | None = None  # rows r0:r1, cols c0:c1 shown at full resolution
         self._cmap_name: str | None = None  # the colour map last set by name
         self.plot.vb.sigRangeChanged.connect(self._update_detail)
@@ -167,7 +166,6 @@ class MapView(pg.GraphicsLayoutWidget):
         self.image.setImage(data, levels=levels, autoLevels=False)
         self._step = step
         self._full = full if step > 1 else None
-        self._reduced = (data, step) if self._full is not None else None
         self._detail = None
         self._place(data.shape, keep_view, extent)
         self._update_detail()
@@ -177,7 +175,7 @@ class MapView(pg.GraphicsLayoutWidget):
         """Show an (H, W, 4) uint8 image as it is (no colour bar)."""
         self.data = None
         self._step = 1
-        self._full = self._reduced = self._detail = None
+        self._full = self._detail = None
         self.image.setImage(rgba, autoLevels=False, levels=(0, 255))
         self._place(rgba.shape[:2], keep_view)
 
@@ -211,10 +209,9 @@ class MapView(pg.GraphicsLayoutWidget):
         c0, c1 = max(0, int(math.floor(x0 + 0.5))), min(w, int(math.ceil(x1 + 0.5)))
         r0, r1 = max(0, int(math.floor(y0 + 0.5))), min(h, int(math.ceil(y1 + 0.5)))
         if c1 <= c0 or r1 <= r0 or (r1 - r0) * (c1 - c0) > views.DISPLAY_PIXELS:
-            if self._detail is not None:  # zoomed out again
+            if self._detail is not None:  # zoomed out again: the reduced map (self.data, self._step)
                 self._detail = None
-                self._show_part(self._reduced[0], QRectF(-0.5, -0.5, self._reduced[0].shape[1] * self._reduced[1],
-                                                         self._reduced[0].shape[0] * self._reduced[1]))
+                self._show_part(self.data, self._covered(self.data.shape))
             return
         d = self._detail
         if d is not None and d[0] <= r0 and r1 <= d[1] and d[2] <= c0 and c1 <= d[3]:
@@ -231,7 +228,7 @@ class MapView(pg.GraphicsLayoutWidget):
 
     def clear_map(self) -> None:
         """Show nothing (the data it showed are gone)."""
-        self._full = self._reduced = self._detail = None
+        self._full = self._detail = None
         self.data = None
         self.image.clear()
         self.overlay.clear()
