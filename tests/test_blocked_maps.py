@@ -151,3 +151,32 @@ def test_laplacian_of_one_edge_row_is_the_whole_images():
     whole = smooth_mod._laplacian(a, 0, 6)
     rows = np.concatenate([smooth_mod._laplacian(a, r, r + 1) for r in range(6)])
     np.testing.assert_array_equal(rows, whole)
+
+
+def _whole_map_upsample(coarse, b, h, w):
+    """The former :func:`smooth._upsample`: OpenCV's bilinear resize of the padded grid, then every
+    NaN pixel from a whole map of repeated bins."""
+    import cv2
+
+    hc, wc = coarse.shape
+    p = np.empty((hc + 2, wc + 2))
+    p[1:-1, 1:-1] = coarse
+    p[0, 1:-1] = 2 * coarse[0] - coarse[1] if hc > 1 else coarse[0]
+    p[-1, 1:-1] = 2 * coarse[-1] - coarse[-2] if hc > 1 else coarse[-1]
+    p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
+    p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
+    lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
+    bad = np.isnan(lin)
+    lin[bad] = np.repeat(np.repeat(coarse, b, axis=0), b, axis=1)[:h, :w][bad]
+    return lin
+
+
+@pytest.mark.parametrize("hc, wc, b, h, w", [(40, 30, 4, 160, 117), (13, 9, 3, 38, 27), (1, 1, 900, 600, 900),
+                                             (1, 7, 5, 4, 33), (6, 1, 2, 11, 2)])
+def test_upsample_in_row_bands_keeps_its_bits(monkeypatch, hc, wc, b, h, w):
+    """Bands of a few rows (not multiples of the bin) and a single bin: the whole-map result."""
+    rng = np.random.default_rng(hc * wc)
+    coarse = rng.normal(size=(hc, wc)) * 10.0 ** rng.integers(-6, 3)
+    coarse[rng.random((hc, wc)) < 0.25] = np.nan
+    monkeypatch.setattr(smooth_mod, "_UPSAMPLE_ROWS", 7)
+    assert np.array_equal(smooth_mod._upsample(coarse, b, h, w), _whole_map_upsample(coarse, b, h, w), equal_nan=True)

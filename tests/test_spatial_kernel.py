@@ -32,10 +32,14 @@ def test_median_networks_select_the_middle_values():
         assert np.array_equal(w[slots[0]], s[(m - 1) // 2]) and np.array_equal(w[slots[1]], s[m // 2])
 
 
+@pytest.mark.parametrize("band_rows", [None, 9, 16])
 @pytest.mark.parametrize("holes", ["clustered", "scattered"])
-def test_kernels_equal_the_numpy_path(monkeypatch, holes):
+def test_kernels_equal_the_numpy_path(monkeypatch, holes, band_rows):
+    """Also with the fused residual in bands of a few rows (the numpy path takes the whole map)."""
     rng = np.random.default_rng(3)
     h, w = 150, 211
+    if band_rows:
+        monkeypatch.setattr(spatial, "SPATIAL_BAND_PIXELS", band_rows * w)
     r, c = np.mgrid[0:h, 0:w].astype(float)
     coord = 0.9 * c + 2e-4 * (c - 100) ** 2 + 0.3 * r + 0.02 * rng.standard_normal((h, w))
     coord[40:45, 60:66] += 2.0  # a defect
@@ -55,3 +59,20 @@ def test_kernels_equal_the_numpy_path(monkeypatch, holes):
     flagged2, used2 = spatial.spatial_outliers(coord, valid, 0.02)
     assert np.array_equal(flagged, flagged2) and used == used2
     assert flagged[40:45, 60:66].mean() > 0.5
+
+
+def test_the_sigma_used_is_the_median_of_the_predicted_sigma_floored_by_the_spread():
+    rng = np.random.default_rng(5)
+    h, w = 120, 90
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    coord = 0.9 * c + 0.3 * r + 0.02 * rng.standard_normal((h, w))
+    valid = rng.random((h, w)) > 0.1
+    sigma = np.abs(0.02 + 0.01 * rng.standard_normal((h, w)))
+    sigma[rng.random((h, w)) < 0.05] = np.nan
+    resid, _ = spatial.neighbourhood_residual(coord, valid)
+    spread = spatial.ROBUST_SIGMA * np.median(np.abs(resid[np.isfinite(resid)]))
+    assert np.nanmin(sigma) < spread < np.nanmax(sigma)  # both sides of the floor are exercised
+    _, used = spatial.spatial_outliers(coord, valid, sigma)
+    assert used == float(np.nanmedian(np.maximum(sigma, spread)))
+    _, used_scalar = spatial.spatial_outliers(coord, valid, 0.5 * spread)
+    assert used_scalar == spread

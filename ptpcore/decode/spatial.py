@@ -111,45 +111,69 @@ def _kernels():
     return _spatial_kernel
 
 
-def _padded_maps(coord: np.ndarray, valid: np.ndarray, pad: int) -> tuple[np.ndarray, ...]:
+def _padded_maps(coord: np.ndarray, valid: np.ndarray, pad: int, lo: int = 0, hi: int | None = None
+                 ) -> tuple[np.ndarray, ...]:
     """The coordinate (NaN where not valid), its central differences along columns and rows, and
-    room for the residual, each inside a NaN border of ``pad`` pixels: (H + 2 pad, W + 2 pad) float64.
+    room for the residual, of image rows ``[lo, hi)`` (default all), each inside a NaN border of ``pad``
+    pixels: (hi - lo + 2 pad, W + 2 pad) float64. The border rows are the image's own where it has them.
 
     Written in place (no padded copy of an unpadded map: 40 MB less to touch per map at 5 MP).
     """
     h, w = coord.shape
+    hi = h if hi is None else hi
+    a0, a1 = max(lo - pad, 0), min(hi + pad, h)  # the image rows the padded maps hold
+    g0, g1 = max(a0 - 1, 0), min(a1 + 1, h)  # and the rows their row differences read
     maps = []
     for _ in range(4):
-        a = np.empty((h + 2 * pad, w + 2 * pad))
-        a[:pad], a[h + pad:], a[:, :pad], a[:, w + pad:] = np.nan, np.nan, np.nan, np.nan
+        a = np.full((hi - lo + 2 * pad, w + 2 * pad), np.nan)
         maps.append(a)
-    c, gc, gr, _resid = (a[pad:pad + h, pad:pad + w] for a in maps)
-    c[...] = np.nan
-    np.copyto(c, coord, where=valid)
-    gc[:, :1], gc[:, w - 1:], gr[:1], gr[h - 1:] = np.nan, np.nan, np.nan, np.nan
+    inner = slice(a0 - lo + pad, a1 - lo + pad), slice(pad, pad + w)
+    c, gc, gr = (m[inner] for m in maps[:3])
+    near = np.full((g1 - g0, w), np.nan)  # the coordinate of rows [g0, g1), NaN where not valid
+    np.copyto(near, coord[g0:g1], where=valid[g0:g1])
+    c[...] = near[a0 - g0:a1 - g0]
+    gc[:, :1], gc[:, w - 1:] = np.nan, np.nan
     if w > 2:
         np.subtract(c[:, 2:], c[:, :-2], out=gc[:, 1:-1])
         gc[:, 1:-1] *= 0.5
-    if h > 2:
-        np.subtract(c[2:], c[:-2], out=gr[1:-1])
-        gr[1:-1] *= 0.5
+    # Row differences of rows [a0, a1), NaN at the image's first and last rows.
+    first, last = max(a0, 1), min(a1, h - 1)
+    if last > first:
+        out = gr[first - a0:last - a0]
+        np.subtract(near[first + 1 - g0:last + 1 - g0], near[first - 1 - g0:last - 1 - g0], out=out)
+        out *= 0.5
     return tuple(maps)
 
 
+SPATIAL_BAND_PIXELS = 1 << 20
+"""Pixels per band of the fused residual: its four padded float64 maps are held for one band (35 MB at
+4000 px wide) instead of the whole image (390 MB at 12 MP); a band recomputes the residuals of the
+``2 pad`` rows around it that its neighbours' medians read (3 % more at 4000 px wide)."""
+
+
 def _residual_fused(kern, coord: np.ndarray, valid: np.ndarray, pad: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`neighbourhood_residual` by the numba kernels, tile by tile (bit-equal); each padded map
-    is let go as soon as it has been read (at most four of them, 160 MB at 5 MP, at once)."""
+    """:func:`neighbourhood_residual` by the numba kernels, band by band of rows (bit-equal: every pixel's
+    numbers come from the same neighbours whatever the band)."""
     from ptpcore.parallel import run_tiles
 
     h, w = coord.shape
-    cp, gcp, grp, rp = _padded_maps(coord, valid, pad)
     offs = np.array(window_offsets(), np.int64).reshape(-1, 2)
-    resid = rp[pad:pad + h, pad:pad + w]
-    count = np.empty((h, w), np.int16)
-    run_tiles(lambda r0, r1: kern.residual_rows(cp, gcp, grp, offs, pad, MIN_NEIGHBOURS, r0, r1, resid, count), h, w)
-    del cp, gcp, grp
     out = np.empty((h, w))
-    run_tiles(lambda r0, r1: kern.around_rows(rp, offs, pad, r0, r1, out), h, w)
+    count = np.empty((h, w), np.int16)
+    rows = max(4 * pad, SPATIAL_BAND_PIXELS // max(w, 1))
+    for b0 in range(0, h, rows):
+        b1 = min(h, b0 + rows)
+        lo, hi = max(b0 - pad, 0), min(b1 + pad, h)  # the rows whose residuals the band's medians read
+        cp, gcp, grp, rp = _padded_maps(coord, valid, pad, lo, hi)
+        resid = rp[pad:pad + hi - lo, pad:pad + w]
+        band_count = np.empty((hi - lo, w), np.int16)
+        run_tiles(lambda r0, r1: kern.residual_rows(cp, gcp, grp, offs, pad, MIN_NEIGHBOURS, r0, r1, resid,
+                                                    band_count), hi - lo, w)
+        del cp, gcp, grp
+        count[b0:b1] = band_count[b0 - lo:b1 - lo]
+        band_out = out[lo:hi]  # row r of the band's maps is image row lo + r
+        run_tiles(lambda r0, r1: kern.around_rows(rp, offs, pad, r0 + b0 - lo, r1 + b0 - lo, band_out), b1 - b0, w)
+        del rp
     return out, count
 
 
@@ -176,20 +200,27 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     finite = np.isfinite(resid)
     if not finite.any():
         return np.zeros(coord.shape, bool), float("nan")
-    magnitude = np.abs(resid[finite])
+    magnitude = resid[finite]  # a copy, made absolute in place
+    np.abs(magnitude, out=magnitude)
     spread = ROBUST_SIGMA * float(np.median(magnitude, overwrite_input=True))
     del magnitude
     if sigma is None:
         sigma = spread
     # Where the map is less smooth than the noise (noise-free data, structure the
     # local plane does not follow), the robust spread of the residuals is the floor.
-    sig = np.maximum(np.asarray(sigma, np.float64), spread)
+    sigma = np.asarray(sigma, np.float64)
     flagged = np.empty(coord.shape, bool)
     for r0 in range(0, coord.shape[0], FLAG_ROWS):  # row bands: no whole-map temporaries
         rows = slice(r0, r0 + FLAG_ROWS)
+        sig = np.maximum(sigma[rows] if sigma.ndim else sigma, spread)
         # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
         scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n[rows], 1))
         with np.errstate(invalid="ignore"):
-            flagged[rows] = finite[rows] & (np.abs(resid[rows]) > k * (sig[rows] if sig.ndim else sig) * scale)
-    used = float(np.nanmedian(sig)) if sig.ndim else float(sig)
-    return flagged, used
+            flagged[rows] = finite[rows] & (np.abs(resid[rows]) > k * sig * scale)
+    if not sigma.ndim:
+        return flagged, float(np.maximum(sigma, spread))
+    # The median of max(sigma, spread) over the pixels where it is defined (NaN sigma stays NaN):
+    # from the defined values only, not a whole map of them.
+    defined = sigma[~np.isnan(sigma)]
+    np.maximum(defined, spread, out=defined)
+    return flagged, (float(np.nanmedian(defined)) if defined.size else float("nan"))

@@ -429,21 +429,27 @@ def _bin(a: np.ndarray, b: int) -> np.ndarray:
     return a.reshape(*a.shape[:-2], hc, b, wc, b).sum(axis=(-3, -1))
 
 
-def _binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0):
+def _binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0, unweighted_zero: bool = False):
     """Bin ``(n, h, w)`` values with ``(h, w)`` weights into inverse-variance weighted means.
 
     Returns the bins' summed weights, their weighted-mean values ``(n, hc, wc)``
     (0 where empty) and the weighted centroids (column, row in pixels; the bin
     centre where empty). ``r0``: the image row of the first row (a multiple of ``b``).
+    ``unweighted_zero``: values where the weight is not positive count as 0 (taken map by map,
+    so that no zeroed copy of every map is held).
     """
     h, w = weights.shape
     wsum = _bin(weights, b)
     cols = np.arange(w, dtype=float)[None, :]
     rows = np.arange(r0, r0 + h, dtype=float)[:, None]
+
+    def weighted(v):
+        return weights * (np.where(weights > 0, v, 0.0) if unweighted_zero else v)
+
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(wsum > 0, 1.0 / wsum, 0.0)
         # One map at a time: the (n, H, W) product is not held whole (77 MB at 5 MP for X and Y).
-        binned = np.stack([_bin(weights * v, b) for v in values]) if values.ndim == 3 else _bin(weights * values, b)
+        binned = np.stack([_bin(weighted(v), b) for v in values]) if values.ndim == 3 else _bin(weighted(values), b)
         mean = binned * inv
         hc, wc = wsum.shape
         cx = np.arange(wc) * b + (b - 1) / 2.0
@@ -464,31 +470,40 @@ def _binned_sigma(scale_px: float, b: int, interpolated: bool) -> float:
     return float(np.sqrt(max(scale_px ** 2 - extra, 0.25 * scale_px ** 2))) / b
 
 
-def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: int, with_variance: bool = True):
+def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: int, with_variance: bool = True,
+                   out: np.ndarray | None = None):
     """:func:`local_linear_smooth` on a grid of ``b x b`` bins (each bin a point at its weighted centroid,
     with the bin's weighted-mean value and summed weight), interpolated back to every pixel (bilinear).
 
     Exact for linear trends like the per-pixel version; the Gaussian weight of a
     pixel is taken at its bin's centre. For scales of several bins.
+    ``out``: where the smoothed maps go (the shape of ``values``; may be ``values`` itself, which is
+    read before it is written). Returns ``(smoothed, variance or None)``.
     """
     if b == 1 or scale_px <= 0:
-        return local_linear_smooth(values, weights, scale_px, with_variance)
+        smoothed, var = local_linear_smooth(values, weights, scale_px, with_variance)
+        if out is None:
+            return smoothed, var
+        out[...] = smoothed
+        return out, var
     h, w = weights.shape
-    vals = np.where(weights > 0, values, 0.0)
-    stacked = vals.ndim == 3
-    vals = vals if stacked else vals[None]
-    wsum, mean, xbar, ybar = _binned_points(weights, vals, b)
-    del vals  # not held while the bins go back to pixels
+    stacked = values.ndim == 3
+    wsum, mean, xbar, ybar = _binned_points(weights, values if stacked else values[None], b, unweighted_zero=True)
     hc, wc = wsum.shape
     cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
     cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
     out_c, var_c = _ll_grid(mean, wsum, _binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
                             ybar / scale_px, with_variance)
-    out = np.empty((len(out_c), h, w))
+    if out is None:
+        out = np.empty((len(out_c), h, w)) if stacked else np.empty((h, w))
+    maps = out if stacked else out[None]
     for i, o in enumerate(out_c):  # into one array: no list of maps beside their stack
-        out[i] = _upsample(o, b, h, w)
-    var = None if var_c is None else np.where(np.isfinite(out[0]), _upsample(var_c, b, h, w), np.nan)
-    return (out if stacked else out[0]), var
+        maps[i] = _upsample(o, b, h, w)
+    var = None
+    if var_c is not None:
+        var = _upsample(var_c, b, h, w)
+        var[~np.isfinite(maps[0])] = np.nan
+    return out, var
 
 
 def _upsample(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
@@ -498,6 +513,10 @@ def _upsample(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
     to the image edge); pixels next to a bin without a value take their own bin's value.
     """
     hc, wc = coarse.shape
+    if hc == wc == 1:
+        # One bin (the model error's single region): its value everywhere, as the interpolation of a
+        # constant gives it, without OpenCV's (3 b)^2 grid (1.15 GB of float64 at 12 MP).
+        return np.full((h, w), coarse[0, 0], dtype=np.float64)
     p = np.empty((hc + 2, wc + 2))
     p[1:-1, 1:-1] = coarse
     p[0, 1:-1] = 2 * coarse[0] - coarse[1] if hc > 1 else coarse[0]
@@ -505,26 +524,56 @@ def _upsample(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
     p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
     p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
     lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
-    bad = np.isnan(lin)
-    if bad.any():
-        near = np.repeat(np.repeat(coarse, b, axis=0), b, axis=1)[:h, :w]
-        lin[bad] = near[bad]
+    # NaN next to an empty bin: the pixel's own bin's value, band by band of rows. A whole map of
+    # repeated bins (np.repeat: 100 MB at 12 MP, freshly paged in while holding the GIL) stalled the
+    # wizard's event loop for 200 ms.
+    for r0 in range(0, h, _UPSAMPLE_ROWS):
+        band = lin[r0:r0 + _UPSAMPLE_ROWS]
+        bad = np.isnan(band)
+        if bad.any():
+            c0, c1 = r0 // b, -(-(r0 + len(band)) // b)
+            near = np.broadcast_to(coarse[c0:c1, None, :, None], (c1 - c0, b, wc, b)).reshape((c1 - c0) * b, wc * b)
+            np.copyto(band, near[r0 - c0 * b:r0 - c0 * b + len(band), :w], where=bad)
     return lin
 
 
-def _global_rays(model: PinholeModel, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``x0, y0, sx, sy`` (H, W) float64 of the global model's rays ``X = x0 + sx z``, built in row blocks."""
-    h, w = shape
-    x0, y0, sx, sy = (np.empty((h, w)) for _ in range(4))
+_UPSAMPLE_ROWS = 256
+"""Rows per band of :func:`_upsample`'s nearest-bin fill (a few MB of repeated bins at a time)."""
 
-    def block(r0, r1):
-        rr, cc = np.mgrid[r0:r1, 0:w].astype(float)
-        a0, b0 = model.pixel_to_world_at_z(cc, rr, 0.0)
-        a1, b1 = model.pixel_to_world_at_z(cc, rr, 1.0)
-        x0[r0:r1], y0[r0:r1], sx[r0:r1], sy[r0:r1] = a0, b0, a1 - a0, b1 - b0
 
-    _run_blocks(block, _row_blocks(h, w))
-    return x0, y0, sx, sy
+class _GlobalRays:
+    """The global model's rays ``X = x0 + sx z``, ``Y = y0 + sy z``: four (H, W) float64 maps read by rows.
+
+    Above :data:`_SPILL_FITS_PIXELS` pixels they wait in a temporary file (:class:`_RowSpill`) and each
+    row block reads its rows: at 12 MP the four maps (380 MB) are not held beside the pixel fits
+    through the smoothing and every leave-one-out refit. The values are the same either way.
+    """
+
+    def __init__(self, model: PinholeModel, shape):
+        h, w = self.shape = tuple(shape)
+        spill = h * w > _SPILL_FITS_PIXELS
+        self._maps = _RowSpill((4, h, w)) if spill else np.empty((4, h, w))
+
+        def block(r0, r1):
+            rr, cc = np.mgrid[r0:r1, 0:w].astype(float)
+            a0, b0 = model.pixel_to_world_at_z(cc, rr, 0.0)
+            a1, b1 = model.pixel_to_world_at_z(cc, rr, 1.0)
+            self._maps[:, r0:r1] = np.stack((a0, b0, a1 - a0, b1 - b0))
+
+        _run_blocks(block, _row_blocks(h, w))
+
+    def rows(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``x0, y0, sx, sy`` of rows ``[r0, r1)``: four ``(r1 - r0, W)`` maps."""
+        m = self._maps
+        block = m.row_block(r0, r1) if isinstance(m, _RowSpill) else m[:, r0:r1]
+        return tuple(block)
+
+    def window(self, r0: int, r1: int) -> tuple[tuple, int]:
+        """The rows :func:`footprint_bias` reads for rows ``[r0, r1)`` (their neighbours, three rows
+        at least) and the first one's index: pass ``(rays, r0 - first, r1 - first)`` to it."""
+        h = self.shape[0]
+        lo, hi = max(min(r0 - 1, h - 3), 0), min(max(r1 + 1, 3), h)  # as _laplacian widens the block
+        return self.rows(lo, hi), lo
 
 
 #: Largest footprint second moment (camera px^2) the correction believes: a blur sigma of 2 px.
@@ -571,7 +620,8 @@ def footprint_bias(rays, rig: Rig, z: np.ndarray, modulation: np.ndarray, backgr
 
     Parameters
     ----------
-    rays : (x0, y0, sx, sy) (H, W) float64 maps of the global model
+    rays : (x0, y0, sx, sy) float64 maps of the global model: the whole image, or rows of it
+        (:meth:`_GlobalRays.window`) with ``r0``, ``r1`` counted from their first
     rig : Rig
     z : (K,) heights (mm)
     modulation, background : (K, n) finest-period ``B`` and ``A`` of rows ``[r0, r1)`` (n = rows * W)
@@ -639,6 +689,8 @@ def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, ray
                    level_bias: bool = False, footprint: bool = False):
     """Rows ``[r0, r1)`` of the chosen positions: validity, sample sigma, weights and residuals to the global model.
 
+    ``rays``: the global model's :class:`_GlobalRays`, or None for validity and sigma only.
+
     Returns
     -------
     valid : (K, n) bool ; sigma : (K, n) float64 (NaN where invalid) ; wts : (K, n) float64
@@ -655,9 +707,10 @@ def _block_samples(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, ray
     if rays is None:
         return valid, sig, None, None
     wts = np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.square(sig), 0.0)
-    g = [r.reshape(-1)[s:e] for r in rays]
+    near, lo = rays.window(r0, r1)
+    g = [r[r0 - lo:r1 - lo].reshape(-1) for r in near]
     wts[:, ~(np.isfinite(g[0]) & np.isfinite(g[1]))] = 0.0
-    fb = footprint_bias(rays, rig, z, mod, bg, r0, r1) if footprint else None
+    fb = footprint_bias(near, rig, z, mod, bg, r0 - lo, r1 - lo) if footprint else None
     resid = [_corrected_absolute(samples, rig, a, s, e, sel, z, level_bias, fb) - (g0[None] + gs[None] * z[:, None])
              for a, (g0, gs) in enumerate(((g[0], g[2]), (g[1], g[3])))]
     return valid, sig, wts, resid
@@ -859,7 +912,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     rms_x = np.where(plain.valid, plain.rms_x, np.float32(np.nan))
     rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
     del plain
-    rays = _global_rays(gfit.model, samples.shape)
+    rays = _GlobalRays(gfit.model, samples.shape)
 
     run = _SmoothPass(samples, rig, sel, z, (zc, zs), rays, degree, scales_px, cv_bin, level_bias, footprint)
     report(0.05, "fitting every pixel and cross-validating")
@@ -872,10 +925,10 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
 
     report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
     t, b = run.t, run.b
-    run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP) are not held while smoothing
+    run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP; in a file above 0.3 MP) not held
     fits.load("fit")  # fits.var stays in its file, a plane at a time (150 MB at 5 MP and degree 3)
     leak_w = _smoothing_weights(fits, 2)  # before the smoothing changes fits.var in place
-    coef, rays = _smoothed_coefficients(fits, scale, b, lambda: _global_rays(gfit.model, samples.shape), zc, zs)
+    coef, rays = _smoothed_coefficients(fits, scale, b, lambda: _GlobalRays(gfit.model, samples.shape), zc, zs)
     stage_var = _stage_variance(rays, rig, t, degree, stage_sigma_mm)
     d1 = degree + 1
     # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
@@ -1313,7 +1366,7 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
     ``variance`` (the leave-one-out refits: coefficients only) ``fits.var`` only weights the
     smoothing and is not smoothed.
     ``rays`` is a callable returning the global rays
-    (:func:`_global_rays`) or the rays themselves: a callable is called after the
+    (:class:`_GlobalRays`) or the rays themselves: a callable is called after the
     smoothing, so that the rays are not held during it (160 MB at 5 MP).
     """
     fits.load("fit")
@@ -1327,7 +1380,8 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         with np.errstate(divide="ignore", invalid="ignore"):
             wj = np.where(np.isfinite(fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
         del vj
-        fit[:, j], smoothed_var = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, variance)
+        # Smoothed in place: the (2, H, W) maps are read into bins before they are written (no copy).
+        smoothed_var = _smooth_binned(np.nan_to_num(fit[:, j], copy=False), wj, scale, fb, variance, out=fit[:, j])[1]
         if variance and isinstance(var, _RowSpill):
             var[j, 0:h] = smoothed_var
         elif variance:
@@ -1335,13 +1389,12 @@ def _smoothed_coefficients(fits: _PixelFits, scale: float, b: int, rays, zc: flo
         del wj, smoothed_var
     coef = {"x": fit[0], "y": fit[1]}
     rays = rays() if callable(rays) else rays
-    gx0, gy0, gsx, gsy = rays
     # Global ray as a polynomial in t: X = x0 + sx * (zc + zs t).
-    for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
-        c = coef[a]
-        for r0, r1 in _row_blocks(h, w):
-            c[0, r0:r1] += g0[r0:r1] + gs[r0:r1] * zc
-            c[1, r0:r1] += gs[r0:r1] * zs
+    for r0, r1 in _row_blocks(h, w):
+        gx0, gy0, gsx, gsy = rays.rows(r0, r1)
+        for a, g0, gs in (("x", gx0, gsx), ("y", gy0, gsy)):
+            coef[a][0, r0:r1] += g0 + gs * zc
+            coef[a][1, r0:r1] += gs * zs
     return coef, rays
 
 
@@ -1352,10 +1405,13 @@ def _stage_variance(rays, rig: Rig, t: np.ndarray, degree: int, stage_sigma_mm: 
     """
     if not stage_sigma_mm:
         return {}
-    _, _, gsx, gsy = rays
     lev = stage_leverage(t, degree)
-    return {a: (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
-            for a, gs, d in (("x", gsx, 0), ("y", gsy, 1))}
+    out = {a: np.empty(rays.shape, np.float32) for a in "xy"}
+    for r0, r1 in _row_blocks(*rays.shape):
+        _, _, gsx, gsy = rays.rows(r0, r1)
+        for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
+            out[a][r0:r1] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
+    return out
 
 
 def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.ndarray, coef: dict, rays,
@@ -1371,8 +1427,9 @@ def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.nda
 
         s, e = r0 * w, r1 * w
         ok = read_block(samples.reasons, s, e, sel) == 0
-        fb = (footprint_bias(rays, rig, z, read_block(samples.modulation, s, e, sel),
-                             read_block(samples.background, s, e, sel), r0, r1) if footprint else None)
+        near, lo = rays.window(r0, r1)
+        fb = (footprint_bias(near, rig, z, read_block(samples.modulation, s, e, sel),
+                             read_block(samples.background, s, e, sel), r0 - lo, r1 - lo) if footprint else None)
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("kj,jp->kp", vander, coef[a][:, r0:r1].reshape(d1, -1))
             absval = _corrected_absolute(samples, rig, i_axis, s, e, sel, z, level_bias, fb)
@@ -1401,7 +1458,7 @@ class _LooSetup:
     sel: np.ndarray
     z: np.ndarray
     z_norm: tuple
-    rays: tuple
+    rays: _GlobalRays
     degree: int
     scale: float
     cv_bin: int
@@ -1416,7 +1473,8 @@ class _ModelError:
 
     Attributes
     ----------
-    var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (0 where not resolved)
+    var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (0 where not resolved); None once
+        :func:`_uncertainty` has added it to the sigma maps
     rms_mm : float
         RMS of ``sqrt(var)`` over both axes and the pixels with samples.
     limit_mm : float
@@ -1447,7 +1505,7 @@ def _uncertainty(setup: _LooSetup, gfit, inputs: dict, fits: "_PixelFits", valid
     leak = {}
     if full:
         report(0.91, "propagating the global model's uncertainty")
-        leak = _global_leak_variance(gfit, s.rays, inputs["leak_w"], s.scale, s.cv_bin, fits.pz_min, fits.pz_max,
+        leak = _global_leak_variance(gfit, inputs["leak_w"], s.scale, s.cv_bin, fits.pz_min, fits.pz_max,
                                      s.z_norm)
     noise = inputs.pop("noise")
     inputs.clear()
@@ -1461,7 +1519,11 @@ def _uncertainty(setup: _LooSetup, gfit, inputs: dict, fits: "_PixelFits", valid
     else:
         loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
         merr = _ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
-    sig = {a: np.sqrt(sums.get("fit_var", a) + merr.var[a]).astype(np.float32) for a in "xy"}
+    sig = {a: np.empty(valid.shape, np.float32) for a in "xy"}
+    for a in "xy":
+        for r0, r1 in _row_blocks(*valid.shape):
+            sig[a][r0:r1] = np.sqrt(sums.rows("fit_var", a, r0, r1) + merr.var[a][r0:r1]).astype(np.float32)
+    merr.var = None  # in the sigma maps now: not held while the LUT's coefficients come back (190 MB at 12 MP)
     return sig, loo, merr
 
 
@@ -1546,8 +1608,9 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, su
     def block(r0, r1):
         a0, a1 = r0 * w, r1 * w
         ok_s, _sig, _, _ = _block_samples(s.samples, s.rig, pos, zk, r0, r1, None)
-        fb = (footprint_bias(s.rays, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
-                             read_block(s.samples.background, a0, a1, pos), r0, r1) if s.footprint else None)
+        near, lo = s.rays.window(r0, r1)
+        fb = (footprint_bias(near, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
+                             read_block(s.samples.background, a0, a1, pos), r0 - lo, r1 - lo) if s.footprint else None)
         own = own_noise.get(k, a0, a1) if interior else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
@@ -1723,15 +1786,20 @@ def _model_error(sums: "_LooSums") -> _ModelError:
     return _ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)
 
 
-def _smoothing_weights(fits: "_PixelFits", n: int) -> np.ndarray:
+def _smoothing_weights(fits: "_PixelFits", n: int):
     """The final smoothing's weights ``1 / var_j`` of the first ``n`` coefficient maps, (n, H, W) float64
     (0 where a pixel has no fit), as :func:`_smoothed_coefficients` uses them (call it before: it
-    smooths ``fits.var`` in place)."""
-    out = np.zeros((n, *fits.var.shape[1:]))
-    for j in range(min(n, fits.var.shape[0])):
+    smooths ``fits.var`` in place). Above :data:`_SPILL_FITS_PIXELS` pixels a :class:`_RowSpill`
+    (read a plane at a time by :func:`_global_leak_variance`; 190 MB not held through the smoothing at 12 MP)."""
+    h, w = fits.var.shape[1:]
+    out = _RowSpill((n, h, w)) if h * w > _SPILL_FITS_PIXELS else np.zeros((n, h, w))
+    for j in range(n):
+        if j >= fits.var.shape[0]:
+            out[j, 0:h] = 0.0
+            continue
         vj = fits.var.plane(j) if isinstance(fits.var, _RowSpill) else fits.var[j]
         with np.errstate(divide="ignore", invalid="ignore"):
-            out[j] = np.where(np.isfinite(fits.fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
+            out[j, 0:h] = np.where(np.isfinite(fits.fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
     return out
 
 
@@ -1776,7 +1844,7 @@ def _upsample_grid(coarse: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
 LEAK_GRID_PX = 8
 """Grid step (px) on which :func:`_global_leak_variance` recomputes the perturbed global rays."""
 
-def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
+def _global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
                           z_norm) -> dict:
     """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
 
@@ -1793,8 +1861,8 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
     Parameters
     ----------
     gfit : PinholeFit
-    rays : (x0, y0, sx, sy) (H, W) float64, the global model's rays
-    weights : (2, H, W) float64, the smoothing weights of coefficients 0 and 1 (:func:`_smoothing_weights`)
+    weights : (2, H, W) float64 or its :class:`_RowSpill`, the smoothing weights of coefficients 0 and 1
+        (:func:`_smoothing_weights`)
     scale : float, px ; b : int, the cross-validation's bin side
     pz_min, pz_max : (H, W) the pixels' calibrated range (mm)
     z_norm : (zc, zs)
@@ -1817,6 +1885,8 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
             return _range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
                                   ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
 
+    if isinstance(weights, _RowSpill):
+        weights = [weights.plane(j) for j in range(2)]
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
     # The change of a pinhole's rays is smooth over the image: computed on a grid of every
     # LEAK_GRID_PX-th pixel and interpolated (cubic).
@@ -1836,7 +1906,9 @@ def _global_leak_variance(gfit, rays, weights: np.ndarray, scale: float, b: int,
             c[0, 0], c[1, 0] = d0 + d1 * zc, d1 * zs  # the change as coefficients in t
             del d0, d1
             for j in range(2):
-                c[j] -= _smooth_binned(np.nan_to_num(c[j]), weights[j], scale, fb, False)[0]
+                smoothed = np.nan_to_num(c[j])
+                c[j] -= _smooth_binned(smoothed, weights[j], scale, fb, False, out=smoothed)[0]
+                del smoothed
             for r0, r1 in _row_blocks(h, w):
                 mom = moments(r0, r1)
                 l0, l1 = c[0, 0, r0:r1], c[1, 0, r0:r1]

@@ -104,6 +104,12 @@ def _source_sets(source, k: int):
         raise ValueError(f"only {len(count[(d, j)])} of {len(buf)} steps were added")
 
 
+READ_AHEAD_BYTES = 200 * 2 ** 20
+"""The reader's buffers of sets read ahead, at most (but two sets): 3 sets of 8 frames at 5 MP (8 bit),
+2 at 12 MP (96 MB each). Two keep a set ready while one is decoded; reading is several times faster
+than decoding."""
+
+
 class _DatasetReader:
     """Reads the sets of some positions of a dataset folder ahead, on its own threads.
 
@@ -114,10 +120,11 @@ class _DatasetReader:
     LZW or deflate, with :func:`ptpcore.io.fastio.read_into`: tifffile and
     imagecodecs, the GIL released; anything else with
     :func:`ptpcore.io.dataset.read_image`, which also names a bad file). At most
-    ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much.
+    ``depth`` sets are buffered or mapped: reading runs ahead of decoding by that much (default: 3
+    sets, fewer where their buffers would pass :data:`READ_AHEAD_BYTES`, at least 2).
     """
 
-    def __init__(self, source, positions, depth: int = 3, map_files: bool | None = None):
+    def __init__(self, source, positions, depth: int | None = None, map_files: bool | None = None):
         from ptpcore.io.dataset import bit_shift, read_image
         from ptpcore.io.fastio import map_frame, read_into
 
@@ -133,6 +140,9 @@ class _DatasetReader:
         self.dtype = np.dtype(np.float32) if getattr(source, "colour", False) else np.dtype(_frame_dtype(self.rig))
         if self.dtype == np.float32:
             self.map_files = False
+        set_bytes = n_max * int(np.prod(self.rig.camera.shape)) * self.dtype.itemsize
+        if depth is None:
+            depth = min(3, max(2, READ_AHEAD_BYTES // set_bytes))
         for _ in range(depth):
             self.free.put(np.empty((n_max, *self.rig.camera.shape), self.dtype))
         self.out: queue.Queue = queue.Queue()
