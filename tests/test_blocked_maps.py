@@ -180,3 +180,15 @@ def test_upsample_in_row_bands_keeps_its_bits(monkeypatch, hc, wc, b, h, w):
     coarse[rng.random((hc, wc)) < 0.25] = np.nan
     monkeypatch.setattr(smooth_mod, "_UPSAMPLE_ROWS", 7)
     assert np.array_equal(smooth_mod._upsample(coarse, b, h, w), _whole_map_upsample(coarse, b, h, w), equal_nan=True)
+
+
+def test_one_positions_sigma_in_row_blocks_is_the_stacks(rough_rig, monkeypatch):
+    """The model choice's and the drift check's per-position noise (row blocks of 7 rows) is the
+    whole stack's :func:`sample_sigma_from_noise`, bit for bit, NaN where invalid."""
+    vr, samples = rough_rig
+    whole = sample_sigma_from_noise(samples, vr.rig)
+    monkeypatch.setattr(smooth_mod, "_SIGMA_ROWS", 7)
+    for k in (0, samples.z.size - 1):
+        got = smooth_mod.position_sigma_from_noise(samples, vr.rig, k)
+        assert np.isnan(got).any() and np.isfinite(got).any()
+        np.testing.assert_array_equal(got, whole[k])

@@ -71,3 +71,27 @@ def test_prepare_display_of_counts_bins_one_value_each_and_takes_any_integer_typ
     assert small.step == 1 and small.image.dtype == np.uint8 and small.levels == (0.5, 1.5)
     with pytest.raises(ValueError, match=r"\(H, W\)"):
         prepare_display(np.zeros(5))
+
+
+def test_a_scaled_map_reads_as_its_scaled_copy():
+    """The Calibrate page's µm maps (no copy of the LUT's mm maps): indexing, the whole array and the
+    display prepared from it equal those of the scaled copy, bit for bit."""
+    from ptpcore.evaluate.views import ScaledMap, prepare_display
+
+    rng = np.random.default_rng(4)
+    mm = (rng.random((300, 410)) * 2e-3).astype(np.float32)
+    mm[rng.random(mm.shape) < 0.1] = np.nan
+    um = np.float32(1000.0)
+    copy, scaled = mm * um, ScaledMap(mm, um)
+    assert scaled.shape == copy.shape and scaled.dtype == copy.dtype == np.float32
+    valid = np.isfinite(mm)
+    np.testing.assert_array_equal(scaled[valid], copy[valid])
+    np.testing.assert_array_equal(scaled[10:20, 5:300:7], copy[10:20, 5:300:7])
+    assert scaled[7, 9] == copy[7, 9] or (np.isnan(scaled[7, 9]) and np.isnan(copy[7, 9]))
+    np.testing.assert_array_equal(np.asarray(scaled), copy)
+    a, b = prepare_display(scaled, max_pixels=10_000), prepare_display(copy, max_pixels=10_000)
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.levels == b.levels and a.step == b.step
+    np.testing.assert_array_equal(a.hist_counts, b.hist_counts)
+    flags = ScaledMap(mm > 1e-3, np.uint8(1))
+    np.testing.assert_array_equal(np.asarray(flags), (mm > 1e-3).astype(np.uint8))

@@ -17,7 +17,7 @@ from .report import CompareResult, Coverage, FeaturePoints, Fold, MethodReport, 
 from .protocol import compare, draw_features, smooth_degree_for, split_positions
 from .accuracy import HeldOutAccuracy, held_out_accuracy
 from .views import (REASON_ORDER, REASON_COLOURS, VALID_COLOUR, reason_rgba, reason_counts, reason_text, mask_rgba,
-    subsample, DISPLAY_PIXELS, display_step, reduce_for_display, robust_levels, histogram, DisplayMap, prepare_display, PixelSeries, pixel_series, predicted_signal)
+    subsample, DISPLAY_PIXELS, display_step, reduce_for_display, robust_levels, histogram, DisplayMap, prepare_display, ScaledMap, PixelSeries, pixel_series, predicted_signal)
 
 __all__ = [
     "COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS",
@@ -27,5 +27,5 @@ __all__ = [
     "compare", "draw_features", "smooth_degree_for", "split_positions",
     "HeldOutAccuracy", "held_out_accuracy",
     "REASON_ORDER", "REASON_COLOURS", "VALID_COLOUR", "reason_rgba", "reason_counts", "reason_text", "mask_rgba",
-    "subsample", "DISPLAY_PIXELS", "display_step", "reduce_for_display", "robust_levels", "histogram", "DisplayMap", "prepare_display", "PixelSeries", "pixel_series", "predicted_signal",
+    "subsample", "DISPLAY_PIXELS", "display_step", "reduce_for_display", "robust_levels", "histogram", "DisplayMap", "prepare_display", "ScaledMap", "PixelSeries", "pixel_series", "predicted_signal",
 ]

@@ -275,7 +275,7 @@ class _HeldOutJudge:
         noise_sum : float, mm^2
             Sum of the predicted noise variance over the common set (NaN without a noise model).
         """
-        from ptpcore.fit.smooth import sample_sigma_from_noise
+        from ptpcore.fit.smooth import position_sigma_from_noise
 
         kept = [ci for ci, bits in enumerate(self.in_range) if bits is not None]
         sums = np.zeros(len(self.in_range))
@@ -294,7 +294,7 @@ class _HeldOutJudge:
             n_common += 2 * int(common.sum())
             slope2 = self._plane("slope2", kept[0], e) if self.stage_sigma_mm and kept else None
             noise_sum += _noise_variance_sum(self.samples, rig, k, common.reshape(self.samples.shape), slope2,
-                                             self.stage_sigma_mm, sample_sigma_from_noise)
+                                             self.stage_sigma_mm, position_sigma_from_noise)
         return sums, counts, n_common, noise_sum
 
 
@@ -307,7 +307,7 @@ def _noise_variance_sum(samples, rig, k, common, slope2, stage_sigma_mm, sigma_f
     """
     if samples.noise is None or samples.modulation is None:
         return float("nan")
-    s = sigma_fn(samples.position(k), rig)[0][common]
+    s = sigma_fn(samples, rig, k)[common]
     total = 2.0 * float(np.sum(s * s))
     if stage_sigma_mm and slope2 is not None:
         total += float(np.nansum(slope2[common.ravel()])) * stage_sigma_mm ** 2

@@ -154,7 +154,7 @@ def sweep_drift(samples: SampleStack, repeats: SampleStack, rig: Rig, *, stage_s
     ValueError
         Different camera sizes.
     """
-    from ptpcore.fit.smooth import sample_sigma_from_noise
+    from ptpcore.fit.smooth import position_sigma_from_noise
 
     if repeats.shape != samples.shape:
         raise ValueError(f"the repeats are {repeats.shape} px, the sweep {samples.shape}")
@@ -185,8 +185,7 @@ def sweep_drift(samples: SampleStack, repeats: SampleStack, rig: Rig, *, stage_s
         common = np.array([gx[ok].mean(), gy[ok].mean()]) * np.sqrt(2.0) * stage_sigma_mm
         se[r] = np.sqrt(v.var(axis=1, ddof=1) / v.shape[1] + common ** 2) * 1e3 if v.shape[1] > 1 else np.nan
         if noise:
-            s2 = (sample_sigma_from_noise(samples.position(j), rig)[0] ** 2
-                  + sample_sigma_from_noise(repeats.position(r), rig)[0] ** 2)
+            s2 = position_sigma_from_noise(samples, rig, j) ** 2 + position_sigma_from_noise(repeats, rig, r) ** 2
             var = 2 * s2[ok] + 2 * (gx[ok] ** 2 + gy[ok] ** 2) * stage_sigma_mm ** 2  # |d|^2: X and Y
             pred[r] = float(np.sqrt(np.nanmean(var)) * 1e3)
         where = f"z = {repeats.z[r]:g} mm (position {j + 1} again)"
