@@ -159,12 +159,13 @@ def _whole_map_upsample(coarse, b, h, w):
     import cv2
 
     hc, wc = coarse.shape
-    p = np.empty((hc + 2, wc + 2))
-    p[1:-1, 1:-1] = coarse
-    p[0, 1:-1] = 2 * coarse[0] - coarse[1] if hc > 1 else coarse[0]
-    p[-1, 1:-1] = 2 * coarse[-1] - coarse[-2] if hc > 1 else coarse[-1]
-    p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
-    p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
+    # Linear extrapolation by one bin (2 c[0] - c[1]), rows then columns; a single row or column repeats.
+    def extend(a, axis):
+        widths = [(1, 1) if i == axis else (0, 0) for i in range(2)]
+        odd = {"mode": "reflect", "reflect_type": "odd"} if a.shape[axis] > 1 else {"mode": "edge"}
+        return np.pad(a, widths, **odd)
+
+    p = extend(extend(coarse, 0), 1)
     lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
     bad = np.isnan(lin)
     lin[bad] = np.repeat(np.repeat(coarse, b, axis=0), b, axis=1)[:h, :w][bad]
