@@ -597,8 +597,7 @@ class _GlobalRays:
     def window(self, r0: int, r1: int) -> tuple[tuple, int]:
         """The rows :func:`footprint_bias` reads for rows ``[r0, r1)`` (their neighbours, three rows
         at least) and the first one's index: pass ``(rays, r0 - first, r1 - first)`` to it."""
-        h = self.shape[0]
-        lo, hi = max(min(r0 - 1, h - 3), 0), min(max(r1 + 1, 3), h)  # as _laplacian widens the block
+        lo, hi = _laplacian_rows(r0, r1, self.shape[0])
         return self.rows(lo, hi), lo
 
 
@@ -607,13 +606,19 @@ class _GlobalRays:
 FOOTPRINT_M2_MAX_PX2 = 4.0
 
 
+def _laplacian_rows(r0: int, r1: int, h: int) -> tuple[int, int]:
+    """The rows :func:`_laplacian` reads for rows ``[r0, r1)`` of an ``h``-row map: their neighbours,
+    three rows at least (they also cover :func:`_gradients`' rows)."""
+    return max(min(r0 - 1, h - 3), 0), min(max(r1 + 1, 3), h)
+
+
 def _laplacian(a: np.ndarray, r0: int, r1: int) -> np.ndarray:
     """Laplacian (per camera px^2) of rows ``[r0, r1)`` of a smooth (H, W) map.
 
     Second differences at the image's edges repeat the nearest interior one (the block is widened
     to three rows there, so a block of one edge row gives the whole image's value).
     """
-    lo, hi = max(min(r0 - 1, a.shape[0] - 3), 0), min(max(r1 + 1, 3), a.shape[0])
+    lo, hi = _laplacian_rows(r0, r1, a.shape[0])
     blk = a[lo:hi]
     d2 = np.zeros_like(blk)
     if blk.shape[1] >= 3:
@@ -1453,9 +1458,11 @@ def _residual_maps(samples: SampleStack, rig: Rig, sel, z: np.ndarray, t: np.nda
 
         s, e = r0 * w, r1 * w
         ok = read_block(samples.reasons, s, e, sel) == 0
-        near, lo = rays.window(r0, r1)
-        fb = (footprint_bias(near, rig, z, read_block(samples.modulation, s, e, sel),
-                             read_block(samples.background, s, e, sel), r0 - lo, r1 - lo) if footprint else None)
+        fb = None
+        if footprint:  # the rays' rows are read only for it
+            near, lo = rays.window(r0, r1)
+            fb = footprint_bias(near, rig, z, read_block(samples.modulation, s, e, sel),
+                                read_block(samples.background, s, e, sel), r0 - lo, r1 - lo)
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("kj,jp->kp", vander, coef[a][:, r0:r1].reshape(d1, -1))
             absval = _corrected_absolute(samples, rig, i_axis, s, e, sel, z, level_bias, fb)
@@ -1634,9 +1641,11 @@ def _accumulate_left_out(s: _LooSetup, k: int, coef: dict, valid: np.ndarray, su
     def block(r0, r1):
         a0, a1 = r0 * w, r1 * w
         ok_s, _sig, _, _ = _block_samples(s.samples, s.rig, pos, zk, r0, r1, None)
-        near, lo = s.rays.window(r0, r1)
-        fb = (footprint_bias(near, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
-                             read_block(s.samples.background, a0, a1, pos), r0 - lo, r1 - lo) if s.footprint else None)
+        fb = None
+        if s.footprint:  # the rays' rows are read only for it
+            near, lo = s.rays.window(r0, r1)
+            fb = footprint_bias(near, s.rig, zk, read_block(s.samples.modulation, a0, a1, pos),
+                                read_block(s.samples.background, a0, a1, pos), r0 - lo, r1 - lo)
         own = own_noise.get(k, a0, a1) if interior else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
