@@ -111,3 +111,30 @@ def test_compare_auto_chooses_the_plain_lut_degree_per_fold(tmp_path):
     assert fold.lut_degree == choice.degree and 1 <= fold.lut_degree <= 3
     assert r.to_json_dict()["folds"][0]["lut_degree"] == fold.lut_degree
     assert f"auto: poly degree {fold.lut_degree}" in format_summary(r)
+
+
+@pytest.mark.parametrize("stage_sigma_mm", [0.0, 0.002])
+def test_candidates_judged_in_row_bands_give_the_whole_image_numbers(monkeypatch, stage_sigma_mm):
+    """Each candidate is evaluated at the held-out positions in bands of rows (the 12 MP wizard's
+    memory): bands of 7 rows (the last one short) and one band of the whole image give the same
+    held-out sums, counts and noise sums, bit for bit, with and without a stage error."""
+    import ptpcore.fit.choice as choice
+
+    vr, samples = _rig("rough", 3, positions=9)
+    rig = vr.rig
+    w = samples.shape[1]
+    assert samples.shape[0] % 7  # a short last band
+
+    def judged(band_pixels):
+        monkeypatch.setattr(choice, "JUDGE_BAND_PIXELS", band_pixels)
+        (fit_i, held_i), = choice.choice_folds(samples.z.size)
+        judge = choice._HeldOutJudge(samples, held_i, 2, stage_sigma_mm)
+        for ci, degree in enumerate((1, 3)):
+            judge.add(ci, fit_model(samples, rig, "poly", degree, positions=fit_i, stage_sigma_mm=stage_sigma_mm))
+        return judge.errors(rig)
+
+    whole, banded = judged(samples.shape[0] * w), judged(7 * w)
+    for a, b in zip(whole, banded):
+        np.testing.assert_array_equal(a, b)
+    sums, counts, n_common, noise_sum = banded
+    assert n_common > 0 and np.all(sums > 0) and np.all(counts > 0) and np.isfinite(noise_sum)

@@ -52,6 +52,9 @@ TIE_FRACTION = 0.05
 MIN_COVERAGE = 0.5
 """Fraction of the best candidate's pixels a candidate must cover to be judged."""
 
+JUDGE_BAND_PIXELS = 1 << 20
+"""Pixels per band of rows in which a candidate is evaluated at a held-out position (8 MB a float64 map)."""
+
 Progress = Callable[[float, str], None]
 
 
@@ -233,31 +236,48 @@ class _HeldOutJudge:
         self.store = SpillStore(n_candidates * len(self.held), samples.shape, fields, {name: np.nan for name in fields})
 
     def _usable(self, k: int) -> np.ndarray:
+        """Position ``k``'s usable samples (the robust fit's outliers left out too), as packed bits of the flat mask."""
         sx, sy = self.samples.absolute(k)
-        return np.isfinite(sx) & np.isfinite(sy) & (self.samples.plane("reasons", k) == 0)  # robust fit's outliers too
+        return np.packbits((np.isfinite(sx) & np.isfinite(sy) & (self.samples.plane("reasons", k) == 0)).ravel())
 
     def add(self, ci: int, lut: Lut) -> None:
-        """Evaluate candidate ``ci``'s ``lut`` at every held-out position (then it may be dropped)."""
+        """Evaluate candidate ``ci``'s ``lut`` at every held-out position (then it may be dropped).
+
+        In bands of image rows (:data:`JUDGE_BAND_PIXELS`): each pixel's prediction depends on
+        its own coefficients only, so the numbers are those of evaluating the whole image,
+        without its float64 X, Y maps beside the candidate LUT (the 12 MP wizard's peak).
+        """
         self.n_valid[ci] = int(lut.valid.sum())
+        h, w = self.samples.shape
+        step = max(1, JUDGE_BAND_PIXELS // w)
         bits = []
         for e, k in enumerate(self.held):
-            z = float(self.samples.z[k])
-            ev = lut.evaluate(z)
-            bits.append(np.packbits(ev.in_range.ravel()))
-            # (X - x)^2 + (Y - y)^2 in the evaluation's own maps, one axis's samples at a time: the
-            # same numbers as the whole expression, without its five float64 maps beside the
-            # candidate LUT (670 MB at 12 MP, the wizard's peak in the model choice).
-            for diff, axis in ((ev.x, "x"), (ev.y, "y")):
-                diff -= getattr(self.samples, f"{axis}_ref") + self.samples.plane(axis, k)
-                np.square(diff, out=diff)
-            ev.x += ev.y
-            self.store.write("e2", ci * len(self.held) + e, ev.x)
-            if self.stage_sigma_mm:
-                h = 0.05  # the slope by a central difference over 0.1 mm
-                hi, lo = lut.evaluate(z + h, extrapolate=True), lut.evaluate(z - h, extrapolate=True)
-                self.store.write("slope2", ci * len(self.held) + e,
-                                 ((hi.x - lo.x) / (2 * h)) ** 2 + ((hi.y - lo.y) / (2 * h)) ** 2)
+            slot, z = ci * len(self.held) + e, float(self.samples.z[k])
+            in_range = np.empty((h, w), bool)
+            for r0 in range(0, h, step):
+                r1 = min(h, r0 + step)
+                band = lut.row_band(r0, r1)
+                ev = band.evaluate(z)
+                in_range[r0:r1] = ev.in_range
+                self.store.write_rows("e2", slot, r0, self._squared_difference(ev, k, r0, r1))
+                if self.stage_sigma_mm:
+                    self.store.write_rows("slope2", slot, r0, _squared_slope(band, z))
+            for name in self.store.layout:
+                self.store.mark_written(name, slot)
+            bits.append(np.packbits(in_range.ravel()))
         self.in_range[ci] = np.stack(bits)
+
+    def _squared_difference(self, ev, k: int, r0: int, r1: int) -> np.ndarray:
+        """``(X - x)^2 + (Y - y)^2`` of rows ``[r0, r1)`` at position ``k``, in ``ev``'s own maps (float64)."""
+        from ptpcore.io.fastio import read_block
+
+        w = self.samples.shape[1]
+        for diff, axis in ((ev.x, "x"), (ev.y, "y")):
+            sample = read_block(getattr(self.samples, axis), r0 * w, r1 * w, [k]).reshape(r1 - r0, w)
+            diff -= getattr(self.samples, f"{axis}_ref")[r0:r1] + sample
+            np.square(diff, out=diff)
+        ev.x += ev.y
+        return ev.x
 
     def drop(self, ci: int) -> None:
         """Leave candidate ``ci`` out of the comparison (too few pixels)."""
@@ -289,7 +309,7 @@ class _HeldOutJudge:
         n_common, noise_sum = 0, 0.0
         n = self.store.pixels
         for e, k in enumerate(self.held):
-            ok = self.ok[e].ravel()
+            ok = np.unpackbits(self.ok[e], count=n).view(bool)
             common = ok.copy()
             for ci in kept:
                 in_range = np.unpackbits(self.in_range[ci][e], count=n).view(bool)
@@ -302,6 +322,13 @@ class _HeldOutJudge:
             noise_sum += _noise_variance_sum(self.samples, rig, k, common.reshape(self.samples.shape), slope2,
                                              self.stage_sigma_mm, position_sigma_from_noise)
         return sums, counts, n_common, noise_sum
+
+
+def _squared_slope(lut: Lut, z: float) -> np.ndarray:
+    """``|dXY/dz|^2`` of every pixel of ``lut`` at ``z`` (mm^2/mm^2), by a central difference over 0.1 mm."""
+    h = 0.05
+    hi, lo = lut.evaluate(z + h, extrapolate=True), lut.evaluate(z - h, extrapolate=True)
+    return ((hi.x - lo.x) / (2 * h)) ** 2 + ((hi.y - lo.y) / (2 * h)) ** 2
 
 
 def _noise_variance_sum(samples, rig, k, common, slope2, stage_sigma_mm, sigma_fn) -> float:
