@@ -184,7 +184,8 @@ def build_devices(session, parent_widget: QWidget | None = None):
     return camera, stage, display, asker
 
 
-def live_capture_job(session, camera, stage, display, asker=None, frame_interval: float = 0.12) -> Job:
+def live_capture_job(session, camera, stage, display, asker=None, frame_interval: float = 0.12,
+                     preview_pixels=None) -> Job:
     """The live capture, then the decode of what it wrote, as one job.
 
     Everything the worker needs is taken here, on the GUI thread. The job
@@ -193,6 +194,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
     stage readings as recorded). Partial results: ``("start", k)``,
     ``("captured", k)``, ``("kept", k)``, ``("frame", ...)``, ``("exposure", ok, message)``,
     ``("position", status, decoded)``, ``("display", levels, luminance)`` (the measured response).
+    ``preview_pixels``: a callable, the size of the frame previews (:class:`~ptp_studio.session.FramePreview`).
     """
     if session.dataset_folder is None:
         raise ConfigError("choose the folder the capture writes to")
@@ -204,7 +206,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
         for dev in (display, asker):
             if dev is not None and hasattr(dev, "cancel_event"):
                 dev.cancel_event = ctx.cancel_event
-        on_frame = FramePreview(ctx, rig.camera.max_level, frame_interval)
+        on_frame = FramePreview(ctx, rig.camera.max_level, frame_interval, preview_pixels)
 
         def on_position(k, state):
             ctx.emit({"capturing": ("start", k), "done": ("captured", k), "kept": ("kept", k)}[state])

@@ -25,7 +25,7 @@ from ptpcore.io import DatasetSource, SimulatedSource
 from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
-from ptpcore.evaluate import display_step, mask_rgba, reason_counts, reduce_for_display
+from ptpcore.evaluate import DISPLAY_PIXELS, display_step, mask_rgba, reason_counts, reduce_for_display
 
 __all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
 
@@ -64,17 +64,30 @@ class FramePreview:
     """Sends at most one frame every ``interval`` seconds to the GUI, with its saturation overlay.
 
     Called on the worker thread as ``preview(k, spec, frame)``; emits
-    ``("frame", k, spec, image, overlay RGBA, saturated fraction, step, (H, W))`` through ``ctx``:
-    the image and its saturation overlay reduced ``step`` times to about a megapixel
-    (:func:`ptpcore.evaluate.views.reduce_for_display`; a saturated pixel keeps its block red),
-    the fraction and the camera shape ``(H, W)`` from the whole frame. At 5 MP and more the GUI
-    thread would otherwise spend 0.3-0.5 s a frame drawing it.
+    ``("frame", k, spec, image, overlay RGBA or None, saturated fraction, step, (H, W))`` through
+    ``ctx``: the image and its saturation overlay reduced ``step`` times (a saturated pixel keeps
+    its block red; no overlay when nothing saturates) to at most ``max_pixels()`` (the view's own
+    size: :meth:`ptp_studio.widgets.maps.MapView.preview_pixels`; at most
+    :data:`~ptpcore.evaluate.views.DISPLAY_PIXELS`), the fraction and the camera shape ``(H, W)``
+    from the whole frame. The GUI thread then only draws what the screen shows: a 12 MP frame at
+    a megapixel still cost it 40-130 ms a frame (pyqtgraph's own reduction and colour lookup).
+
+    Parameters
+    ----------
+    ctx : the job's context (``emit``)
+    max_level : int
+        Saturation grey level.
+    interval : float, s
+    max_pixels : callable returning int, optional
+        Read at every frame (the window may be resized during the job); default
+        :data:`~ptpcore.evaluate.views.DISPLAY_PIXELS`.
     """
 
-    def __init__(self, ctx, max_level: int, interval: float = 0.12):
+    def __init__(self, ctx, max_level: int, interval: float = 0.12, max_pixels=None):
         self.ctx = ctx
         self.max_level = max_level
         self.interval = interval
+        self.max_pixels = max_pixels or (lambda: DISPLAY_PIXELS)
         self._last = 0.0
 
     def __call__(self, k: int, spec, frame: np.ndarray) -> None:
@@ -82,9 +95,9 @@ class FramePreview:
         if now - self._last >= self.interval:
             self._last = now
             sat = frame >= self.max_level
-            step = display_step(frame.shape)
+            step = display_step(frame.shape, max(1, min(DISPLAY_PIXELS, int(self.max_pixels()))))
             image = reduce_for_display(frame, step) if step > 1 else frame.copy()  # a new array, or the reader's buffer copied
-            overlay = mask_rgba(reduce_for_display(sat, step, "any"), SATURATION_RGBA)
+            overlay = mask_rgba(reduce_for_display(sat, step, "any"), SATURATION_RGBA) if sat.any() else None
             self.ctx.emit(("frame", k, spec, image, overlay, float(sat.mean()), step, frame.shape[:2]))
 
 

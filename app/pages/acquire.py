@@ -21,13 +21,14 @@ from .base import StudioPage
 
 __all__ = ["AcquirePage", "acquisition_job", "frame_tap"]
 
-def frame_tap(ctx, max_level: int, interval: float = 0.12):
+def frame_tap(ctx, max_level: int, interval: float = 0.12, max_pixels=None):
     """The ``on_frame`` of :func:`ptpcore.run.collect_samples` for a job: says which position
     started (``("start", k)``), lets the job be cancelled between frames and shows at most one
     frame every ``interval`` seconds (:class:`~ptp_studio.session.FramePreview`, reduced on the
     worker thread). The frames come from the engine's own readers (a dataset folder's: threaded,
-    buffers reused), as ``ptp calibrate`` reads them."""
-    preview = FramePreview(ctx, max_level, interval)
+    buffers reused), as ``ptp calibrate`` reads them. ``max_pixels``: the preview's size
+    (:class:`~ptp_studio.session.FramePreview`)."""
+    preview = FramePreview(ctx, max_level, interval, max_pixels)
     started = [None]
 
     def on_frame(k: int, spec, img) -> None:
@@ -40,10 +41,11 @@ def frame_tap(ctx, max_level: int, interval: float = 0.12):
     return on_frame
 
 
-def acquisition_job(session, write_folder: Path | None = None) -> Job:
+def acquisition_job(session, write_folder: Path | None = None, preview_pixels=None) -> Job:
     """The acquisition as one job: (optionally write the simulated dataset,) decode every position.
 
-    Everything the worker needs is captured here, on the GUI thread.
+    Everything the worker needs is captured here, on the GUI thread. ``preview_pixels``: a
+    callable, the size of the frame previews (:meth:`ptp_studio.widgets.maps.MapView.preview_pixels`).
     Returns ``(samples, truth)``.
     """
     source = session.make_source()
@@ -64,7 +66,7 @@ def acquisition_job(session, write_folder: Path | None = None) -> Job:
             ctx.emit(session.position_message(pos))
 
         samples = collect_samples(src, progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
-                                  on_position=on_position, on_frame=frame_tap(ctx, rig.camera.max_level),
+                                  on_position=on_position, on_frame=frame_tap(ctx, rig.camera.max_level, max_pixels=preview_pixels),
                                   full_positions=session.full_positions())
         check_and_report(samples, ctx)
         ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
@@ -220,7 +222,7 @@ class AcquirePage(StudioPage):
         self.model.start_acquisition()
         gen = self.model.generation
         try:
-            job = acquisition_job(self.model.session, write)
+            job = acquisition_job(self.model.session, write, self.frame_view.preview_pixels)
         except Exception as exc:  # noqa: BLE001 - a bad folder must reach the user
             return self._not_started(exc)
         return self._launch(job, gen)
@@ -288,7 +290,7 @@ class AcquirePage(StudioPage):
         gen = self.model.generation
         try:
             camera, stage, display, asker = build_devices(s, self)
-            job = live_capture_job(s, camera, stage, display, asker)
+            job = live_capture_job(s, camera, stage, display, asker, preview_pixels=self.frame_view.preview_pixels)
         except Exception as exc:  # noqa: BLE001 - a bad setting must reach the user
             return self._not_started(exc)
         self._live_devices = (camera, stage, display, asker)

@@ -123,8 +123,24 @@ class MapView(pg.GraphicsLayoutWidget):
         self._detail: tuple[int, int, int, int] | None = None  # rows r0:r1, cols c0:c1 shown at full resolution
         self._cmap_name: str | None = None  # the colour map last set by name
         self.plot.vb.sigRangeChanged.connect(self._update_detail)
+        self._screen_pixels = views.DISPLAY_PIXELS  # the view box's device pixels (GUI thread writes, any reads)
+        self.plot.vb.sigResized.connect(self._note_size)
         self.scene().sigMouseMoved.connect(self._on_moved)
         self.scene().sigMouseClicked.connect(self._on_clicked)
+
+    def _note_size(self, *_) -> None:
+        rect, dpr = self.plot.vb.rect(), self.devicePixelRatioF()
+        self._screen_pixels = max(1, int(rect.width() * rect.height() * dpr * dpr))
+
+    def preview_pixels(self) -> int:
+        """How many pixels a live preview needs to look sharp here: twice the view's device pixels.
+
+        Read from a worker thread (:class:`ptp_studio.session.FramePreview`): a plain number
+        the GUI thread updates when the view is resized. Up to twice the screen's pixels, the
+        preview is drawn as it is (pyqtgraph reduces an image only when a screen pixel holds
+        two or more of its pixels along a side).
+        """
+        return 2 * self._screen_pixels
 
     # ---- content ----------------------------------------------------------
     def set_map(self, data: np.ndarray, levels: tuple[float, float] | None = None,

@@ -44,3 +44,32 @@ def test_preview_is_reduced_on_the_worker_and_placed_over_the_camera(qtbot):
     orect = view.overlay.mapRectToParent(view.overlay.boundingRect())
     assert (orect.width(), orect.height()) == (rect.width(), rect.height())
     assert view.pixel_at(view.scene_pos_of(H - 3, W - 5)) == (H - 3, W - 5)  # camera pixels, not the preview's
+
+
+def test_preview_takes_the_views_size_and_sends_no_overlay_without_saturation(qtbot):
+    """A 12 MP frame previewed in a 500 x 400 view: reduced on the worker to at most twice the
+    view's device pixels (the GUI thread draws no more than the screen shows); resizing the view
+    during the job changes the next frame's size; a frame with nothing saturated has no overlay."""
+    view = MapView()
+    qtbot.addWidget(view)
+    view.resize(500, 400)
+    view.show()
+    qtbot.waitExposed(view)
+    rect, dpr = view.plot.vb.rect(), view.devicePixelRatioF()
+    shown = rect.width() * rect.height() * dpr * dpr
+    assert 0 < shown < 500 * 400 * dpr * dpr
+    assert view.preview_pixels() == 2 * int(shown)
+
+    frame = np.full((3000, 4000), 100, np.uint8)
+    ctx = _Ctx()
+    preview = FramePreview(ctx, max_level=255, interval=0.0, max_pixels=view.preview_pixels)
+    preview(0, ("x", 0, 24, 0, 8), frame)
+    (_, _, _, image, overlay, sat_frac, step, shape), = ctx.sent
+    assert step == display_step(shape, view.preview_pixels()) and image.size <= view.preview_pixels()
+    assert image.size < DISPLAY_PIXELS / 2
+    assert overlay is None and sat_frac == 0.0
+
+    view.resize(1000, 800)
+    qtbot.waitUntil(lambda: view.preview_pixels() > 3 * shown)
+    preview(1, ("x", 0, 24, 0, 8), frame)
+    assert ctx.sent[-1][6] < step  # a bigger view: a finer preview
