@@ -93,3 +93,25 @@ def test_row_bands_give_the_whole_image_field(mild, monkeypatch, band_pixels):
     np.testing.assert_allclose(f.rms_um, rms, rtol=1e-12)
     flat = np.where(np.isfinite(pix), pix, -1.0).ravel()
     np.testing.assert_array_equal(f.worst_pixels, np.stack(np.unravel_index(np.argsort(flat)[::-1][:20], pix.shape), 1))
+
+
+def test_merged_blocks_are_the_mean_of_their_blocks(mild):
+    """Merging 3 x 3 blocks (the panel's coarser arrows on a big sensor): each merged residual is the
+    mean of its blocks' residuals that have one, at the mean of their centres; the edge groups are
+    partial; the per-position and per-pixel numbers are the field's own."""
+    vr, samples = mild
+    lut = fit_model(samples, vr.rig, "poly", 3)
+    f = residual_field(lut, samples, block=8)
+    assert f.merged(1) is f
+    m = f.merged(3)
+    k = 4
+    gy, gx = f.dx.shape[1:]
+    assert m.dx.shape == (samples.z.size, -(-gy // 3), -(-gx // 3)) and m.block == 24
+    for i, j in [(0, 0), (1, 2), (m.dx.shape[1] - 1, m.dx.shape[2] - 1)]:
+        rows, cols = slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3)
+        np.testing.assert_allclose(m.dx[k, i, j], np.nanmean(f.dx[k, rows, cols]), rtol=1e-12)
+        np.testing.assert_allclose(m.dy[k, i, j], np.nanmean(f.dy[k, rows, cols]), rtol=1e-12)
+        assert m.rows[i] == np.mean(f.rows[rows]) and m.cols[j] == np.mean(f.cols[cols])
+    assert m.rms_um is f.rms_um and m.pixel_rms_um is f.pixel_rms_um
+    with pytest.raises(ValueError, match="group"):
+        f.merged(0)
