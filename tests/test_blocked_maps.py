@@ -193,3 +193,26 @@ def test_one_positions_sigma_in_row_blocks_is_the_stacks(rough_rig, monkeypatch)
         got = smooth_mod.position_sigma_from_noise(samples, vr.rig, k)
         assert np.isnan(got).any() and np.isfinite(got).any()
         np.testing.assert_array_equal(got, whole[k])
+
+
+@pytest.mark.parametrize("h, w, b, r0, unweighted_zero", [(301, 257, 7, 14, False), (96, 130, 8, 0, True),
+                                                          (50, 40, 1, 0, True)])
+def test_binning_in_bands_of_bin_rows_keeps_its_bits(monkeypatch, h, w, b, r0, unweighted_zero):
+    """The binned weights, means and centroids summed in bands of whole bins' rows (down to one bin's
+    rows, the last band cut short) are those of one band over the whole image, for a stack of maps
+    and for one map, NaN values where the weight is 0 included."""
+    rng = np.random.default_rng(b)
+    weights = rng.random((h, w)) * (rng.random((h, w)) > 0.2)
+    values = rng.normal(size=(2, h, w))
+    values[:, weights == 0] = np.nan if unweighted_zero else 0.0
+    monkeypatch.setattr(smooth_mod, "BIN_BAND_PIXELS", h * w)
+    whole = [smooth_mod._binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
+    for band_rows in (b, 3 * b):
+        monkeypatch.setattr(smooth_mod, "BIN_BAND_PIXELS", band_rows * w)
+        banded = [smooth_mod._binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
+        for one, other in zip(whole, banded):
+            for a, c in zip(one, other):
+                assert a.shape == c.shape
+                np.testing.assert_array_equal(a, c)
+    wsum, mean, xbar, ybar = whole[0]
+    assert mean.shape == (2, -(-h // b), -(-w // b)) and np.all(np.isfinite(mean)) and wsum.sum() > 0
