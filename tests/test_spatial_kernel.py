@@ -76,3 +76,28 @@ def test_the_sigma_used_is_the_median_of_the_predicted_sigma_floored_by_the_spre
     assert used == float(np.nanmedian(np.maximum(sigma, spread)))
     _, used_scalar = spatial.spatial_outliers(coord, valid, 0.5 * spread)
     assert used_scalar == spread
+
+
+def test_sigma_given_by_rows_flags_as_the_whole_map(monkeypatch):
+    """The decoder hands the predicted sigma over as rows (no whole map at 12 MP): bands of 7 rows
+    (the last one short) give the flags and the sigma used of the map itself, bit for bit."""
+    rng = np.random.default_rng(6)
+    h, w = 120, 90
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    coord = 0.9 * c + 0.3 * r + 0.02 * rng.standard_normal((h, w))
+    coord[50:53, 20:24] += 1.0  # a few outliers to flag
+    valid = rng.random((h, w)) > 0.1
+    sigma = np.abs(0.02 + 0.01 * rng.standard_normal((h, w)))
+    sigma[rng.random((h, w)) < 0.05] = np.nan
+    whole = spatial.spatial_outliers(coord, valid, sigma)
+    monkeypatch.setattr(spatial, "FLAG_ROWS", 7)
+    asked = []
+
+    def rows(r0, r1):
+        asked.append((r0, r1))
+        return sigma[r0:r1].copy()
+
+    by_rows = spatial.spatial_outliers(coord, valid, rows)
+    assert np.array_equal(whole[0], by_rows[0]) and whole[1] == by_rows[1]
+    assert whole[0][50:53, 20:24].any()
+    assert asked[0] == (0, 7) and asked[-1] == (119, 120) and len(asked) == -(-h // 7)

@@ -184,9 +184,11 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     Parameters
     ----------
     coord, valid : see :func:`neighbourhood_residual`
-    sigma : float, (H, W) array or None
-        Predicted 1-sigma noise of ``coord`` (px). None: estimated from the
-        residuals themselves (robust spread over the valid pixels).
+    sigma : float, (H, W) array, callable or None
+        Predicted 1-sigma noise of ``coord`` (px). A callable ``sigma(r0, r1)`` gives rows
+        ``[r0, r1)`` as an ``(r1 - r0, W)`` array (the map is never made whole: 96 MB of
+        float64 at 12 MP, at the decoder's peak). None: estimated from the residuals
+        themselves (robust spread over the valid pixels).
     k : float
 
     Returns
@@ -206,21 +208,40 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     del magnitude
     if sigma is None:
         sigma = spread
+    if not callable(sigma):
+        sigma_map = np.asarray(sigma, np.float64)
+        if not sigma_map.ndim:
+            flagged = _flag_rows(resid, n, finite, lambda r0, r1: sigma_map, spread, k)
+            return flagged, float(np.maximum(sigma_map, spread))
+        sigma = lambda r0, r1: sigma_map[r0:r1]  # noqa: E731 - the map's rows
     # Where the map is less smooth than the noise (noise-free data, structure the
     # local plane does not follow), the robust spread of the residuals is the floor.
-    sigma = np.asarray(sigma, np.float64)
-    flagged = np.empty(coord.shape, bool)
-    for r0 in range(0, coord.shape[0], FLAG_ROWS):  # row bands: no whole-map temporaries
-        rows = slice(r0, r0 + FLAG_ROWS)
-        sig = np.maximum(sigma[rows] if sigma.ndim else sigma, spread)
+    # The median of max(sigma, spread) is taken over the pixels where sigma is defined
+    # (NaN stays NaN), gathered band by band (np.empty: only the pages written count).
+    defined = np.empty(resid.size)
+    count = [0]
+
+    def sigma_rows(r0, r1):
+        sig = np.asarray(sigma(r0, r1), np.float64)
+        kept = sig[~np.isnan(sig)]
+        np.maximum(kept, spread, out=kept)
+        defined[count[0]:count[0] + kept.size] = kept
+        count[0] += kept.size
+        return sig
+
+    flagged = _flag_rows(resid, n, finite, sigma_rows, spread, k)
+    defined = defined[:count[0]]
+    return flagged, (float(np.median(defined, overwrite_input=True)) if defined.size else float("nan"))
+
+
+def _flag_rows(resid, n, finite, sigma_rows, spread: float, k: float) -> np.ndarray:
+    """``|resid| > k max(sigma, spread) sqrt(1 + pi / 2 / n)`` band by band of rows (no whole-map temporaries)."""
+    flagged = np.empty(resid.shape, bool)
+    for r0 in range(0, resid.shape[0], FLAG_ROWS):
+        r1 = min(resid.shape[0], r0 + FLAG_ROWS)
+        sig = np.maximum(sigma_rows(r0, r1), spread)
         # The median prediction has its own noise, about sqrt(pi / 2 / n) of one pixel's.
-        scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n[rows], 1))
+        scale = np.sqrt(1.0 + np.pi / 2.0 / np.maximum(n[r0:r1], 1))
         with np.errstate(invalid="ignore"):
-            flagged[rows] = finite[rows] & (np.abs(resid[rows]) > k * sig * scale)
-    if not sigma.ndim:
-        return flagged, float(np.maximum(sigma, spread))
-    # The median of max(sigma, spread) over the pixels where it is defined (NaN sigma stays NaN):
-    # from the defined values only, not a whole map of them.
-    defined = sigma[~np.isnan(sigma)]
-    np.maximum(defined, spread, out=defined)
-    return flagged, (float(np.nanmedian(defined)) if defined.size else float("nan"))
+            flagged[r0:r1] = finite[r0:r1] & (np.abs(resid[r0:r1]) > k * sig * scale)
+    return flagged

@@ -445,21 +445,19 @@ def flag_more_reasons(rig: Rig, pos: DecodedPosition, options: DecodeOptions, re
         pos.info["noise_source"][d] = source
 
 
-def _coordinate_sigma(model, fine, n_fine: int, amplitude: float, period: float) -> np.ndarray:
-    """Predicted 1-sigma of the decoded coordinate (px), (H, W) float64, from the noise ``model`` and
-    the finest level's background and modulation; row bands, no whole-map temporaries."""
-    h, w = fine.modulation.shape
-    sigma = np.empty((h, w))
-    band = max(1, (1 << 18) // max(w, 1))
-    for r0 in range(0, h, band):
-        rows = slice(r0, r0 + band)
-        bg, mod = fine.background[rows], fine.modulation[rows]
+def _coordinate_sigma(model, fine, n_fine: int, amplitude: float, period: float):
+    """Predicted 1-sigma of the decoded coordinate (px) from the noise ``model`` and the finest
+    level's background and modulation, as rows: ``sigma(r0, r1)`` -> ``(r1 - r0, W)`` float64
+    (:func:`ptpcore.decode.spatial.spatial_outliers` takes them band by band; no whole map)."""
+    def rows(r0: int, r1: int) -> np.ndarray:
+        bg, mod = fine.background[r0:r1], fine.modulation[r0:r1]
         # The camera's noise and the display's rounding to integer levels (uniform, 1/12
         # of a level squared; a level is B / amplitude camera DN).
         with np.errstate(invalid="ignore", divide="ignore"):
             var_dn = model.sigma_dn(bg) ** 2 + (mod / amplitude) ** 2 / 12.0
-            sigma[rows] = np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / mod * period / (2 * np.pi)
-    return sigma
+            return np.sqrt(2.0 / n_fine) * np.sqrt(var_dn) / mod * period / (2 * np.pi)
+
+    return rows
 
 
 def _or(reasons: np.ndarray, cond: np.ndarray, bit: int) -> None:
