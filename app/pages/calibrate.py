@@ -188,14 +188,24 @@ def _stats_text(lut, maps: dict, fitted_samples) -> str:
     return text + robust_text(lut) + drift_text(lut)
 
 
+_CENTRE_ROWS = 256
+"""Rows per band in which :func:`_central_pixel` looks (the whole image's indices and distances of its
+valid pixels were 430 MB at 12 MP, the wizard's peak at the end of the fit job)."""
+
+
 def _central_pixel(valid: np.ndarray) -> tuple[int, int] | None:
-    """The valid pixel nearest the sensor's centre, or None."""
-    if not valid.any():
-        return None
-    rows, cols = np.nonzero(valid)
+    """The valid pixel nearest the sensor's centre (the first in row order of those as near), or None."""
     h, w = valid.shape
-    i = int(np.argmin((rows - h / 2) ** 2 + (cols - w / 2) ** 2))
-    return int(rows[i]), int(cols[i])
+    best, best_d2 = None, np.inf
+    for r0 in range(0, h, _CENTRE_ROWS):
+        rows, cols = np.nonzero(valid[r0:r0 + _CENTRE_ROWS])
+        if not rows.size:
+            continue
+        d2 = (rows + r0 - h / 2) ** 2 + (cols - w / 2) ** 2
+        i = int(np.argmin(d2))
+        if d2[i] < best_d2:  # strictly: an earlier band keeps a tie, as one argmin over the image does
+            best, best_d2 = (int(rows[i]) + r0, int(cols[i])), d2[i]
+    return best
 
 
 class CalibratePage(StudioPage):

@@ -41,3 +41,21 @@ def test_a_big_field_is_drawn_merged_and_every_block_when_zoomed_in(qtbot):
     assert set(np.round(want, 3)) <= bases  # every block in view has its own arrow
     full_x, _fy, scale = arrow_segments(field, 0)
     assert f"{scale:.3g} px per µm" in panel.plot.getPlotItem().titleLabel.text  # the whole position's scale
+
+
+def test_the_first_pixel_shown_is_the_valid_one_nearest_the_centre_searched_by_bands(monkeypatch):
+    """The Calibrate page selects the valid pixel nearest the sensor's centre (the first in row order
+    among equally near ones); searched in bands of 3 rows it is the whole image's argmin."""
+    from ptp_studio.pages import calibrate
+
+    rng = np.random.default_rng(4)
+    for density in (0.002, 0.05, 0.8):
+        valid = rng.random((37, 53)) < density
+        rows, cols = np.nonzero(valid)
+        i = int(np.argmin((rows - 37 / 2) ** 2 + (cols - 53 / 2) ** 2))
+        monkeypatch.setattr(calibrate, "_CENTRE_ROWS", 3)
+        assert calibrate._central_pixel(valid) == (rows[i], cols[i])
+    tie = np.zeros((4, 4), bool)
+    tie[1, 1] = tie[3, 3] = True  # both sqrt(2) px from the centre (2, 2): the first in row order
+    assert calibrate._central_pixel(tie) == (1, 1)
+    assert calibrate._central_pixel(np.zeros((5, 5), bool)) is None
