@@ -297,7 +297,15 @@ def release_mapped_pages() -> None:
         raw = getattr(mm, "_mmap", None) if mm is not None else None
         if raw is not None:
             with contextlib.suppress(ValueError, OSError):  # closed meanwhile
-                raw.madvise(mmap.MADV_DONTNEED)
+                # In ranges: madvise holds the GIL, about 25 ms per GB of resident pages (a thread
+                # ticking every 0.5 ms waited 11.5 ms for 13 ms of it), so the GUI thread gets a
+                # turn between them.
+                for start in range(0, len(raw), _MADVISE_BYTES):
+                    raw.madvise(mmap.MADV_DONTNEED, start, min(_MADVISE_BYTES, len(raw) - start))
+
+
+_MADVISE_BYTES = 1 << 26
+"""Bytes of a spilled map released per ``madvise`` call (64 MiB: a few ms each)."""
 
 
 on_release(release_mapped_pages)
