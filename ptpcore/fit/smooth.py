@@ -518,7 +518,7 @@ def _smooth_binned(values: np.ndarray, weights: np.ndarray, scale_px: float, b: 
     read before it is written). Returns ``(smoothed, variance or None)``.
     """
     if b == 1 or scale_px <= 0:
-        smoothed, var = local_linear_smooth(values, weights, scale_px, with_variance)
+        smoothed, var = local_linear_smooth(values, np.asarray(weights), scale_px, with_variance)
         if out is None:
             return smoothed, var
         out[...] = smoothed
@@ -992,6 +992,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     inputs = {"leak_w": leak_w, "noise": noise}
     leak_w = noise = coef = None
     fits.park("fit")
+    release_free_memory()  # the pass's freed heap, before the uncertainty's peak (the leak variance)
     sig, loo, merr = _uncertainty(setup, gfit, inputs, fits, valid, stage_var, uncertainty, report)
     fits.load("fit")
     coef = {"x": fits.fit[0], "y": fits.fit[1]}
@@ -1136,6 +1137,10 @@ class _RowSpill:
         n = int(np.prod(self.shape[:-2]))
         out = np.stack([self.rows(i, r0, r1) for i in range(n)]) if n else np.empty((0, r1 - r0, self.shape[-1]))
         return out.reshape(*self.shape[:-2], r1 - r0, self.shape[-1])
+
+    def plane_rows(self, index: int) -> "_PlaneRows":
+        """One plane as a read-only ``(H, W)`` map whose row slices are read from the file."""
+        return _PlaneRows(self, int(index))
 
     def _read(self, offset: int, out: np.ndarray) -> np.ndarray:
         buf, done = out.data.cast("B"), 0
@@ -1835,6 +1840,26 @@ def _model_error(sums: "_LooSums") -> _ModelError:
     return _ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)
 
 
+class _PlaneRows:
+    """A :class:`_RowSpill` plane where an ``(H, W)`` map is read by rows: ``shape``, ``plane[r0:r1]``
+    (a file read) and ``np.asarray(plane)`` (the whole plane). :func:`_binned_points` reads its
+    weights so, band by band: the leak variance's two weight maps (190 MB at 12 MP) stay in their file."""
+
+    def __init__(self, spill: "_RowSpill", index: int):
+        self.spill, self.index = spill, index
+        self.shape = spill.shape[-2:]
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        r0, r1, step = rows.indices(self.shape[0])
+        if step != 1:
+            raise IndexError("a spilled plane is read by row ranges only")
+        return self.spill.rows(self.index, r0, max(r0, r1))
+
+    def __array__(self, dtype=None, copy=None):
+        a = self.spill.plane(self.index)
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
 def _smoothing_weights(fits: "_PixelFits", n: int):
     """The final smoothing's weights ``1 / var_j`` of the first ``n`` coefficient maps, (n, H, W) float64
     (0 where a pixel has no fit), as :func:`_smoothed_coefficients` uses them (call it before: it
@@ -1934,8 +1959,8 @@ def _global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_mi
             return _range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
                                   ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
 
-    if isinstance(weights, _RowSpill):
-        weights = [weights.plane(j) for j in range(2)]
+    if isinstance(weights, _RowSpill):  # read band by band where they are used
+        weights = [weights.plane_rows(j) for j in range(2)]
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
     # The change of a pinhole's rays is smooth over the image: computed on a grid of every
     # LEAK_GRID_PX-th pixel and interpolated (cubic).
