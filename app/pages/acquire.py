@@ -222,6 +222,7 @@ class AcquirePage(StudioPage):
         self.model.start_acquisition()
         gen = self.model.generation
         try:
+            self.frame_view.note_size()  # the page may be shown for the first time just now
             job = acquisition_job(self.model.session, write, self.frame_view.preview_pixels)
         except Exception as exc:  # noqa: BLE001 - a bad folder must reach the user
             return self._not_started(exc)
@@ -290,6 +291,7 @@ class AcquirePage(StudioPage):
         gen = self.model.generation
         try:
             camera, stage, display, asker = build_devices(s, self)
+            self.frame_view.note_size()
             job = live_capture_job(s, camera, stage, display, asker, preview_pixels=self.frame_view.preview_pixels)
         except Exception as exc:  # noqa: BLE001 - a bad setting must reach the user
             return self._not_started(exc)

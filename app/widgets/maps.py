@@ -124,13 +124,23 @@ class MapView(pg.GraphicsLayoutWidget):
         self._cmap_name: str | None = None  # the colour map last set by name
         self.plot.vb.sigRangeChanged.connect(self._update_detail)
         self._screen_pixels = views.DISPLAY_PIXELS  # the view box's device pixels (GUI thread writes, any reads)
-        self.plot.vb.sigResized.connect(self._note_size)
+        self.plot.vb.sigResized.connect(self.note_size)
+        self.note_size()
         self.scene().sigMouseMoved.connect(self._on_moved)
         self.scene().sigMouseClicked.connect(self._on_clicked)
 
-    def _note_size(self, *_) -> None:
+    def note_size(self, *_) -> None:
+        """Take the view's current size for :meth:`preview_pixels` (GUI thread; on every resize)."""
         rect, dpr = self.plot.vb.rect(), self.devicePixelRatioF()
-        self._screen_pixels = max(1, int(rect.width() * rect.height() * dpr * dpr))
+        shown = self.width() * self.height()  # the view box is inside: at most this
+        if rect.width() * rect.height() >= 64 * 64:  # laid out (not a page never shown)
+            shown = min(shown, rect.width() * rect.height())
+        self._screen_pixels = max(1, int(shown * dpr * dpr))
+
+    def resizeEvent(self, event) -> None:  # noqa: N802 - Qt API
+        super().resizeEvent(event)
+        if hasattr(self, "_screen_pixels"):  # not while the base class is being built
+            self.note_size()
 
     def preview_pixels(self) -> int:
         """How many pixels a live preview needs to look sharp here: twice the view's device pixels.

@@ -73,3 +73,14 @@ def test_preview_takes_the_views_size_and_sends_no_overlay_without_saturation(qt
     qtbot.waitUntil(lambda: view.preview_pixels() > 3 * shown)
     preview(1, ("x", 0, 24, 0, 8), frame)
     assert ctx.sent[-1][6] < step  # a bigger view: a finer preview
+
+
+def test_a_view_never_shown_asks_for_its_widgets_size_not_a_megapixel(qtbot):
+    """The Acquire page may start its job before its frame view was ever laid out: the preview
+    size then comes from the widget's own size (a megapixel preview cost the GUI 130 ms a frame)."""
+    view = MapView()
+    qtbot.addWidget(view)
+    view.resize(400, 300)  # a hidden widget gets no resize event: the page measures before its job
+    view.note_size()
+    dpr = view.devicePixelRatioF()
+    assert 0 < view.preview_pixels() <= 2 * 400 * 300 * dpr * dpr < DISPLAY_PIXELS
