@@ -248,14 +248,14 @@ class _HeldOutJudge:
         without its float64 X, Y maps beside the candidate LUT (the 12 MP wizard's peak).
         """
         self.n_valid[ci] = int(lut.valid.sum())
+        from ptpcore.parallel import row_tiles
+
         h, w = self.samples.shape
-        step = max(1, JUDGE_BAND_PIXELS // w)
         bits = []
         for e, k in enumerate(self.held):
             slot, z = ci * len(self.held) + e, float(self.samples.z[k])
             in_range = np.empty((h, w), bool)
-            for r0 in range(0, h, step):
-                r1 = min(h, r0 + step)
+            for r0, r1 in row_tiles(h, w, JUDGE_BAND_PIXELS):
                 band = lut.row_band(r0, r1)
                 ev = band.evaluate(z)
                 in_range[r0:r1] = ev.in_range
