@@ -29,7 +29,8 @@ def test_the_peak_covers_a_known_allocation_and_the_exit_code_passes_through(tmp
 
 
 def test_a_peak_after_the_last_read_still_counts():
-    # The allocation happens and the process exits inside one interval (20 s, not waited out: the wait ends when the process does): ru_maxrss catches it.
+    # The allocation happens and the process exits inside one interval (20 s, not waited out: the
+    # wait ends when the process does): the child's ru_maxrss catches the peak.
     code = "b = bytearray(150 << 20)"
     result = rsswatch.watch([sys.executable, "-c", code], interval=20.0)
     assert result["exit_code"] == 0 and result["peak_mib"] >= 150
