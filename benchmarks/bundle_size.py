@@ -1,7 +1,7 @@
 """What each exclusion of packaging/ptp-studio.spec saves: the bundle built with all of them, then
 once without each (one at a time), from a copy of this checkout.
 
-    python -m benchmarks.bundle_size [--only NAME ...] [--keep DIR]
+    python -m benchmarks.bundle_size [--only NAME ...] [--json FILE]
 
 Prints a Markdown table (docs/performance.md, "The desktop bundle"): the size of each build on
 disk (hard links once, as ``du``) and its apparent size (every name counted, as a zip would),
