@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 from benchmarks.gilgaps import GapRecorder
@@ -15,8 +16,6 @@ def _hold_the_gil(seconds: float) -> None:
 
 
 def test_a_sleep_leaves_no_gap_and_a_thread_holding_the_gil_does():
-    import sys
-
     with GapRecorder(tick_s=0.001, min_s=0.050) as rec:
         time.sleep(0.3)  # releases the GIL: the ticker runs freely
     assert rec.ticks > 20

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 
 import pytest
@@ -18,8 +19,6 @@ def test_the_peak_covers_a_known_allocation_and_the_exit_code_passes_through(tmp
     trace = tmp_path / "t.tsv"
     rc = rsswatch.main(["--interval", "0.05", "--json", str(out), "--trace", str(trace), "--",
                         sys.executable, "-c", code])
-    import json
-
     result = json.loads(out.read_text())
     assert rc == 3 and result["exit_code"] == 3
     assert 200 <= result["peak_mib"] < 200 + 100, result  # the allocation plus an interpreter
