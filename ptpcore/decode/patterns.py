@@ -28,7 +28,9 @@ __all__ = [
     "DesignItem",
     "DesignReport",
     "design_check",
-    "convention_detectable",
+    "blind_origin_shifts",
+    "equivalent_conventions",
+    "wrap_origin",
     "phase_noise_rad",
     "gray_values",
     "gray_profile",
@@ -321,23 +323,122 @@ class DesignReport:
         return [item for item in self.items if not item.ok]
 
 
-def convention_detectable(rig: Rig, direction: str) -> dict:
-    """Whether a wrong ``phase_origin`` (by pi) and a wrong ``shift_sign`` show in decoded data
-    (METHOD.md section 4): as unwrapping disagreement when a period ratio is not an odd
-    integer (origin) or not an integer (sign), or as coordinates off the LCD when the
-    coarsest period exceeds it."""
-    f = rig.fringes
-    ps = [float(t) for t in f.periods(direction)]
+def blind_origin_shifts(periods, tol: float = 1e-6) -> tuple[float, ...] | None:
+    """Origin errors that hierarchical unwrapping cannot see (METHOD.md section 4).
+
+    A wrong origin adds the same ``e`` to the phase of every level; level ``j``
+    then disagrees with the one above by ``(r_j - 1) * e (mod 2 pi)``,
+    ``r_j = T_{j-1} / T_j``. Where the coarse phase wraps (``e`` pushed it past
+    ``2 pi``) the effective error is ``e - 2 pi``: both are listed, so a
+    fractional ratio (which tells ``e`` from ``e - 2 pi``) is handled exactly.
+
+    Parameters
+    ----------
+    periods : sequence of float
+        Periods coarse to fine, LCD px.
+    tol : float
+        Tolerance on ``(r_j - 1) e / 2 pi`` being an integer.
+
+    Returns
+    -------
+    tuple of float, radians in (-2 pi, 2 pi), sorted, 0 included; or None
+        None for a single period (no unwrapping: every origin is unseen by it).
+    """
+    ps = [float(t) for t in periods]
+    if len(ps) < 2:
+        return None
     ratios = [a / b for a, b in zip(ps, ps[1:])]
-    extent = rig.lcd.width if direction == "x" else rig.lcd.height
-    exceeds = ps[0] > extent + 1.0
+    first = ratios[0] - 1.0
+    limit = int(math.floor(first - tol))  # |m| < r_1 - 1 keeps |e| < 2 pi
+    out = []
+    for m in range(-limit, limit + 1):
+        e = 2.0 * math.pi * m / first
+        if all(abs(q - round(q)) <= tol for q in ((r - 1.0) * e / (2.0 * math.pi) for r in ratios)):
+            out.append(e)
+    return tuple(sorted(out))
 
-    def is_int(r):
-        return abs(r - round(r)) < 1e-9
 
-    origin = exceeds or any(not (is_int(r) and round(r) % 2 == 1) for r in ratios)
-    sign = exceeds or any(not is_int(r) for r in ratios)
-    return {"phase_origin_rad": origin, "shift_sign": sign}
+def equivalent_conventions(periods, sign: int, origin: float) -> list[tuple[int, float]]:
+    """Every ``(shift_sign, phase_origin_rad)`` whose unwrapping is as consistent as ``(sign, origin)``.
+
+    If the patterns were shown with ``(sign, origin)``, decoding with the same
+    sign and origin ``origin - e`` shifts every phase by ``e``; decoding with the
+    other sign and origin ``-origin - e`` negates every phase and adds ``e`` (a
+    mirrored map). Both unwrap consistently exactly for ``e`` in
+    :func:`blind_origin_shifts`. What is left to tell them apart is whether the
+    coordinates stay on the LCD (the data's part: :func:`ptpcore.run.diagnose.convention_check`).
+
+    Returns
+    -------
+    list of (int, float)
+        Sign and origin (radians in (-pi, pi]), ``(sign, origin)`` first, no
+        duplicates. Empty for a single period (any origin fits).
+    """
+    shifts = blind_origin_shifts(periods)
+    if shifts is None:
+        return []
+    out: list[tuple[int, float]] = []
+    for s, base in ((sign, origin), (-sign, -origin)):
+        for e in sorted(shifts, key=abs):
+            o = wrap_origin(base - e)
+            if not any(s == s2 and abs(math.remainder(o - o2, 2 * math.pi)) < 1e-9 for s2, o2 in out):
+                out.append((s, o))
+    return out
+
+
+def wrap_origin(rad: float) -> float:
+    """An origin in (-pi, pi] (pi stays pi)."""
+    r = math.remainder(float(rad), 2 * math.pi)
+    return math.pi if abs(r + math.pi) < 1e-12 else r
+
+
+def _hidden_width(periods, extent: float) -> list[tuple[int, float, float]]:
+    """For each convention equivalent to the plain one ``(1, 0)``: ``(sign, origin, width)``, the
+    widest part of the LCD (px, carrier left out) a camera may see without its coordinates
+    leaving the LCD under it (0: never hidden)."""
+    t0 = float(periods[0])
+    out = []
+    for s, o in equivalent_conventions(periods, 1, 0.0)[1:]:
+        if s == 1:
+            # Shift by D = T0 e / 2pi (or D - T0 where the coarse phase wraps).
+            d = (-o % (2 * math.pi)) * t0 / (2 * math.pi)
+            width = extent - min(d, t0 - d)
+        else:
+            # Mirror u' = C - u, C = T0 c / 2pi or that plus T0.
+            c = (-o % (2 * math.pi)) * t0 / (2 * math.pi)
+            width = max(min(cc, 2 * extent - cc) for cc in (c, c + t0))
+        out.append((s, o, max(0.0, float(width))))
+    return out
+
+
+def _convention_item(rig: Rig, d: str) -> DesignItem | None:
+    """The design check's verdict on which wrong conventions the data of direction ``d`` cannot reveal."""
+    f = rig.fringes
+    ps = f.periods(d)
+    extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
+    if len(ps) < 2:
+        return DesignItem(
+            f"convention check {d}", True, 0.0, "a wrong phase_origin_rad or shift_sign shows in the data",
+            f"direction {d} has one period: no unwrapping checks phase_origin_rad or shift_sign; only"
+            " coordinates off the LCD can; check them against the pattern generator")
+    hidden = [(s, o, w) for s, o, w in _hidden_width(ps, extent) if w > 0]
+    if not hidden:
+        return None
+    shifts = blind_origin_shifts(ps)
+    degrees = sorted({round(math.degrees(e) % 360.0, 4) % 360.0 for e in shifts} - {0.0})
+    what = []
+    if degrees:
+        what.append("a phase_origin_rad wrong by " + ", ".join(f"{x:.4g}" for x in degrees) + " degrees")
+    if any(s == -1 for s, _o, _w in hidden):
+        what.append("a wrong shift_sign (with the origin negated)")
+    widest = max(w for *_x, w in hidden)
+    return DesignItem(
+        f"convention check {d}", True, widest,
+        "a wrong phase_origin_rad or shift_sign shows in the data",
+        f"direction {d}: {' and '.join(what)} unwrap as consistently as the right ones (period ratios"
+        f" {', '.join(f'{a / b:.4g}' for a, b in zip(ps, ps[1:]))}); only coordinates off the LCD tell them,"
+        f" which a camera seeing up to {widest:.0f} of the LCD's {extent:.0f} px may not. A level whose ratio"
+        " to the coarser one is 2 reveals every wrong origin; check the settings against the pattern generator")
 
 
 def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
@@ -423,16 +524,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
                   " is too small: add an intermediate period or more steps"),
             ))
     for d in (f.directions if f.unwrap == "periods" else ()):
-        tells = convention_detectable(rig, d)
-        if not all(tells.values()):
-            blind = [k for k, v in tells.items() if not v]
-            items.append(DesignItem(
-                f"convention check {d}", True, 0.0,
-                "a wrong phase_origin_rad or shift_sign shows in the data",
-                f"this design cannot tell a wrong {' or '.join(blind)} from the data (direction {d}):"
-                " consecutive period ratios are odd integers (origin) or integers (sign) and the coarsest"
-                " period does not exceed the LCD; check those settings against the pattern generator",
-            ))
+        item = _convention_item(rig, d)
+        if item is not None:
+            items.append(item)
     if harmonic_dn is not None and noise_dn is not None and harmonic_dn > noise_dn:
         items.append(DesignItem(
             "display harmonics", False, float(harmonic_dn),
