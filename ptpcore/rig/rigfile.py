@@ -647,6 +647,17 @@ def _decode_section(doc: dict, source: str, v2: bool) -> DecodeSettings:
     return decode
 
 
+def _needed_fields(needed: tuple[str, ...], fringes, stage: Stage) -> tuple[str, ...]:
+    """A template's required fields, less ``dir`` with one direction and ``pos`` with one position
+    (repeats included): the names are unique without them (FORMATS.md, ptp-dataset/2)."""
+    drop = set()
+    if len(fringes.directions) == 1:
+        drop.add("dir")
+    if stage.n_positions + len(stage.repeat_z_mm) == 1:
+        drop.add("pos")
+    return tuple(n for n in needed if n not in drop)
+
+
 def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, stage: Stage, fringes,
                     display, decode: DecodeSettings) -> Rig:
     """``[images]``: the templates (or, /2, the frames named one by one), checked against the design; the whole rig."""
@@ -664,7 +675,7 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
     rig = Rig(camera, lcd, stage, fringes, template, display, decode, gray_t, white_t, black_t)
     if v2 and frames_raw:
         return replace(rig, frame_list=_frame_list(frames_raw, rig, source))
-    validate_template(template, source)
+    validate_template(template, source, needed=_needed_fields(("pos", "dir", "period", "step"), fringes, stage))
     for d in fringes.directions:
         for j, t in enumerate(fringes.periods(d)):
             try:
@@ -677,7 +688,7 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
         if gray_t is None:
             raise ConfigError(f"{source}: key 'images.gray_template' is needed with fringes.unwrap = \"gray\""
                               " (or name the frames in [[images.frames]])")
-        needed = ("dir", "bit") + (("inverse",) if fringes.gray_inverse else ())
+        needed = _needed_fields(("dir", "bit") + (("inverse",) if fringes.gray_inverse else ()), fringes, stage)
         validate_template(gray_t, source, key="images.gray_template", fields=GRAY_TEMPLATE_FIELDS, needed=needed)
     elif gray_t is not None:
         raise ConfigError(f"{source}: key 'images.gray_template' is given but fringes.unwrap is not \"gray\"")
