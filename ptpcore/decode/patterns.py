@@ -17,7 +17,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ptpcore.rig.rigfile import Display, DirectionFringes, FringeDesign, Lcd, Rig, format_period
+from ptpcore.errors import ConfigError
+from ptpcore.rig.rigfile import (Display, DirectionFringes, FringeDesign, Lcd, Rig, format_period,
+                                 heterodyne_beats)
 
 __all__ = [
     "fringe_values",
@@ -37,6 +39,7 @@ __all__ = [
     "reference_profile",
     "gray_bits_needed",
     "gray_code_rig",
+    "heterodyne_rig",
     "GRAY_TEMPLATE",
     "WHITE_TEMPLATE",
     "BLACK_TEMPLATE",
@@ -284,6 +287,46 @@ def gray_code_rig(rig: Rig, levels: int = 2, *, inverse: bool = False, reference
     return out
 
 
+def heterodyne_rig(rig: Rig, periods, steps=None) -> Rig:
+    """``rig`` unwrapping by heterodyne beats (``unwrap = "heterodyne"``, ptp-dataset/2) of ``periods``.
+
+    Parameters
+    ----------
+    rig : Rig
+    periods : sequence of 2 or 3 float
+        LCD px, any order (sorted longest first, as the rig file's reader does); both directions.
+    steps : int or sequence of int, optional
+        N per period (in the order of ``periods``); default the rig's finest level's N.
+
+    Raises
+    ------
+    ConfigError
+        Not two or three different periods, equal beats, or an absolute beat that does not cover
+        the LCD plus the carrier (the message names the periods).
+    """
+    from ptpcore.rig.rigfile import check_heterodyne_span
+
+    f = rig.fringes
+    ps = [float(t) for t in periods]
+    if steps is None:
+        steps = [f.steps_of(f.directions[0])[-1]] * len(ps)
+    elif isinstance(steps, int):
+        steps = [steps] * len(ps)
+    try:
+        heterodyne_beats(ps)
+    except ValueError as exc:
+        raise ConfigError(f"--heterodyne: {exc}") from None
+    order = sorted(range(len(ps)), key=lambda j: -ps[j])
+    kept = tuple((d, replace(o, periods_px=None, steps=None, gray_bits=None)) for d, o in f.per_direction)
+    kept = tuple((d, o) for d, o in kept if o != DirectionFringes())
+    fringes = replace(f, periods_px=tuple(format_period(ps[j]) for j in order),
+                      steps=tuple(int(steps[j]) for j in order), unwrap="heterodyne", gray_bits=0,
+                      gray_inverse=False, per_direction=kept)
+    out = replace(rig, fringes=fringes, gray_template=None, white_template=None, black_template=None)
+    check_heterodyne_span(out, "--heterodyne")
+    return out
+
+
 def phase_noise_rad(noise_dn, modulation_dn, n_steps: int):
     """Phase noise of N-step retrieval: ``sqrt(2/N) * sigma / B`` (METHOD.md section 4)."""
     return np.sqrt(2.0 / n_steps) * np.asarray(noise_dn, dtype=float) / np.asarray(modulation_dn, dtype=float)
@@ -441,6 +484,52 @@ def _convention_item(rig: Rig, d: str) -> DesignItem | None:
         " to the coarser one is 2 reveals every wrong origin; check the settings against the pattern generator")
 
 
+def _heterodyne_range_item(f: FringeDesign, d: str, span_lo: float, span_hi: float) -> DesignItem:
+    """The beats of a heterodyne design and whether the absolute one covers ``u + s``."""
+    beats = heterodyne_beats(f.periods(d))
+    ts = ", ".join(f"{format_period(t)}" for t in beats["periods"])
+    listed = [f"T12 = {beats['steps'][-1][1]:.1f} px"]
+    if len(beats["periods"]) == 3:
+        listed += [f"T23 = {beats['t23']:.1f} px", f"T123 = {beats['absolute']:.1f} px"]
+    cover = beats["absolute"]
+    ok = span_lo >= -0.5 and span_hi - span_lo < cover
+    return DesignItem(
+        f"unambiguous range {d}", bool(ok), float(cover),
+        f"absolute beat > span of u+s = [{span_lo:.1f}, {span_hi:.1f}] px",
+        (f"heterodyne periods {ts} px: beats {', '.join(listed)}; {cover:.1f} px covers the LCD plus carrier"
+         if ok else
+         f"heterodyne periods {ts} px: beats {', '.join(listed)}; {cover:.1f} px does not cover u+s in"
+         f" [{span_lo:.1f}, {span_hi:.1f}] px: choose periods closer together"))
+
+
+def _heterodyne_margin_items(f: FringeDesign, d: str, noise_dn, modulation_dn: float,
+                             margin_sigmas: float) -> list[DesignItem]:
+    """The noise margin of every cascade step: a beat multiplies its phase noise by its ratio to
+    the period it unwraps (``T123 / T12``, ``T12 / T1``)."""
+    beats = heterodyne_beats(f.periods(d))
+    ts = beats["periods"]
+    by_period = dict(zip((float(t) for t in f.periods(d)), f.steps_of(d)))
+    s = [float(phase_noise_rad(noise_dn, modulation_dn, by_period[t])) for t in ts]  # T1, T2 (, T3)
+    s12 = math.hypot(s[0], s[1])
+    beat_noise = {"T12": s12}
+    if len(ts) == 3:
+        beat_noise["T123"] = math.sqrt(s[0] ** 2 + 4 * s[1] ** 2 + s[2] ** 2)  # phi1 - 2 phi2 + phi3
+    finer_noise = {ts[0]: s[0], beats["steps"][-1][1]: s12}
+    items = []
+    for name, t_beat, t_target in beats["steps"]:
+        ratio = t_beat / t_target
+        sigma = math.hypot(beat_noise[name] * ratio, finer_noise[t_target])
+        margin = (np.pi / 2) / sigma if sigma > 0 else np.inf
+        ok = margin >= margin_sigmas
+        target = "T1" if t_target == ts[0] else "T12"
+        items.append(DesignItem(
+            f"unwrapping {name} -> {target}" + (f" ({d})" if f.per_direction else ""), bool(ok), float(margin),
+            f"margin >= {margin_sigmas:g} sigma (quarter-period tolerance / phase noise)",
+            f"beat {t_beat:.1f} px unwraps {t_target:.1f} px: its phase noise x {ratio:.1f}, margin {margin:.1f} sigma"
+            + ("" if ok else " is too small: more steps, or periods further apart (a shorter beat)")))
+    return items
+
+
 def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
                  margin_sigmas: float = 6.0, harmonic_dn: float | None = None) -> DesignReport:
     """Check a fringe design against the rig and the expected signal.
@@ -483,7 +572,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
         span_hi = extent - 0.5 + max(0.0, shifts.max())
         span = span_hi - span_lo
         t0 = f.periods(d)[0]
-        if f.unwrap == "gray":
+        if f.unwrap == "heterodyne":
+            items.append(_heterodyne_range_item(f, d, span_lo, span_hi))
+        elif f.unwrap == "gray":
             cover = t0 * (1 << f.bits(d))
             ok = span_lo >= -0.5 and span_hi < cover
             items.append(DesignItem(
@@ -509,6 +600,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
     dirs = f.directions if f.per_direction else f.directions[:1]
     for d in dirs:
         ps, ns = f.periods(d), f.steps_of(d)
+        if f.unwrap == "heterodyne":
+            items.extend(_heterodyne_margin_items(f, d, noise_dn, worst_mod, margin_sigmas))
+            continue
         for j in range(1, len(ps)):
             ratio = ps[j - 1] / ps[j]
             s_prev = phase_noise_rad(noise_dn, worst_mod, ns[j - 1]) * ratio
