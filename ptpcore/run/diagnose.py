@@ -220,20 +220,20 @@ def _settings(sign: int, origin: float, s0: int, o0: float) -> list[str]:
     return out
 
 
-def _why(periods) -> str:
+def _why(periods, kept: list[tuple[int, float]]) -> str:
     """Why the members of a convention set decode alike, and the design change that tells them apart."""
-    shifts = blind_origin_shifts(periods)
     ratios = ", ".join(f"{a / b:.4g}" for a, b in zip(periods, periods[1:]))
-    nonzero = sorted({round(math.degrees(e) % 360.0, 4) for e in shifts} - {0.0, 360.0})
-    text = f"period ratios {ratios}: "
-    if nonzero:
-        text += (f"a wrong origin by {', '.join(f'{x:g}' for x in nonzero)} degrees unwraps as consistently"
-                 " (METHOD.md section 4), and ")
-    text += ("a wrong shift sign with the origin negated mirrors the map without an unwrapping disagreement;"
-             " only coordinates off the LCD would tell, and this camera's view keeps these on it."
-             " A level whose period ratio to the coarser one is 2 reveals every wrong origin; a camera"
-             " that sees the LCD's whole width reveals the mirrored ones")
-    return text
+    parts = []
+    if any(sum(1 for s, _o in kept if s == sign) > 1 for sign in (1, -1)):
+        nonzero = sorted({round(math.degrees(e) % 360.0, 4) % 360.0 for e in blind_origin_shifts(periods)} - {0.0})
+        hidden = f" by {', '.join(f'{x:g}' for x in nonzero)} degrees" if nonzero else ""
+        parts.append(f"an origin wrong{hidden} unwraps as consistently (period ratios {ratios}; METHOD.md section 4):"
+                     " a level whose period ratio to the coarser one is 2 reveals every wrong origin")
+    if len({s for s, _o in kept}) > 1:
+        parts.append("the other shift sign (with another origin) mirrors the map without an unwrapping disagreement"
+                     " and keeps this view on the LCD: a camera that sees more of the LCD (up to its edges) tells"
+                     " a mirrored map")
+    return "; ".join(parts)
 
 
 def _same(a: tuple[int, float], b: tuple[int, float]) -> bool:
@@ -270,7 +270,7 @@ def _direction_finding(d: str, raw, periods, s0: int, o0: float, shift: float, e
         return None
     cands = [_settings(s, o, s0, o0) for s, o in kept]
     return ConventionFinding(d, cands[0], scores[0], top, cands, kept, fatal,
-                             _why(periods) if len(kept) > 1 else "", (resids[0], best_resid))
+                             _why(periods, kept) if len(kept) > 1 else "", (resids[0], best_resid))
 
 
 def convention_check(rig: Rig, pos: DecodedPosition, options: DecodeOptions = DecodeOptions(),

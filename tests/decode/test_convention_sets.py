@@ -132,7 +132,11 @@ def test_the_listed_set_is_the_set_the_data_cannot_tell_apart(design, wrong, wro
         assert abs(math.remainder(fd.conventions[0][1] - true_origin, 2 * math.pi)) < math.radians(0.5)
         assert "set it" in msg and "cannot tell" not in msg
     else:
-        assert f"{len(expected)} " in msg and "cannot tell them apart" in msg and "ratio" in msg
+        assert f"{len(expected)} " in msg and "cannot tell them apart" in msg
+        # the reason and the design change that would tell: origins (a ratio-2 level), mirrors (more of the LCD)
+        assert ("ratio to the coarser one is 2" in msg) == any(
+            sum(m[0] == s for m in expected) > 1 for s in (1, -1))
+        assert ("mirrors the map" in msg) == (len({m[0] for m in expected}) > 1)
         for i in range(len(expected)):
             assert f"({i + 1}) " in msg
 
