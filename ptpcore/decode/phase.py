@@ -694,8 +694,11 @@ def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None, tol
         shape = np.shape(phases[0])
         coord, disagreement = (np.empty(shape, np.float64), np.zeros(shape, bool)) if out is None else out
         disagreement[...] = False
-        run_tiles(lambda r0, r1: _heterodyne_rows(phases, periods, carrier_shift_px, coord, disagreement,
-                                                  slice(r0, r1), tolerance), *shape)
+        if len(shape) != 2:
+            _heterodyne_rows(phases, periods, carrier_shift_px, coord, disagreement, slice(None), tolerance)
+        else:
+            run_tiles(lambda r0, r1: _heterodyne_rows(phases, periods, carrier_shift_px, coord, disagreement,
+                                                      slice(r0, r1), tolerance), *shape)
         return DirectionDecode(coord, list(wrapped), disagreement, None, tuple(periods))
     phases = [w.phase for w in wrapped]
     shape = np.shape(phases[0])

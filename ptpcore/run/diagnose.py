@@ -4,9 +4,11 @@
   reported with its dominant reason; a run that keeps no pixel at all fails.
 - A wrong ``phase_origin_rad`` or ``shift_sign`` is recognised from the data:
   the wrapped phases are unwrapped again under other conventions on a sample
-  of well-modulated pixels, and a convention that agrees (unwrapping
-  consistent, coordinates on the LCD) where the configured one does not is
-  named as the setting that fixes it.
+  of well-modulated pixels. The conventions the design cannot tell apart
+  (METHOD.md section 4, :func:`ptpcore.decode.patterns.equivalent_conventions`)
+  are all scored; those that agree as well (unwrapping consistent, residuals as
+  small, coordinates on the LCD) form a set, never narrowed to one by taste:
+  one member is the fix, several are listed with why the data cannot tell.
 """
 
 from __future__ import annotations

@@ -131,3 +131,17 @@ def test_ptp_simulate_heterodyne_then_ptp_decode(tmp_path):
     with h5py.File(tmp_path / "het.decoded.h5", "r") as f:
         u = f["u"][()]
     assert np.mean(np.isfinite(u)) > 0.5
+
+
+@pytest.mark.parametrize("cycles", [(32, 30, 27), (32, 29, 27), (32, 31)])
+def test_analytic_phases_unwrap_exactly_whichever_beat_is_longer(cycles):
+    """Noise-free phases of u over [0, 4000) px: the cascade returns u (float32 phases: 1e-5 px)."""
+    from ptpcore.decode.phase import WrappedPhase, decode_direction
+
+    periods = sorted((L / c for c in cycles), reverse=True)
+    u = np.linspace(0.0, 4000.0, 2001)[None, :].repeat(3, axis=0)
+    wrapped = [WrappedPhase(np.angle(np.exp(2j * np.pi * (u + 7.0) / t)).astype(np.float32), None, None, None)
+               for t in periods]
+    dec = decode_direction(wrapped, periods, 7.0, heterodyne=True)
+    assert not dec.disagreement.any()
+    assert np.max(np.abs(dec.coord - u)) < 1e-5 * L
