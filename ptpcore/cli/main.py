@@ -6,6 +6,7 @@ code 2 and one line naming the culprit, never a traceback.
 
 from __future__ import annotations
 
+import argparse
 import shutil
 import sys
 import tempfile
@@ -47,6 +48,13 @@ def cmd_simulate(args) -> int:
         rig = gray_code_rig(rig, args.gray, inverse=args.gray_inverse, references=args.references)
     elif args.gray_inverse or args.references:
         raise PtpError("--gray-inverse and --references go with --gray LEVELS")
+    if args.heterodyne:
+        if args.gray:
+            raise PtpError("--heterodyne and --gray are two ways to unwrap: give one")
+        from ptpcore.decode.patterns import heterodyne_rig
+        rig = heterodyne_rig(rig, args.heterodyne, args.heterodyne_steps)
+    elif args.heterodyne_steps:
+        raise PtpError("--heterodyne-steps goes with --heterodyne PERIODS")
     bar = progress_bar(args)
     try:
         out = simulate_dataset(args.out_dir, rig, settings, seed=args.seed, progress=bar,
@@ -531,9 +539,25 @@ def _add_simulate(sub) -> None:
     s.add_argument("--gray-inverse", action="store_true", help="with --gray: each Gray-code frame followed by its inverse")
     s.add_argument("--references", action="store_true",
                    help="with --gray: all-white and all-black frames at every position (threshold, clipping check)")
+    s.add_argument("--heterodyne", type=_period_list_arg, metavar="T1,T2[,T3]",
+                   help="heterodyne unwrapping (ptp-dataset/2, unwrap = \"heterodyne\"): two or three periods in LCD"
+                        " px, any order, whose beat covers the LCD plus the carrier, e.g. 128,136.5,151.7")
+    s.add_argument("--heterodyne-steps", type=positive_int, metavar="N",
+                   help="with --heterodyne: phase steps per period (default: the preset's finest level's)")
     s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
+
+
+def _period_list_arg(text: str) -> list[float]:
+    """``T1,T2[,T3]``: two or three periods in LCD px."""
+    try:
+        vals = [float(t) for t in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected periods in px separated by commas, got {text!r}") from None
+    if len(vals) not in (2, 3) or any(not (2.0 <= v < 1e6) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected two or three periods of at least 2 px, got {text!r}")
+    return vals
 
 
 def _add_calibrate(sub) -> None:

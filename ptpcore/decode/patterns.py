@@ -17,7 +17,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ptpcore.rig.rigfile import Display, DirectionFringes, FringeDesign, Lcd, Rig, format_period
+from ptpcore.errors import ConfigError
+from ptpcore.rig.rigfile import (Display, DirectionFringes, FringeDesign, Lcd, Rig, format_period,
+                                 heterodyne_beats)
 
 __all__ = [
     "fringe_values",
@@ -28,13 +30,16 @@ __all__ = [
     "DesignItem",
     "DesignReport",
     "design_check",
-    "convention_detectable",
+    "blind_origin_shifts",
+    "equivalent_conventions",
+    "wrap_origin",
     "phase_noise_rad",
     "gray_values",
     "gray_profile",
     "reference_profile",
     "gray_bits_needed",
     "gray_code_rig",
+    "heterodyne_rig",
     "GRAY_TEMPLATE",
     "WHITE_TEMPLATE",
     "BLACK_TEMPLATE",
@@ -282,6 +287,46 @@ def gray_code_rig(rig: Rig, levels: int = 2, *, inverse: bool = False, reference
     return out
 
 
+def heterodyne_rig(rig: Rig, periods, steps=None) -> Rig:
+    """``rig`` unwrapping by heterodyne beats (``unwrap = "heterodyne"``, ptp-dataset/2) of ``periods``.
+
+    Parameters
+    ----------
+    rig : Rig
+    periods : sequence of 2 or 3 float
+        LCD px, any order (sorted longest first, as the rig file's reader does); both directions.
+    steps : int or sequence of int, optional
+        N per period (in the order of ``periods``); default the rig's finest level's N.
+
+    Raises
+    ------
+    ConfigError
+        Not two or three different periods, equal beats, or an absolute beat that does not cover
+        the LCD plus the carrier (the message names the periods).
+    """
+    from ptpcore.rig.rigfile import check_heterodyne_span
+
+    f = rig.fringes
+    ps = [float(t) for t in periods]
+    if steps is None:
+        steps = [f.steps_of(f.directions[0])[-1]] * len(ps)
+    elif isinstance(steps, int):
+        steps = [steps] * len(ps)
+    try:
+        heterodyne_beats(ps)
+    except ValueError as exc:
+        raise ConfigError(f"--heterodyne: {exc}") from None
+    order = sorted(range(len(ps)), key=lambda j: -ps[j])
+    kept = tuple((d, replace(o, periods_px=None, steps=None, gray_bits=None)) for d, o in f.per_direction)
+    kept = tuple((d, o) for d, o in kept if o != DirectionFringes())
+    fringes = replace(f, periods_px=tuple(format_period(ps[j]) for j in order),
+                      steps=tuple(int(steps[j]) for j in order), unwrap="heterodyne", gray_bits=0,
+                      gray_inverse=False, per_direction=kept)
+    out = replace(rig, fringes=fringes, gray_template=None, white_template=None, black_template=None)
+    check_heterodyne_span(out, "--heterodyne")
+    return out
+
+
 def phase_noise_rad(noise_dn, modulation_dn, n_steps: int):
     """Phase noise of N-step retrieval: ``sqrt(2/N) * sigma / B`` (METHOD.md section 4)."""
     return np.sqrt(2.0 / n_steps) * np.asarray(noise_dn, dtype=float) / np.asarray(modulation_dn, dtype=float)
@@ -321,23 +366,168 @@ class DesignReport:
         return [item for item in self.items if not item.ok]
 
 
-def convention_detectable(rig: Rig, direction: str) -> dict:
-    """Whether a wrong ``phase_origin`` (by pi) and a wrong ``shift_sign`` show in decoded data
-    (METHOD.md section 4): as unwrapping disagreement when a period ratio is not an odd
-    integer (origin) or not an integer (sign), or as coordinates off the LCD when the
-    coarsest period exceeds it."""
-    f = rig.fringes
-    ps = [float(t) for t in f.periods(direction)]
+def blind_origin_shifts(periods, tol: float = 1e-6) -> tuple[float, ...] | None:
+    """Origin errors that hierarchical unwrapping cannot see (METHOD.md section 4).
+
+    A wrong origin adds the same ``e`` to the phase of every level; level ``j``
+    then disagrees with the one above by ``(r_j - 1) * e (mod 2 pi)``,
+    ``r_j = T_{j-1} / T_j``. Where the coarse phase wraps (``e`` pushed it past
+    ``2 pi``) the effective error is ``e - 2 pi``: both are listed, so a
+    fractional ratio (which tells ``e`` from ``e - 2 pi``) is handled exactly.
+
+    Parameters
+    ----------
+    periods : sequence of float
+        Periods coarse to fine, LCD px.
+    tol : float
+        Tolerance on ``(r_j - 1) e / 2 pi`` being an integer.
+
+    Returns
+    -------
+    tuple of float, radians in (-2 pi, 2 pi), sorted, 0 included; or None
+        None for a single period (no unwrapping: every origin is unseen by it).
+    """
+    ps = [float(t) for t in periods]
+    if len(ps) < 2:
+        return None
     ratios = [a / b for a, b in zip(ps, ps[1:])]
-    extent = rig.lcd.width if direction == "x" else rig.lcd.height
-    exceeds = ps[0] > extent + 1.0
+    first = ratios[0] - 1.0
+    limit = int(math.floor(first - tol))  # |m| < r_1 - 1 keeps |e| < 2 pi
+    out = []
+    for m in range(-limit, limit + 1):
+        e = 2.0 * math.pi * m / first
+        if all(abs(q - round(q)) <= tol for q in ((r - 1.0) * e / (2.0 * math.pi) for r in ratios)):
+            out.append(e)
+    return tuple(sorted(out))
 
-    def is_int(r):
-        return abs(r - round(r)) < 1e-9
 
-    origin = exceeds or any(not (is_int(r) and round(r) % 2 == 1) for r in ratios)
-    sign = exceeds or any(not is_int(r) for r in ratios)
-    return {"phase_origin_rad": origin, "shift_sign": sign}
+def equivalent_conventions(periods, sign: int, origin: float) -> list[tuple[int, float]]:
+    """Every ``(shift_sign, phase_origin_rad)`` whose unwrapping is as consistent as ``(sign, origin)``.
+
+    If the patterns were shown with ``(sign, origin)``, decoding with the same
+    sign and origin ``origin - e`` shifts every phase by ``e``; decoding with the
+    other sign and origin ``-origin - e`` negates every phase and adds ``e`` (a
+    mirrored map). Both unwrap consistently exactly for ``e`` in
+    :func:`blind_origin_shifts`. What is left to tell them apart is whether the
+    coordinates stay on the LCD (the data's part: :func:`ptpcore.run.diagnose.convention_check`).
+
+    Returns
+    -------
+    list of (int, float)
+        Sign and origin (radians in (-pi, pi]), ``(sign, origin)`` first, no
+        duplicates. Empty for a single period (any origin fits).
+    """
+    shifts = blind_origin_shifts(periods)
+    if shifts is None:
+        return []
+    out: list[tuple[int, float]] = []
+    for s, base in ((sign, origin), (-sign, -origin)):
+        for e in sorted(shifts, key=abs):
+            o = wrap_origin(base - e)
+            if not any(s == s2 and abs(math.remainder(o - o2, 2 * math.pi)) < 1e-9 for s2, o2 in out):
+                out.append((s, o))
+    return out
+
+
+def wrap_origin(rad: float) -> float:
+    """An origin in (-pi, pi] (pi stays pi)."""
+    r = math.remainder(float(rad), 2 * math.pi)
+    return math.pi if abs(r + math.pi) < 1e-12 else r
+
+
+def _hidden_width(periods, extent: float) -> list[tuple[int, float, float]]:
+    """For each convention equivalent to the plain one ``(1, 0)``: ``(sign, origin, width)``, the
+    widest part of the LCD (px, carrier left out) a camera may see without its coordinates
+    leaving the LCD under it (0: never hidden)."""
+    t0 = float(periods[0])
+    out = []
+    for s, o in equivalent_conventions(periods, 1, 0.0)[1:]:
+        if s == 1:
+            # Shift by D = T0 e / 2pi (or D - T0 where the coarse phase wraps).
+            d = (-o % (2 * math.pi)) * t0 / (2 * math.pi)
+            width = extent - min(d, t0 - d)
+        else:
+            # Mirror u' = C - u, C = T0 c / 2pi or that plus T0.
+            c = (-o % (2 * math.pi)) * t0 / (2 * math.pi)
+            width = max(min(cc, 2 * extent - cc) for cc in (c, c + t0))
+        out.append((s, o, max(0.0, float(width))))
+    return out
+
+
+def _convention_item(rig: Rig, d: str) -> DesignItem | None:
+    """The design check's verdict on which wrong conventions the data of direction ``d`` cannot reveal."""
+    f = rig.fringes
+    ps = f.periods(d)
+    extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
+    if len(ps) < 2:
+        return DesignItem(
+            f"convention check {d}", True, 0.0, "a wrong phase_origin_rad or shift_sign shows in the data",
+            f"direction {d} has one period: no unwrapping checks phase_origin_rad or shift_sign; only"
+            " coordinates off the LCD can; check them against the pattern generator")
+    hidden = [(s, o, w) for s, o, w in _hidden_width(ps, extent) if w > 0]
+    if not hidden:
+        return None
+    shifts = blind_origin_shifts(ps)
+    degrees = sorted({round(math.degrees(e) % 360.0, 4) % 360.0 for e in shifts} - {0.0})
+    what = []
+    if degrees:
+        what.append("a phase_origin_rad wrong by " + ", ".join(f"{x:.4g}" for x in degrees) + " degrees")
+    if any(s == -1 for s, _o, _w in hidden):
+        what.append("a wrong shift_sign (with the origin negated)")
+    widest = max(w for *_x, w in hidden)
+    return DesignItem(
+        f"convention check {d}", True, widest,
+        "a wrong phase_origin_rad or shift_sign shows in the data",
+        f"direction {d}: {' and '.join(what)} unwrap as consistently as the right ones (period ratios"
+        f" {', '.join(f'{a / b:.4g}' for a, b in zip(ps, ps[1:]))}); only coordinates off the LCD tell them,"
+        f" which a camera seeing up to {widest:.0f} of the LCD's {extent:.0f} px may not. A level whose ratio"
+        " to the coarser one is 2 reveals every wrong origin; check the settings against the pattern generator")
+
+
+def _heterodyne_range_item(f: FringeDesign, d: str, span_lo: float, span_hi: float) -> DesignItem:
+    """The beats of a heterodyne design and whether the absolute one covers ``u + s``."""
+    beats = heterodyne_beats(f.periods(d))
+    ts = ", ".join(f"{format_period(t)}" for t in beats["periods"])
+    listed = [f"T12 = {beats['steps'][-1][1]:.1f} px"]
+    if len(beats["periods"]) == 3:
+        listed += [f"T23 = {beats['t23']:.1f} px", f"T123 = {beats['absolute']:.1f} px"]
+    cover = beats["absolute"]
+    ok = span_lo >= -0.5 and span_hi - span_lo < cover
+    return DesignItem(
+        f"unambiguous range {d}", bool(ok), float(cover),
+        f"absolute beat > span of u+s = [{span_lo:.1f}, {span_hi:.1f}] px",
+        (f"heterodyne periods {ts} px: beats {', '.join(listed)}; {cover:.1f} px covers the LCD plus carrier"
+         if ok else
+         f"heterodyne periods {ts} px: beats {', '.join(listed)}; {cover:.1f} px does not cover u+s in"
+         f" [{span_lo:.1f}, {span_hi:.1f}] px: choose periods closer together"))
+
+
+def _heterodyne_margin_items(f: FringeDesign, d: str, noise_dn, modulation_dn: float,
+                             margin_sigmas: float) -> list[DesignItem]:
+    """The noise margin of every cascade step: a beat multiplies its phase noise by its ratio to
+    the period it unwraps (``T123 / T12``, ``T12 / T1``)."""
+    beats = heterodyne_beats(f.periods(d))
+    ts = beats["periods"]
+    by_period = dict(zip((float(t) for t in f.periods(d)), f.steps_of(d)))
+    s = [float(phase_noise_rad(noise_dn, modulation_dn, by_period[t])) for t in ts]  # T1, T2 (, T3)
+    s12 = math.hypot(s[0], s[1])
+    beat_noise = {"T12": s12}
+    if len(ts) == 3:
+        beat_noise["T123"] = math.sqrt(s[0] ** 2 + 4 * s[1] ** 2 + s[2] ** 2)  # phi1 - 2 phi2 + phi3
+    finer_noise = {ts[0]: s[0], beats["steps"][-1][1]: s12}
+    items = []
+    for name, t_beat, t_target in beats["steps"]:
+        ratio = t_beat / t_target
+        sigma = math.hypot(beat_noise[name] * ratio, finer_noise[t_target])
+        margin = (np.pi / 2) / sigma if sigma > 0 else np.inf
+        ok = margin >= margin_sigmas
+        target = "T1" if t_target == ts[0] else "T12"
+        items.append(DesignItem(
+            f"unwrapping {name} -> {target}" + (f" ({d})" if f.per_direction else ""), bool(ok), float(margin),
+            f"margin >= {margin_sigmas:g} sigma (quarter-period tolerance / phase noise)",
+            f"beat {t_beat:.1f} px unwraps {t_target:.1f} px: its phase noise x {ratio:.1f}, margin {margin:.1f} sigma"
+            + ("" if ok else " is too small: more steps, or periods further apart (a shorter beat)")))
+    return items
 
 
 def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
@@ -382,7 +572,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
         span_hi = extent - 0.5 + max(0.0, shifts.max())
         span = span_hi - span_lo
         t0 = f.periods(d)[0]
-        if f.unwrap == "gray":
+        if f.unwrap == "heterodyne":
+            items.append(_heterodyne_range_item(f, d, span_lo, span_hi))
+        elif f.unwrap == "gray":
             cover = t0 * (1 << f.bits(d))
             ok = span_lo >= -0.5 and span_hi < cover
             items.append(DesignItem(
@@ -408,6 +600,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
     dirs = f.directions if f.per_direction else f.directions[:1]
     for d in dirs:
         ps, ns = f.periods(d), f.steps_of(d)
+        if f.unwrap == "heterodyne":
+            items.extend(_heterodyne_margin_items(f, d, noise_dn, worst_mod, margin_sigmas))
+            continue
         for j in range(1, len(ps)):
             ratio = ps[j - 1] / ps[j]
             s_prev = phase_noise_rad(noise_dn, worst_mod, ns[j - 1]) * ratio
@@ -423,16 +618,9 @@ def design_check(rig: Rig, *, modulation_dn=None, noise_dn: float | None = None,
                   " is too small: add an intermediate period or more steps"),
             ))
     for d in (f.directions if f.unwrap == "periods" else ()):
-        tells = convention_detectable(rig, d)
-        if not all(tells.values()):
-            blind = [k for k, v in tells.items() if not v]
-            items.append(DesignItem(
-                f"convention check {d}", True, 0.0,
-                "a wrong phase_origin_rad or shift_sign shows in the data",
-                f"this design cannot tell a wrong {' or '.join(blind)} from the data (direction {d}):"
-                " consecutive period ratios are odd integers (origin) or integers (sign) and the coarsest"
-                " period does not exceed the LCD; check those settings against the pattern generator",
-            ))
+        item = _convention_item(rig, d)
+        if item is not None:
+            items.append(item)
     if harmonic_dn is not None and noise_dn is not None and harmonic_dn > noise_dn:
         items.append(DesignItem(
             "display harmonics", False, float(harmonic_dn),

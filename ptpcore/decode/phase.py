@@ -637,14 +637,69 @@ class DecodedPosition:
         return self.reasons == 0
 
 
+def _heterodyne_rows(phases, periods, shift: float, coord: np.ndarray, disagreement: np.ndarray,
+                     rows, tolerance: float) -> None:
+    """Heterodyne unwrapping of rows ``rows`` (FORMATS.md ``unwrap = "heterodyne"``).
+
+    ``phases`` and ``periods`` run longest first (``T3, T2, T1`` or ``T2, T1``, as the rig
+    sorts them). The phase difference of two periods is the phase of their beat
+    ``T12 = T1 T2 / (T2 - T1)``; the beat of the beats ``T123 = T12 T23 / |T23 - T12|``
+    (three periods) is absolute. Each cascade step (``T123 -> T12 -> T1``) unwraps the
+    finer phase from the coarser as hierarchical unwrapping does, and flags pixels
+    whose two disagree by more than ``tolerance`` periods of the finer one.
+    """
+    from ptpcore.rig.rigfile import heterodyne_beats
+
+    two_pi = 2.0 * np.pi
+    beats = heterodyne_beats(periods)
+    t = beats["periods"]
+    p = [np.asarray(phases[len(phases) - 1 - i][rows], np.float64) for i in range(len(t))]  # T1, T2 (, T3)
+    b12 = p[0] - p[1]
+    if len(t) == 2:
+        absolute = np.mod(b12, two_pi)
+        chain = [(absolute, beats["absolute"])]
+    else:
+        b23 = p[1] - p[2]
+        t12, t23 = beats["steps"][1][1], beats["t23"]
+        absolute = np.mod(b12 - b23 if t23 > t12 else b23 - b12, two_pi)
+        chain = [(absolute, beats["absolute"]), (b12, t12)]
+    chain.append((p[0], t[0]))
+    dis = disagreement[rows]
+    limit = two_pi * tolerance
+    unwrapped, t_prev = chain[0]
+    for phi, t_this in chain[1:]:
+        predicted = unwrapped * (t_prev / t_this)
+        unwrapped = phi + two_pi * np.rint((predicted - phi) / two_pi)
+        dis |= np.abs(unwrapped - predicted) > limit
+        t_prev = t_this
+    out = coord[rows]
+    np.multiply(unwrapped, t[0] / two_pi, out=out)
+    if shift:
+        out -= shift
+
+
 def decode_direction(wrapped, periods, carrier_shift_px: float, *, out=None, tolerance: float = 0.25,
-                     absolute0: np.ndarray | None = None, gray_failed: np.ndarray | None = None) -> DirectionDecode:
+                     absolute0: np.ndarray | None = None, gray_failed: np.ndarray | None = None,
+                     heterodyne: bool = False) -> DirectionDecode:
     """Unwrap one direction and remove the carrier displacement ``s_k`` (LCD px).
 
     ``out``: optional ``(coord, disagreement)`` arrays to fill (reused by a streaming caller).
     ``tolerance``: unwrapping disagreement limit (periods of the finer level).
     ``absolute0``: the absolute coarse phase (Gray-code unwrapping), with its ``gray_failed`` pixels.
+    ``heterodyne``: unwrap by the beats of two or three periods (:func:`_heterodyne_rows`);
+    ``periods`` longest first.
     """
+    if heterodyne:
+        phases = [w.phase for w in wrapped]
+        shape = np.shape(phases[0])
+        coord, disagreement = (np.empty(shape, np.float64), np.zeros(shape, bool)) if out is None else out
+        disagreement[...] = False
+        if len(shape) != 2:
+            _heterodyne_rows(phases, periods, carrier_shift_px, coord, disagreement, slice(None), tolerance)
+        else:
+            run_tiles(lambda r0, r1: _heterodyne_rows(phases, periods, carrier_shift_px, coord, disagreement,
+                                                      slice(r0, r1), tolerance), *shape)
+        return DirectionDecode(coord, list(wrapped), disagreement, None, tuple(periods))
     phases = [w.phase for w in wrapped]
     shape = np.shape(phases[0])
     if out is None:

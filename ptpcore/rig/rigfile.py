@@ -39,6 +39,8 @@ __all__ = [
     "rig_to_toml",
     "save_rig",
     "validate_template",
+    "heterodyne_beats",
+    "check_heterodyne_span",
 ]
 
 DATASET_FORMAT = "ptp-dataset/1"
@@ -455,6 +457,73 @@ def _check_periods(periods, where: str) -> None:
         raise ConfigError(f"{where} must decrease strictly (coarse to fine), got {_short_repr(list(periods))}")
 
 
+def heterodyne_beats(periods) -> dict:
+    """The beats of a heterodyne design (FORMATS.md ``unwrap = "heterodyne"``).
+
+    Parameters
+    ----------
+    periods : sequence of 2 or 3 float
+        LCD px, any order.
+
+    Returns
+    -------
+    dict
+        ``periods``: sorted ``T1 < T2 (< T3)``; ``steps``: the cascade as
+        ``(name, beat period, period it unwraps)`` from the absolute beat down to
+        ``T1``; ``absolute``: the beat whose phase is taken as absolute (``T12``
+        for two periods, ``T123`` for three), LCD px.
+
+    Raises
+    ------
+    ValueError
+        Not 2 or 3 distinct periods, or (three) equal beats ``T12 = T23``.
+    """
+    ts = sorted(float(t) for t in periods)
+    if len(ts) not in (2, 3) or len(set(ts)) != len(ts):
+        raise ValueError(f"heterodyne unwrapping needs two or three different periods, got {list(periods)}")
+    t12 = ts[0] * ts[1] / (ts[1] - ts[0])
+    if len(ts) == 2:
+        return {"periods": ts, "absolute": t12, "steps": [("T12", t12, ts[0])]}
+    t23 = ts[1] * ts[2] / (ts[2] - ts[1])
+    if abs(t23 - t12) <= 1e-9 * t12:
+        raise ValueError(f"periods {', '.join(f'{t:g}' for t in ts)} px have equal beats T12 = T23 ="
+                         f" {t12:g} px: their beat is infinite and unwraps nothing")
+    t123 = t12 * t23 / abs(t23 - t12)
+    return {"periods": ts, "absolute": t123, "t23": t23,
+            "steps": [("T123", t123, t12), ("T12", t12, ts[0])]}
+
+
+def _heterodyne_order(periods, steps, where: str) -> tuple[tuple, tuple]:
+    """Heterodyne periods (any order, checked: :func:`heterodyne_beats`) and their steps, sorted
+    longest first like every period list of the engine (so ``{period_index}`` 0 is the longest)."""
+    if not periods or any(not 2 <= p <= MAX_PERIOD_PX for p in periods):
+        raise ConfigError(f"{where} must list periods of 2 to {MAX_PERIOD_PX} px, got {_short_repr(list(periods))}")
+    try:
+        heterodyne_beats(periods)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc} (unwrap = \"heterodyne\")") from None
+    order = sorted(range(len(periods)), key=lambda j: -float(periods[j]))
+    return tuple(periods[j] for j in order), tuple(steps[j] for j in order)
+
+
+def check_heterodyne_span(rig: "Rig", source: str) -> None:
+    """Refuse a heterodyne design whose absolute beat does not exceed the span of ``u + s``."""
+    f = rig.fringes
+    z = list(rig.stage.z_mm) + list(rig.stage.repeat_z_mm)
+    for d in f.directions:
+        extent = rig.lcd.width if d == "x" else rig.lcd.height
+        shifts = [f.carrier(d) * zz for zz in z]
+        lo, hi = min(0.0, min(shifts)) - 0.5, extent - 0.5 + max(0.0, max(shifts))
+        beats = heterodyne_beats(f.periods(d))
+        if hi - lo >= beats["absolute"]:
+            names = ", ".join(f"{format_period(t)}" for t in beats["periods"])
+            key = "fringes.periods_px" if not any(dd == d and o.periods_px for dd, o in f.per_direction) \
+                else f"fringes.{d}.periods_px"
+            raise ConfigError(f"{source}: key '{key}': the heterodyne periods {names} px (direction {d}) beat at"
+                              f" {beats['absolute']:.1f} px, which does not cover the span of u + s"
+                              f" ({hi - lo:.1f} px: the LCD plus the carrier); choose periods closer together")
+
+
 def _steps_list(raw, n_periods: int, where: str) -> tuple:
     if isinstance(raw, list):
         steps = _convert(raw, "list[int]", where)
@@ -513,7 +582,10 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     fringes = _fringes(doc, source, v2)
     display = _display_section(doc, source, v2)
     decode = _decode_section(doc, source, v2)
-    return _images_section(doc, source, v2, camera, lcd, stage, fringes, display, decode)
+    rig = _images_section(doc, source, v2, camera, lcd, stage, fringes, display, decode)
+    if fringes.unwrap == "heterodyne":
+        check_heterodyne_span(rig, source)
+    return rig
 
 
 def _camera_section(doc: dict, source: str, v2: bool) -> Camera:
@@ -647,6 +719,17 @@ def _decode_section(doc: dict, source: str, v2: bool) -> DecodeSettings:
     return decode
 
 
+def _needed_fields(needed: tuple[str, ...], fringes, stage: Stage) -> tuple[str, ...]:
+    """A template's required fields, less ``dir`` with one direction and ``pos`` with one position
+    (repeats included): the names are unique without them (FORMATS.md, ptp-dataset/2)."""
+    drop = set()
+    if len(fringes.directions) == 1:
+        drop.add("dir")
+    if stage.n_positions + len(stage.repeat_z_mm) == 1:
+        drop.add("pos")
+    return tuple(n for n in needed if n not in drop)
+
+
 def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, stage: Stage, fringes,
                     display, decode: DecodeSettings) -> Rig:
     """``[images]``: the templates (or, /2, the frames named one by one), checked against the design; the whole rig."""
@@ -664,7 +747,7 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
     rig = Rig(camera, lcd, stage, fringes, template, display, decode, gray_t, white_t, black_t)
     if v2 and frames_raw:
         return replace(rig, frame_list=_frame_list(frames_raw, rig, source))
-    validate_template(template, source)
+    validate_template(template, source, needed=_needed_fields(("pos", "dir", "period", "step"), fringes, stage))
     for d in fringes.directions:
         for j, t in enumerate(fringes.periods(d)):
             try:
@@ -677,7 +760,7 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
         if gray_t is None:
             raise ConfigError(f"{source}: key 'images.gray_template' is needed with fringes.unwrap = \"gray\""
                               " (or name the frames in [[images.frames]])")
-        needed = ("dir", "bit") + (("inverse",) if fringes.gray_inverse else ())
+        needed = _needed_fields(("dir", "bit") + (("inverse",) if fringes.gray_inverse else ()), fringes, stage)
         validate_template(gray_t, source, key="images.gray_template", fields=GRAY_TEMPLATE_FIELDS, needed=needed)
     elif gray_t is not None:
         raise ConfigError(f"{source}: key 'images.gray_template' is given but fringes.unwrap is not \"gray\"")
@@ -708,8 +791,9 @@ def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
         extra["phase_origin_rad"] = s.get("phase_origin_rad", "float", 0.0)
         extra["shift_sign"] = _check_sign(s.get("shift_sign", "int", 1), f"{source}: key 'fringes.shift_sign'")
         unwrap = s.get("unwrap", "str", "periods")
-        if unwrap not in ("periods", "gray"):
-            raise ConfigError(f"{source}: key 'fringes.unwrap' must be \"periods\" or \"gray\", got {_short_repr(unwrap)}")
+        if unwrap not in ("periods", "gray", "heterodyne"):
+            raise ConfigError(f"{source}: key 'fringes.unwrap' must be \"periods\", \"gray\" or \"heterodyne\","
+                              f" got {_short_repr(unwrap)}")
         extra["unwrap"] = unwrap
         extra["gray_bits"] = _check_bits(s.get("gray_bits", "int", 0), f"{source}: key 'fringes.gray_bits'")
         inv = s.table.get("gray_inverse", False)
@@ -727,7 +811,8 @@ def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
             if "periods_px" in sub.table:
                 sub.used.add("periods_px")
                 o_periods = _period_list(sub.table["periods_px"], f"{source}: key 'fringes.{d}.periods_px'", True)
-                _check_periods(o_periods, f"{source}: key 'fringes.{d}.periods_px'")
+                if unwrap != "heterodyne":
+                    _check_periods(o_periods, f"{source}: key 'fringes.{d}.periods_px'")
             o_steps = None
             if "steps" in sub.table:
                 sub.used.add("steps")
@@ -745,6 +830,9 @@ def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
             if bits is not None:
                 _check_bits(bits, f"{source}: key 'fringes.{d}.gray_bits'")
             sub.finish()
+            if unwrap == "heterodyne" and o_periods is not None:
+                o_periods, o_steps = _heterodyne_order(o_periods, o_steps or (steps[0],) * len(o_periods),
+                                                       f"{source}: key 'fringes.{d}.periods_px'")
             o = DirectionFringes(o_periods, o_steps, origin, sign, bits)
             if o != DirectionFringes():
                 per_direction.append((d, o))
@@ -752,7 +840,14 @@ def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
     if not directions or len(set(directions)) != len(directions) or any(d not in ("x", "y") for d in directions):
         raise ConfigError(f"{source}: key 'fringes.directions' must list 'x' and/or 'y' once each,"
                           f" got {_short_repr(directions)}")
-    _check_periods(periods, f"{source}: key 'fringes.periods_px'")
+    if extra.get("unwrap") == "heterodyne":
+        order = sorted(range(len(periods)), key=lambda j: -float(periods[j]))
+        periods, steps = _heterodyne_order(periods, steps, f"{source}: key 'fringes.periods_px'")
+        # a [fringes.x/y] steps list without its own periods follows the shared periods' order
+        per_direction = [(d, o if o.periods_px is not None or o.steps is None else
+                          replace(o, steps=tuple(o.steps[j] for j in order))) for d, o in per_direction]
+    else:
+        _check_periods(periods, f"{source}: key 'fringes.periods_px'")
     if len(carrier) != 2:
         raise ConfigError(f"{source}: key 'fringes.carrier_px_per_mm' must be [x, y], got {_short_repr(carrier)}")
     if amplitude <= 0 or offset - amplitude < -0.5 or offset + amplitude > 255.5:

@@ -218,10 +218,11 @@ def _decode_into(source, todo, options, min_fraction, check_conventions, progres
                     if harmonics:
                         run.warnings.append(f"position {k} (z = {rig.stage.z_mm[k]:g} mm): {harmonics}")
                 checked = True
+                where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
                 findings = convention_check(rig, pos, options)
-                if findings:
-                    raise DatasetError("; ".join(fd.message(str(getattr(source, "folder", "dataset")) + "/rig.toml")
-                                                 for fd in findings))
+                if any(fd.fatal for fd in findings):
+                    raise DatasetError("; ".join(fd.message(where) for fd in findings if fd.fatal))
+                run.warnings.extend(fd.message(where) for fd in findings)
             del pos
             sink.write(i, *maps)
             del maps

@@ -306,7 +306,7 @@ def _decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry:
             absolute0, failed = gray.get(d, (None, None))
             decoded[d] = decode_direction(levels[d], f.periods(d), f.carrier(d) * z, out=out,
                                           tolerance=options.unwrap_tolerance, absolute0=absolute0,
-                                          gray_failed=failed)
+                                          gray_failed=failed, heterodyne=f.unwrap == "heterodyne")
         out = None
         if buffers is not None:
             out = buffers.get("reasons")

@@ -56,6 +56,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import json
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -357,9 +358,11 @@ def _check_conventions(source, session: Session) -> None:
     # position's decode) is left to the decode proper.
     wrapped_only = replace(session.options, spatial_k=None)
     findings = convention_check(rig, decode_position(source, k, wrapped_only), session.options)
-    if findings:
-        where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
-        raise DatasetError("; ".join(fd.message(where) for fd in findings))
+    where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
+    if any(fd.fatal for fd in findings):
+        raise DatasetError("; ".join(fd.message(where) for fd in findings if fd.fatal))
+    for fd in findings:
+        warnings.warn(fd.message(where), stacklevel=2)
 
 
 # --------------------------------------------------------------------------- writing

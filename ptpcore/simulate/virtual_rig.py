@@ -304,6 +304,13 @@ class GroundTruth:
         return self.x0 + self.sx * z, self.y0 + self.sy * z
 
 
+def _period_key(period) -> int:
+    """A period as an integer of a noise stream's key: itself when whole (the streams of integer
+    periods as they always were), else its value in thousandths of a px beyond 10^9."""
+    t = float(period)
+    return int(t) if t.is_integer() else 10**9 + int(round(t * 1000))
+
+
 class VirtualRig:
     """A seeded virtual rig: renders camera frames of the LCD at each position.
 
@@ -527,7 +534,7 @@ class VirtualRig:
         return self._render_pattern(
             k, direction, lambda: fringe_profile(lcd, f, direction, period, step, n_steps, z_read, display),
             lambda coord: fringe_values(coord, f, direction, period, step, n_steps, z_read),
-            (2, k, "xy".index(direction), period, step))
+            (2, k, "xy".index(direction), _period_key(period), step))
 
     def _render_pattern(self, k: int, direction: str, profile, values, noise_key: tuple) -> np.ndarray:
         """One camera frame of a pattern varying along ``direction``'s LCD axis.
