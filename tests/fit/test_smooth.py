@@ -155,7 +155,7 @@ def test_level_bias_and_stage_error_on_the_brown_lens(mild_rig):
     """Below 0.1 um the display's level bias dominates the smooth LUT's error; removing it helps.
 
     The predicted bias is -0.0016 LCD px = -0.08 um per axis at every pixel
-    (tests/test_display.py), as large as the whole error without it.
+    (tests/decode/test_display.py), as large as the whole error without it.
     """
     vr, samples = mild_rig
     cal, held = _split(samples)
