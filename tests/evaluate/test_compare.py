@@ -388,7 +388,9 @@ def test_smooth_ahead_of_both_on_the_rough_lens(rough):
     assert v.text.startswith("PTP smooth is ahead against the exact truth")
 
 
-@pytest.mark.parametrize("which", ["perfect stage", "conftest mild_rig"])
+# The mild_rig case repeats the whole comparison (~1/6 of this module's time) for a check the default
+# tier keeps twice: the perfect-stage case here and tests/fit/test_smooth.py on mild_rig itself.
+@pytest.mark.parametrize("which", ["perfect stage", pytest.param("conftest mild_rig", marks=pytest.mark.slow)])
 def test_smooth_ahead_of_3dstc_on_a_brown_lens(which, mild, mild_rig):
     """(f) On a Brown-exact lens, where 3DSTC beats the plain LUT, the smooth LUT is ahead of 3DSTC by >= 1.25x."""
     if which == "perfect stage":
