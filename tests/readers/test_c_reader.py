@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-READER = Path(__file__).resolve().parents[1] / "readers" / "c"
+READER = Path(__file__).resolve().parents[2] / "readers" / "c"
 
 
 @pytest.mark.slow

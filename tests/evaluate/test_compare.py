@@ -377,7 +377,7 @@ def test_mild_verdict_is_honest_and_recomputable(mild):
 def test_smooth_ahead_of_both_on_the_rough_lens(rough):
     """(e) The smooth LUT (issue 8) on the rough preset: ahead of the plain LUT by >= 1.25x and of 3DSTC.
 
-    Mirrors tests/test_smooth.py inside the comparison protocol (same pixels,
+    Mirrors tests/fit/test_smooth.py inside the comparison protocol (same pixels,
     same held-out heights, the exact truth as reference).
     """
     v = rough.result.references["truth"].verdict
@@ -388,12 +388,14 @@ def test_smooth_ahead_of_both_on_the_rough_lens(rough):
     assert v.text.startswith("PTP smooth is ahead against the exact truth")
 
 
-@pytest.mark.parametrize("which", ["perfect stage", "conftest mild_rig"])
+# The mild_rig case repeats the whole comparison (~1/6 of this module's time) for a check the default
+# tier keeps twice: the perfect-stage case here and tests/fit/test_smooth.py on mild_rig itself.
+@pytest.mark.parametrize("which", ["perfect stage", pytest.param("conftest mild_rig", marks=pytest.mark.slow)])
 def test_smooth_ahead_of_3dstc_on_a_brown_lens(which, mild, mild_rig):
     """(f) On a Brown-exact lens, where 3DSTC beats the plain LUT, the smooth LUT is ahead of 3DSTC by >= 1.25x."""
     if which == "perfect stage":
         r = mild.result
-    else:  # the shared fixture of tests/test_smooth.py, with the preset's stage error
+    else:  # the shared fixture of tests/fit/test_smooth.py, with the preset's stage error
         vr, samples = mild_rig
         r = compare(samples, vr.rig, truth=vr.truth(), seed=0, n_pairs=2000)
     v = r.references["truth"].verdict

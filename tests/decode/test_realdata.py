@@ -13,7 +13,7 @@ from ptpcore.io.decodedfile import load_decoded
 from ptpcore.decode.phase import REASON_KEYS
 from ptpcore.rig import load_rig
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 # --------------------------------------------------------------------------- OpenCSP SOFAST

@@ -43,10 +43,10 @@ def test_choice_folds_hold_out_interior_positions_and_leave_enough_to_fit():
         choice_folds(2)
 
 
-def test_auto_picks_the_most_accurate_candidate_and_says_so(tmp_path):
+def test_auto_picks_the_most_accurate_candidate_and_says_so(tmp_path, mild_21_positions):
     """Mild lens: the smooth LUT is 40x better than any plain polynomial at held-out heights;
     auto must find it, write the table, and read it back."""
-    vr, samples = _rig("mild", 1)
+    vr, samples = mild_21_positions  # = _rig("mild", 1), shared with test_robust.py
     auto, fixed, lut, choice = _held_out_errors(vr, samples)
     assert auto <= 1.05 * min(fixed.values())
     assert auto <= fixed["poly 1"]

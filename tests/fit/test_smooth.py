@@ -63,10 +63,10 @@ def test_local_linear_smoothing_keeps_linear_trends_and_predicts_its_noise():
     assert np.all(np.isfinite(local_linear_smooth(noisy, weights, 6.0)[0]))
 
 
-def test_smooth_beats_3dstc_on_a_brown_lens(mild_rig):
+def test_smooth_beats_3dstc_on_a_brown_lens(mild_rig, even_split_smooth_fit):
     vr, samples = mild_rig
     cal, held = _split(samples)
-    lut, info = fit_smooth_lut(samples, vr.rig, 1, cal)
+    lut, info = even_split_smooth_fit(mild_rig)
     acc = held_out_accuracy(lut, vr.truth(), vr.rig.stage.z_mm, held)
     mask = {k: np.isfinite(acc.error_x[i]) for i, k in enumerate(held)}
     stc = _threedstc_rms_um(vr, samples, cal, held, mask)
@@ -76,7 +76,7 @@ def test_smooth_beats_3dstc_on_a_brown_lens(mild_rig):
     assert info.scale_px >= 16  # a Brown lens needs almost no local correction
 
 
-def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig):
+def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig, even_split_smooth_fit):
     """At 0.03 um the prediction (phase noise through the smoothing, the stage's readings) holds.
 
     It needs the display's level bias and the footprint-centroid bias removed
@@ -86,7 +86,7 @@ def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig):
     """
     vr, samples = mild_rig
     cal, held = _split(samples)
-    lut, _ = fit_smooth_lut(samples, vr.rig, 1, cal, stage_sigma_mm=vr.settings.stage_error_um * 1e-3)
+    lut, _ = even_split_smooth_fit(mild_rig, stage_sigma_mm=vr.settings.stage_error_um * 1e-3)
     acc = held_out_accuracy(lut, vr.truth(), vr.rig.stage.z_mm, held)
     m = np.isfinite(acc.error_x) & np.isfinite(lut.sigma_x)[None]
     pred_um = 1e3 * np.sqrt(np.mean(np.concatenate([np.broadcast_to(lut.sigma_x, m.shape)[m],
@@ -95,11 +95,11 @@ def test_smooth_sigma_maps_explain_the_error_on_a_brown_lens(mild_rig):
     assert acc.rms_um < 0.05
 
 
-def test_smooth_beats_the_plain_lut_on_the_rough_preset(rough_rig):
+def test_smooth_beats_the_plain_lut_on_the_rough_preset(rough_rig, even_split_smooth_fit):
     vr, samples = rough_rig
     cal, held = _split(samples)
     truth = vr.truth()
-    lut, info = fit_smooth_lut(samples, vr.rig, 1, cal)
+    lut, info = even_split_smooth_fit(rough_rig)
     smooth = held_out_accuracy(lut, truth, vr.rig.stage.z_mm, held)
     plain = held_out_accuracy(fit_lut(samples, "poly", 1, positions=cal), truth, vr.rig.stage.z_mm, held)
     assert smooth.rms_um * 1.25 <= plain.rms_um, (smooth.rms_um, plain.rms_um)
@@ -130,7 +130,7 @@ def _tile_ratios(acc, sx, sy, n=4):
     return np.array(out)
 
 
-def test_smooth_sigma_does_not_overpredict_where_pixels_see_few_positions(rough_rig):
+def test_smooth_sigma_does_not_overpredict_where_pixels_see_few_positions(rough_rig, even_split_smooth_fit):
     """Pixels near the bezel see the LCD at 2-3 of the positions, all at one end of the z range.
 
     Their coefficients are strongly correlated; the prediction keeps the
@@ -138,7 +138,7 @@ def test_smooth_sigma_does_not_overpredict_where_pixels_see_few_positions(rough_
     """
     vr, samples = rough_rig
     cal, held = _split(samples)
-    lut, _ = fit_smooth_lut(samples, vr.rig, 1, cal, stage_sigma_mm=vr.settings.stage_error_um * 1e-3)
+    lut, _ = even_split_smooth_fit(rough_rig, stage_sigma_mm=vr.settings.stage_error_um * 1e-3)
     acc = held_out_accuracy(lut, vr.truth(), vr.rig.stage.z_mm, held)
     ratios = _tile_ratios(acc, lut.sigma_x, lut.sigma_y)
     assert len(ratios) >= 12
@@ -151,18 +151,18 @@ def test_smooth_sigma_does_not_overpredict_where_pixels_see_few_positions(rough_
     assert 0.7 <= acc.rms_um / (pred * 1e3) <= 1.4
 
 
-def test_level_bias_and_stage_error_on_the_brown_lens(mild_rig):
+def test_level_bias_and_stage_error_on_the_brown_lens(mild_rig, even_split_smooth_fit):
     """Below 0.1 um the display's level bias dominates the smooth LUT's error; removing it helps.
 
     The predicted bias is -0.0016 LCD px = -0.08 um per axis at every pixel
-    (tests/test_display.py), as large as the whole error without it.
+    (tests/decode/test_display.py), as large as the whole error without it.
     """
     vr, samples = mild_rig
     cal, held = _split(samples)
     truth = vr.truth()
     stage = vr.settings.stage_error_um * 1e-3
     raw, _ = fit_smooth_lut(samples, vr.rig, 1, cal, level_bias=False)
-    fixed, _ = fit_smooth_lut(samples, vr.rig, 1, cal, stage_sigma_mm=stage)
+    fixed, _ = even_split_smooth_fit(mild_rig, stage_sigma_mm=stage)
     e_raw = held_out_accuracy(raw, truth, vr.rig.stage.z_mm, held)
     e_fixed = held_out_accuracy(fixed, truth, vr.rig.stage.z_mm, held)
     assert e_fixed.rms_um < 0.75 * e_raw.rms_um, (e_fixed.rms_um, e_raw.rms_um)
@@ -171,7 +171,7 @@ def test_level_bias_and_stage_error_on_the_brown_lens(mild_rig):
     assert mean_raw < -0.05 and abs(mean_fixed) < 0.02, (mean_raw, mean_fixed)
     # The stage's reading error reaches every pixel through its slope and fit in z (against the same fit
     # without it: the sigma maps' other terms are measured from the data, fit/smooth._model_error).
-    raw, _ = fit_smooth_lut(samples, vr.rig, 1, cal)
+    raw, _ = even_split_smooth_fit(mild_rig)
     m = fixed.valid
     assert np.all(fixed.sigma_x[m] >= raw.sigma_x[m] * (1 - 1e-6))
     zc, zs = _z_normalisation(samples.z[cal])
@@ -227,7 +227,9 @@ def test_binned_smoothing_keeps_linear_trends_and_follows_the_per_pixel_one():
     assert np.allclose(got_var[inner], ref_var[inner], rtol=0.1)
 
 
-@pytest.mark.parametrize("which", ["rough", "mild"])
+# Both rigs run the same binned and strip-wise cross-validation. The mild case (three smooth fits of
+# the costlier rig, the module's slowest test) runs in the slow tier (CI), the rough one by default.
+@pytest.mark.parametrize("which", ["rough", pytest.param("mild", marks=pytest.mark.slow)])
 def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_rig, monkeypatch):
     """Large images cross-validate large scales on bins and small ones per pixel in strips of rows:
     forced onto the 320x240 presets (2 and 4 px bins, strips of 40 rows) it picks the same scale, and

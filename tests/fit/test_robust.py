@@ -11,16 +11,12 @@ from ptpcore.evaluate import held_out_accuracy
 from ptpcore.fit import fit_model
 from ptpcore.fit.robust import K_SIGMA, fit_robust, screen_samples
 from ptpcore.fit.smooth import sample_sigma_from_noise
-from ptpcore.io import SimulatedSource, load_lut, save_lut
-from ptpcore.run import collect_samples
-from ptpcore.simulate import VirtualRig, scaled_preset
+from ptpcore.io import load_lut, save_lut
 
 
 @pytest.fixture(scope="module")
-def mild():
-    rig, settings = scaled_preset("mild", 160, positions=21)
-    vr = VirtualRig(rig, settings, 1)
-    return vr, collect_samples(SimulatedSource(vr))
+def mild(mild_21_positions):
+    return mild_21_positions  # shared with test_choice.py (tests/fit/conftest.py)
 
 
 def _copy(samples):

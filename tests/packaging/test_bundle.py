@@ -35,7 +35,7 @@ import pytest
 
 from benchmarks.bundle_size import sizes  # bytes on disk (hard links once) and apparent bytes
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = ROOT / "packaging" / "ptp-studio.spec"
 MAX_BUNDLE_MB = 600.0
 MIN_TOUR_PAGES = 7
