@@ -1,7 +1,7 @@
 """Row kernels of the spatial check's window medians: GENERATED, do not edit.
 
 Written by ``python -m ptpcore.decode.median_networks`` (see that module); the test
-``tests/test_spatial_kernel.py`` fails when this file and the generator disagree.
+``tests/decode/test_spatial_kernel.py`` fails when this file and the generator disagree.
 Each kernel takes the pixels ``(rr - pad, c)``, ``c < w``, of a NaN-padded map (``col0`` = the
 padding): ``out[c]`` the mean of the two middle values of the window by the network (meaningful
 only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere).

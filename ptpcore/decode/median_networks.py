@@ -11,7 +11,7 @@ bound by the stores of every pass.
 numba compiles a function of fixed straight-line code but has no way to unroll a loop over a
 network into one, so :func:`render_module` writes the row kernels out as Python source: the
 module ``_median_rows.py`` beside this one is its output, checked in and compared with it by
-``tests/test_spatial_kernel.py``. Regenerate it after changing the window or the networks::
+``tests/decode/test_spatial_kernel.py``. Regenerate it after changing the window or the networks::
 
     python -m ptpcore.decode.median_networks > ptpcore/decode/_median_rows.py
 """
@@ -92,7 +92,7 @@ NET24, SLOTS24 = median_network(24)
 _HEADER = '''"""Row kernels of the spatial check's window medians: GENERATED, do not edit.
 
 Written by ``python -m ptpcore.decode.median_networks`` (see that module); the test
-``tests/test_spatial_kernel.py`` fails when this file and the generator disagree.
+``tests/decode/test_spatial_kernel.py`` fails when this file and the generator disagree.
 Each kernel takes the pixels ``(rr - pad, c)``, ``c < w``, of a NaN-padded map (``col0`` = the
 padding): ``out[c]`` the mean of the two middle values of the window by the network (meaningful
 only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere).

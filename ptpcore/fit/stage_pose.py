@@ -17,7 +17,7 @@ keep: left free, its sigma is thousands of urad). The fit fixes those twelve
 by constraints (``sum_k p_k = 0`` and ``sum_k (z_k - mean z) p_k = 0`` for
 each of the six), so the estimates are the true errors minus their
 least-squares constant-plus-linear part, up to the small seen part of the
-angles' trend (about 1 urad of a 30 urad trend, tests/test_stage_pose.py).
+angles' trend (about 1 urad of a 30 urad trend, tests/fit/test_stage_pose.py).
 
 The fit runs over a subsample of pixels by variable projection: for given
 poses every pixel's ray is its straight-line fit in closed form, so
