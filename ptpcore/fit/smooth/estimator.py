@@ -115,19 +115,67 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         ``kind = "poly"``, with ``sigma_x``/``sigma_y`` maps.
     info : SmoothInfo
     """
+    positions = _checked_positions(samples, degree, positions)
+    report = progress or (lambda f, m: None)
+    # 1. The global model, fitted to a random subset of every position's samples.
+    report(0.0, "fitting the global camera model")
+    gfit = global_pinhole(samples, positions, n_points=global_points, seed=seed,
+                          rig=rig if level_bias else None, full=True)
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
+    z_norm = _z_normalisation(z)
+    # 2 and 4. Every pixel's own fit of its residuals, and the smoothing scale chosen on held-out positions.
+    fits, t, b, noise_scale, (scale, cv_score, excess_var) = _fit_pixels_and_choose_scale(
+        samples, rig, positions, z, z_norm, gfit, degree, scales_px, cv_bin, level_bias, footprint, report)
+    # 3. The correction smoothed at that scale, plus the global ray: the LUT's coefficients.
+    report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
+    coef, rays, leak_w = _smooth_at_scale(fits, gfit, samples.shape, scale, b, z_norm)
+    stage_var = stage_variance(rays, rig, t, degree, stage_sigma_mm)
+    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
+    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
+    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= degree + 1)
+    fits.pz_min[~valid] = np.nan
+    fits.pz_max[~valid] = np.nan
+    q = residual_maps(samples, rig, sel, z, t, coef, rays, level_bias, footprint)
+    setup = LooSetup(samples, rig, sel, z, z_norm, rays, degree, scale, b, level_bias, footprint, noise_scale)
+    rays = None
+    # What only the uncertainty needs goes in with it (released there once used); the LUT's
+    # coefficients wait in a file while its leave-one-out runs: 440 MB at 5 MP and degree 3.
+    inputs = {"leak_w": leak_w, "noise": _propagated_noise(fits, z_norm, degree, noise_scale)}
+    leak_w = coef = None
+    fits.park("fit")
+    release_free_memory()  # the pass's freed heap, before the uncertainty's peak (the leak variance)
+    # 5. Sigma maps, the real leave-one-out and the model error it reveals.
+    sig, loo, merr = uncertainty_maps(setup, gfit, inputs, fits, valid, stage_var, uncertainty, report)
+    fits.load("fit")
+    coef = {"x": fits.fit[0], "y": fits.fit[1]}
+    lut = _assemble_lut(degree, z_norm, z, coef, valid, fits, q, loo, sig, rig_toml, scale)
+    report(1.0, "smooth LUT fitted")
+    return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
+                           float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
+
+
+def _checked_positions(samples: SampleStack, degree: int, positions) -> list[int]:
+    """The calibration positions (default all), after checking the degree, their number and the noise model."""
     if not 1 <= degree <= 5:
         raise ValueError(f"smooth degree must be 1 to 5, got {degree}")
     positions = list(range(samples.z.size)) if positions is None else list(positions)
     if len(positions) < degree + 2:
         raise ValueError(f"smooth LUT of degree {degree} needs at least {degree + 2} positions, got {len(positions)}")
     check_noise(samples)
-    report = progress or (lambda f, m: None)
-    report(0.0, "fitting the global camera model")
-    gfit = global_pinhole(samples, positions, n_points=global_points, seed=seed,
-                          rig=rig if level_bias else None, full=True)
-    sel = np.asarray(positions)
-    z = np.asarray(samples.z, dtype=float)[sel]
-    zc, zs = _z_normalisation(z)
+    return positions
+
+
+def _fit_pixels_and_choose_scale(samples: SampleStack, rig: Rig, positions: list, z, z_norm, gfit, degree: int,
+                                 scales_px, cv_bin, level_bias: bool, footprint: bool, report):
+    """The pass over the samples (:class:`SmoothPass`) and the scale it chooses.
+
+    Returns
+    -------
+    fits : PixelFits ; t : (K,) normalised heights ; b : the cross-validation's bin side (px) ;
+    noise_scale : float (:func:`sigma_scale_from`) ; (scale, cv_score, excess_var) from
+    :meth:`SmoothPass.choose_scale`
+    """
     # The plain degree-2 fit that calibrates the predicted noise (sigma_scale): its residual RMS only.
     report(0.02, "calibrating the noise prediction")
     plain = fit_lut(samples, "poly", 2, positions=positions)
@@ -135,48 +183,33 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
     del plain
     rays = GlobalRays(gfit.model, samples.shape)
-
-    run = SmoothPass(samples, rig, sel, z, (zc, zs), rays, degree, scales_px, cv_bin, level_bias, footprint)
+    run = SmoothPass(samples, rig, np.asarray(positions), z, z_norm, rays, degree, scales_px, cv_bin, level_bias, footprint)
     report(0.05, "fitting every pixel and cross-validating")
     run.fit_and_cross_validate_fine(report)
     fits = run.fits
     noise_scale = sigma_scale_from(rms_x, rms_y, fits.n_pos, fits.mean_var, 2)
     rms_x = rms_y = fits.mean_var = None
     run.cross_validate_coarse(report)
-    scale, cv_score, excess_var = run.choose_scale(noise_scale)
+    return fits, run.t, run.b, noise_scale, run.choose_scale(noise_scale)
 
-    report(0.9, f"fitting the smooth LUT at scale {scale:g} px")
-    t, b = run.t, run.b
-    run = rays = None  # the pass's maps and the global rays (160 MB at 5 MP; in a file above 0.3 MP) not held
+
+def _smooth_at_scale(fits: PixelFits, gfit, shape, scale: float, b: int, z_norm):
+    """The LUT's coefficients ``{"x", "y"}`` (D+1, H, W) (:func:`smoothed_coefficients`), the global rays
+    (made again after the smoothing: not held during it, 160 MB at 5 MP) and the smoothing weights of
+    coefficients 0 and 1 (:func:`smoothing_weights`, for the global model's leak variance)."""
     fits.load("fit")  # fits.var stays in its file, a plane at a time (150 MB at 5 MP and degree 3)
     leak_w = smoothing_weights(fits, 2)  # before the smoothing changes fits.var in place
-    coef, rays = smoothed_coefficients(fits, scale, b, lambda: GlobalRays(gfit.model, samples.shape), zc, zs)
-    stage_var = stage_variance(rays, rig, t, degree, stage_sigma_mm)
-    d1 = degree + 1
-    # A pixel needs its own data to pin its curve in z (at least D+1 positions): with fewer, its
-    # polynomial would come from neighbours seen over other heights (4 um off on the rough preset).
-    valid = np.isfinite(coef["x"]).all(axis=0) & np.isfinite(coef["y"]).all(axis=0) & (fits.n_pos >= d1)
-    fits.pz_min[~valid] = np.nan
-    fits.pz_max[~valid] = np.nan
-    q = residual_maps(samples, rig, sel, z, t, coef, rays, level_bias, footprint)
-    setup = LooSetup(samples, rig, sel, z, (zc, zs), rays, degree, scale, b, level_bias, footprint, noise_scale)
-    rays = None
+    coef, rays = smoothed_coefficients(fits, scale, b, lambda: GlobalRays(gfit.model, shape), *z_norm)
+    return coef, rays, leak_w
+
+
+def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float) -> np.ndarray:
+    """The smoothed LUT's propagated phase noise, (H, W) float32 mm (:func:`smooth_sigma_maps`); the
+    variance maps it reads are released."""
     fits.load("own_var", "own_diag")
-    noise = smooth_sigma_maps(fits, zc, zs, degree, noise_scale, {})["x"]
+    noise = smooth_sigma_maps(fits, *z_norm, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
-    # What only the uncertainty needs goes in with it (released there once used); the LUT's
-    # coefficients wait in a file while its leave-one-out runs: 440 MB at 5 MP and degree 3.
-    inputs = {"leak_w": leak_w, "noise": noise}
-    leak_w = noise = coef = None
-    fits.park("fit")
-    release_free_memory()  # the pass's freed heap, before the uncertainty's peak (the leak variance)
-    sig, loo, merr = uncertainty_maps(setup, gfit, inputs, fits, valid, stage_var, uncertainty, report)
-    fits.load("fit")
-    coef = {"x": fits.fit[0], "y": fits.fit[1]}
-    lut = _assemble_lut(degree, (zc, zs), z, coef, valid, fits, q, loo, sig, rig_toml, scale)
-    report(1.0, "smooth LUT fitted")
-    return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
-                           float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
+    return noise
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,
