@@ -64,7 +64,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                    seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
                    progress: Callable[[float, str], None] | None = None,
                    uncertainty: bool = True) -> tuple[Lut, SmoothInfo]:
-    """Fit the ``smooth`` LUT (see the module docstring).
+    """Fit the ``smooth`` LUT (the method: :mod:`ptpcore.fit.smooth`'s docstring).
 
     Parameters
     ----------
