@@ -198,8 +198,8 @@ def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level
                    progress=None) -> Lut | None:
     try:
         return fit_kind(samples, rig, model, degree, positions=positions, progress=progress,
-                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                         uncertainty=False)  # judged by its predictions only
+                        stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
+                        uncertainty=False)  # judged by its predictions only
     except ValueError:
         return None
 
@@ -459,7 +459,7 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
                              np.nan, 0, f"poly degree 1 without a choice: {exc}")
     release_free_memory()  # the candidates' freed heap, before the final fit maps its own arrays
     lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
-                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+                   stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
     lut.extra_attrs["chosen_by"] = "held-out positions"
     lut.provenance["model_choice"] = choice.to_json()
     return lut, choice

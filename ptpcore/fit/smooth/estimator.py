@@ -106,7 +106,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         bins also runs on bins (of at most ``scale / 4`` px).
     progress : callable, optional
     uncertainty : bool
-        The full sigma maps and the real leave-one-out (:func:`ptpcore.fit.smooth.uncertainty.uncertainty_maps`, ~1.8x the fit's time);
+        The full sigma maps and the real leave-one-out
+        (:func:`ptpcore.fit.smooth.uncertainty.uncertainty_maps`, ~1.8x the fit's time);
         off for fits judged only by their predictions (auto's candidates): noise-only sigma, NaN LOO.
 
     Returns
@@ -183,7 +184,8 @@ def _fit_pixels_and_choose_scale(samples: SampleStack, rig: Rig, positions: list
     rms_y = np.where(plain.valid, plain.rms_y, np.float32(np.nan))
     del plain
     rays = GlobalRays(gfit.model, samples.shape)
-    run = SmoothPass(samples, rig, np.asarray(positions), z, z_norm, rays, degree, scales_px, cv_bin, level_bias, footprint)
+    run = SmoothPass(samples, rig, np.asarray(positions), z, z_norm, rays, degree, scales_px, cv_bin, level_bias,
+                     footprint)
     report(0.05, "fitting every pixel and cross-validating")
     run.fit_and_cross_validate_fine(report)
     fits = run.fits

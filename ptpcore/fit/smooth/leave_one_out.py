@@ -250,7 +250,7 @@ def _own_noise_all(s: LooSetup, positions) -> OwnNoise:
 
     def block(r0, r1):
         _valid, _sig, wts, resid = global_residuals(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays, s.level_bias,
-                                                  s.footprint)
+                                                    s.footprint)
         coefs, _v, n, cov = weighted_poly_fits(t_all, resid, wts, s.degree, full=True)
         for k in positions:
             powers = t_all[k] ** np.arange(s.degree + 1)

@@ -214,7 +214,7 @@ class SmoothPass:
     def block(self, r0: int, r1: int, a0: int, fmaps, final: bool) -> None:
         """Rows [r0, r1): the pixel fits if ``final``, the folds' maps at rows ``r - a0`` of ``fmaps``."""
         valid, sig, wts, (rx, ry) = global_residuals(self.samples, self.rig, self.sel, self.z, r0, r1, self.rays,
-                                                   self.level_bias, self.footprint)
+                                                     self.level_bias, self.footprint)
         if final:
             self._pixel_fits(r0, r1, valid, sig, wts, rx, ry)
         del sig, valid
@@ -243,7 +243,7 @@ class SmoothPass:
         # one end of the range has strongly correlated coefficients).
         zc, zs = self.zc, self.zs
         mom = range_moments(((f.pz_min[r0:r1] - zc) / zs).ravel().astype(np.float64),
-                             ((f.pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
+                            ((f.pz_max[r0:r1] - zc) / zs).ravel().astype(np.float64), 2 * degree)
         idx = np.add.outer(np.arange(d1), np.arange(d1))
         f.own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
         f.own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
@@ -332,7 +332,7 @@ class SmoothPass:
                     c[:, j] = np.where(st["w"][j, inner] > 0, st["mean"][:, j, inner], np.nan)
                 else:
                     c[:, j] = local_linear_grid(st["mean"][:, j], st["w"][j], sc, xs / sc, ys / sc,
-                                       with_variance=False)[0][:, inner]
+                                                with_variance=False)[0][:, inner]
             self.score(st, c, inner, si)
 
     def _bin_strip(self, bn: dict, st: dict, inner: slice, r0: int, r1: int) -> None:
@@ -359,9 +359,8 @@ class SmoothPass:
                        f"cross-validating smoothing scale {sc:g} px (on {b} x {b} px bins)")
                 c = np.empty((2, dc, self.hc, self.wc))
                 for j in range(dc):
-                    c[:, j] = local_linear_grid(bn["mean"][:, j], bn["w"][j], binned_sigma(sc, b, False), xg / sc, yg / sc,
-                                       bn["xbar"][j] / sc,
-                                       bn["ybar"][j] / sc, False)[0]
+                    c[:, j] = local_linear_grid(bn["mean"][:, j], bn["w"][j], binned_sigma(sc, b, False), xg / sc,
+                                                yg / sc, bn["xbar"][j] / sc, bn["ybar"][j] / sc, False)[0]
                 self.score(bn, c, slice(None), si)
         self.binned = None
 

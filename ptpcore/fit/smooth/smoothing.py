@@ -75,7 +75,7 @@ def _local_moments(s0, sx, sy, sxx, sxy, syy, x, y):
 
 
 def local_linear_grid(values: np.ndarray, weights: np.ndarray, sigma: float, xc: np.ndarray, yc: np.ndarray,
-             xb=None, yb=None, with_variance: bool = True):
+                      xb=None, yb=None, with_variance: bool = True):
     """Locally linear weighted Gaussian regression on a grid of points (the core of :func:`local_linear_smooth`).
 
     Parameters
@@ -199,7 +199,7 @@ def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float
     vals = vals if stacked else vals[None]
     # Coordinates in units of the scale keep the 3x3 systems well conditioned.
     out, var = local_linear_grid(vals, weights, scale_px, np.arange(w) / scale_px, np.arange(h) / scale_px,
-                        with_variance=with_variance)
+                                 with_variance=with_variance)
     return (out if stacked else out[0]), var
 
 
@@ -291,7 +291,7 @@ def smooth_on_bins(values: np.ndarray, weights: np.ndarray, scale_px: float, b: 
     cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
     cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
     out_c, var_c = local_linear_grid(mean, wsum, binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
-                            ybar / scale_px, with_variance)
+                                     ybar / scale_px, with_variance)
     if out is None:
         out = np.empty((len(out_c), h, w)) if stacked else np.empty((h, w))
     maps = out if stacked else out[None]

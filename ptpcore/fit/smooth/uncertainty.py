@@ -105,7 +105,7 @@ LEAK_GRID_PX = 8
 
 
 def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
-                          z_norm) -> dict:
+                         z_norm) -> dict:
     """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
 
     The correction is fitted to the samples minus the global model, so an error
@@ -121,7 +121,8 @@ def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min
     Parameters
     ----------
     gfit : PinholeFit
-    weights : (2, H, W) float64 row store (:func:`ptpcore.store.row_store`), the smoothing weights of coefficients 0 and 1
+    weights : (2, H, W) float64 row store (:func:`ptpcore.store.row_store`), the smoothing weights of
+        coefficients 0 and 1
         (:func:`smoothing_weights`)
     scale : float, px ; b : int, the cross-validation's bin side
     pz_min, pz_max : (H, W) the pixels' calibrated range (mm)
@@ -141,7 +142,7 @@ def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min
     def moments(r0, r1):  # of the pixels' calibrated ranges, rows [r0, r1) (not held whole: 120 MB at 5 MP)
         with np.errstate(all="ignore"):
             return range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
-                                  ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
+                                 ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
 
     weights = [weights.plane_rows(j) for j in range(2)]  # read band by band where they are used (files)
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
@@ -179,7 +180,7 @@ def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min
 
 
 def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_scale: float,
-                       stage_var: dict) -> dict:
+                      stage_var: dict) -> dict:
     """Predicted 1-sigma maps (mm, float32 (H, W) per axis) of the smooth LUT.
 
     RMS over the calibrated range (uniform in t) of the smoothed correction's
@@ -197,7 +198,7 @@ def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_
     for r0, r1 in row_blocks(h, w):  # row blocks: the moments are (2D+1) float64 maps
         with np.errstate(all="ignore"):
             mom = range_moments(((fits.pz_min[r0:r1] - zc) / zs).astype(np.float64),
-                                 ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
+                                ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
             var = fits.var.row_block(r0, r1)
             smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
             own_diag = fits.own_diag[r0:r1]
