@@ -4,7 +4,7 @@ Images are processed in row tiles (``[r0, r1)`` ranges of about ``tile_pixels``
 pixels) so that each tile's working set stays in cache; the tiles run on one
 process-wide thread pool (numpy, OpenCV and the numba kernels release the GIL).
 ``PTP_THREADS`` caps the number of threads. This module imports nothing of
-ptpcore, so every layer may use it.
+ptpcore, so every layer may use it. Giving memory back to the system is :mod:`ptpcore.store`'s.
 """
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["TILE_PIXELS", "KERNEL_TILE_PIXELS", "tile_workers", "row_tiles", "run_tiles", "map_in_order", "worker_pool",
-           "release_free_memory", "on_release"]
+__all__ = ["TILE_PIXELS", "KERNEL_TILE_PIXELS", "tile_workers", "row_tiles", "run_tiles", "map_in_order", "worker_pool"]
 
 
 TILE_PIXELS = 1 << 15
@@ -76,39 +75,3 @@ def map_in_order(fn, items):
     if len(items) <= 1 or tile_workers() == 1 or getattr(_in_worker, "flag", False):
         return map(fn, items)
     return worker_pool().map(fn, items)
-
-
-_LIBC = None
-_RELEASERS: list = []
-
-
-def on_release(fn) -> None:
-    """Have :func:`release_free_memory` call ``fn()`` too (e.g. to drop mapped file pages)."""
-    if fn not in _RELEASERS:
-        _RELEASERS.append(fn)
-
-
-def release_free_memory() -> None:
-    """Give the C allocator's free pages back to the operating system (glibc's ``malloc_trim``).
-
-    Between the positions of a decode, numpy's and OpenCV's transient arrays of a few
-    to tens of MB (from several threads) leave free but resident holes in glibc's heaps:
-    at 2 MP x 6 positions the resident size grew by about 70 MB a position with nothing
-    held (``tracemalloc`` saw 4 MB). ``malloc_trim(0)`` hands those pages back (a few
-    milliseconds). Elsewhere than glibc (macOS, Windows, musl) it does nothing; no
-    library offers this, hence ctypes. Functions registered with :func:`on_release` run first
-    (:mod:`ptpcore.io.fastio` drops the spilled samples' mapped pages).
-    """
-    global _LIBC
-    for release in _RELEASERS:
-        release()
-    if _LIBC is None:
-        try:
-            import ctypes
-
-            lib = ctypes.CDLL("libc.so.6")
-            _LIBC = lib.malloc_trim if hasattr(lib, "malloc_trim") else False
-        except (OSError, AttributeError):
-            _LIBC = False
-    if _LIBC:
-        _LIBC(0)

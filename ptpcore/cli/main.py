@@ -113,7 +113,7 @@ def cmd_resume(args) -> int:
 def _finish_session(args, session, session_path, out: Path, validate: bool) -> int:
     """Run a session's remaining stages (saved after each), then write the LUT."""
     from ptpcore.io.lutfile import save_lut
-    from ptpcore.parallel import release_free_memory
+    from ptpcore.store import release_free_memory
     from ptpcore.run.session import run_session
 
     bar = progress_bar(args)

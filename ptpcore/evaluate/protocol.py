@@ -57,7 +57,7 @@ from ptpcore.evaluate.statistics import (CoordinateAccumulator, DistanceErrors, 
 from ptpcore.fit import fit_lut, fit_smooth_lut
 from ptpcore.fit.choice import fit_auto
 from ptpcore.io import MODELS, SampleStack
-from ptpcore.io.fastio import read_block
+from ptpcore.store import read_block
 from ptpcore.pinhole import fit_pinhole
 from ptpcore.rig import Rig
 

@@ -19,7 +19,7 @@ from ptpcore.evaluate.statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS,
     CoordinateStats, Verdict, _block_rms, _jsonable)
 from ptpcore.atomic import DiskFullError
 from ptpcore.fit.glass import describe_corrections
-from ptpcore.io.fastio import SpillStore
+from ptpcore.store import SpillStore
 from ptpcore.pinhole import PinholeFit
 
 __all__ = ["COMPARE_FORMAT", "SPLITS", "METHODS", "METHOD_LABELS", "REFERENCES", "PAIR_KINDS", "MethodReport",

@@ -113,7 +113,7 @@ def residual_field(lut: Lut, samples: SampleStack, positions=None, *, block: int
     """The residuals of ``lut`` at every position of ``samples``.
 
     Worked in row bands (a multiple of ``block`` rows, about :data:`BAND_PIXELS` pixels), the
-    samples of each band read from their spill file (:func:`ptpcore.io.fastio.read_block`), so
+    samples of each band read from their spill file (:func:`ptpcore.store.read_block`), so
     that a big sensor's stack never comes into memory whole.
 
     Parameters
@@ -195,7 +195,7 @@ class _Residuals:
 
     def add_band(self, lut: Lut, samples: SampleStack, r0: int, r1: int) -> None:
         """Every position's residuals on rows ``[r0, r1)`` (``lut`` is that band's :meth:`Lut.row_band`)."""
-        from ptpcore.io.fastio import read_block
+        from ptpcore.store import read_block
 
         w = samples.shape[1]
         start, stop = r0 * w, r1 * w

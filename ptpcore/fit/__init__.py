@@ -3,10 +3,15 @@
 - :mod:`.perpixel` — the per-pixel ``poly``, ``pchip`` and ``linear`` LUTs with residual and LOO;
 - :mod:`.sigma` — each sample's noise propagated through a per-pixel fit;
 - :mod:`.smooth` — the smooth LUT: global pinhole model plus a per-pixel correction smoothed
-  at a cross-validated scale, with its physical corrections and sigma maps;
+  at a cross-validated scale, with its physical corrections and sigma maps (a subpackage, one
+  module per step of the estimator);
+- :mod:`.kinds` — one LUT of a named kind (``poly``, ``pchip``, ``linear``, ``smooth``);
+- :mod:`.choice`, :mod:`.robust` — ``auto`` (the model chosen on held-out positions) and the
+  outlier screening, both fitting with :mod:`.kinds`;
 - :mod:`.models` — one entry point for every LUT model the CLI and the wizard offer.
 
-May import :mod:`ptpcore.pinhole`, :mod:`ptpcore.io`, :mod:`ptpcore.decode`, :mod:`ptpcore.rig`.
+May import :mod:`ptpcore.pinhole`, :mod:`ptpcore.io`, :mod:`ptpcore.decode`, :mod:`ptpcore.rig`,
+:mod:`ptpcore.store`.
 """
 
 from .perpixel import fit_lut

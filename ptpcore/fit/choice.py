@@ -34,10 +34,12 @@ from typing import Callable
 
 import numpy as np
 
+from ptpcore.fit.kinds import fit_kind
+from ptpcore.fit.smooth import position_sigma_from_noise
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
-from ptpcore.parallel import release_free_memory
 from ptpcore.rig.rigfile import Rig
+from ptpcore.store import release_free_memory
 
 __all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "CandidateError", "ModelChoice",
            "choice_folds", "choose_model", "fit_auto"]
@@ -194,12 +196,10 @@ def choice_folds(n_positions: int, min_fit: int = 5) -> list[tuple[np.ndarray, n
 
 def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level_bias, footprint,
                    progress=None) -> Lut | None:
-    from ptpcore.fit.models import fit_model
-
     try:
-        return fit_model(samples, rig, model, degree, positions=positions, progress=progress,
-                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                         uncertainty=False)  # judged by its predictions only
+        return fit_kind(samples, rig, model, degree, positions=positions, progress=progress,
+                        stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
+                        uncertainty=False)  # judged by its predictions only
     except ValueError:
         return None
 
@@ -209,7 +209,7 @@ class _HeldOutJudge:
 
     Each candidate is evaluated at every held-out position as soon as it is fitted: the
     pixels it predicts (bits in memory) and its squared difference ``(X - x)^2 + (Y - y)^2``
-    per pixel (float64, to a temporary file, :class:`ptpcore.io.fastio.SpillStore`), then its
+    per pixel (float64, to a temporary file, :class:`ptpcore.store.SpillStore`), then its
     LUT is dropped. :meth:`errors` sums them over the pixels every kept candidate predicts,
     the same numbers in the same order as evaluating all the LUTs side by side (a big sensor's
     four candidate LUTs would take about 1 GB at 5 MP).
@@ -226,7 +226,7 @@ class _HeldOutJudge:
     """
 
     def __init__(self, samples: SampleStack, held, n_candidates: int, stage_sigma_mm: float):
-        from ptpcore.io.fastio import SpillStore
+        from ptpcore.store import SpillStore
 
         self.samples, self.held, self.stage_sigma_mm = samples, [int(k) for k in held], stage_sigma_mm
         self.n_valid = np.zeros(n_candidates, dtype=np.int64)
@@ -269,7 +269,7 @@ class _HeldOutJudge:
 
     def _squared_difference(self, ev, k: int, r0: int, r1: int) -> np.ndarray:
         """``(X - x)^2 + (Y - y)^2`` of rows ``[r0, r1)`` at position ``k``, in ``ev``'s own maps (float64)."""
-        from ptpcore.io.fastio import read_block
+        from ptpcore.store import read_block
 
         w = self.samples.shape[1]
         for diff, axis in ((ev.x, "x"), (ev.y, "y")):
@@ -301,8 +301,6 @@ class _HeldOutJudge:
         noise_sum : float, mm^2
             Sum of the predicted noise variance over the common set (NaN without a noise model).
         """
-        from ptpcore.fit.smooth import position_sigma_from_noise
-
         kept = [ci for ci, bits in enumerate(self.in_range) if bits is not None]
         sums = np.zeros(len(self.in_range))
         counts = np.zeros(len(self.in_range), dtype=np.int64)
@@ -450,8 +448,6 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
         With too few positions to judge any candidate (fewer than 3, or none
         fitted on the folds), ``poly`` degree 1, its ``rule`` saying why.
     """
-    from ptpcore.fit.models import fit_model
-
     def sub(lo, hi):
         return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
 
@@ -462,8 +458,8 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
         choice = ModelChoice([CandidateError("poly", 1, np.nan, np.nan, np.nan, "not judged")], 0, [],
                              np.nan, 0, f"poly degree 1 without a choice: {exc}")
     release_free_memory()  # the candidates' freed heap, before the final fit maps its own arrays
-    lut = fit_model(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
-                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+    lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
+                   stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
     lut.extra_attrs["chosen_by"] = "held-out positions"
     lut.provenance["model_choice"] = choice.to_json()
     return lut, choice

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ptpcore.fit.smooth import position_sigma_from_noise
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 
@@ -154,8 +155,6 @@ def sweep_drift(samples: SampleStack, repeats: SampleStack, rig: Rig, *, stage_s
     ValueError
         Different camera sizes.
     """
-    from ptpcore.fit.smooth import position_sigma_from_noise
-
     if repeats.shape != samples.shape:
         raise ValueError(f"the repeats are {repeats.shape} px, the sweep {samples.shape}")
     r_all, (h, w) = repeats.z.size, samples.shape

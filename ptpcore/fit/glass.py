@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ptpcore.io.fastio import read_block
+from ptpcore.store import read_block
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 

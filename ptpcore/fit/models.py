@@ -5,16 +5,22 @@ their error at held-out positions (:mod:`ptpcore.fit.choice`). ``poly``, ``pchip
 (:mod:`ptpcore.io.lutfile`); ``smooth`` is the regularised per-pixel model
 (:mod:`ptpcore.fit.smooth`), written as ``poly`` coefficients. Plain ``poly`` LUTs
 also get their predicted sigma maps when the samples carry a noise model.
+
+This module dispatches; the fits are :func:`ptpcore.fit.kinds.fit_kind` (one named kind),
+:func:`ptpcore.fit.choice.fit_auto` and :func:`ptpcore.fit.robust.fit_robust`, which fit their LUTs
+with :func:`~ptpcore.fit.kinds.fit_kind` too (none of them imports this module).
 """
 
 from __future__ import annotations
 
 from typing import Callable
 
+from ptpcore.fit.choice import fit_auto
+from ptpcore.fit.kinds import fit_kind
+from ptpcore.fit.robust import fit_robust
 from ptpcore.io.lutfile import Lut
-from ptpcore.fit.perpixel import fit_lut
 from ptpcore.io.samples import SampleStack
-from ptpcore.rig.rigfile import Rig, rig_to_toml
+from ptpcore.rig.rigfile import Rig
 
 __all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut", "positions_needed", "check_positions_for_model"]
 
@@ -90,40 +96,14 @@ def fit_model(samples: SampleStack, rig: Rig, model: str = "poly", degree: int =
     """
     if model not in LUT_MODELS:
         raise ValueError(f"model must be one of {', '.join(LUT_MODELS)}, got {model!r}")
-    toml = rig_to_toml(rig)
     if robust:  # screen the samples for outliers, then this same fit without them
-        from ptpcore.fit.robust import fit_robust
-
         return fit_robust(samples, rig, model, degree, positions, stage_sigma_mm=stage_sigma_mm, progress=progress,
                           level_bias=level_bias, footprint=footprint)[0]
     if model == "auto":
-        from ptpcore.fit.choice import fit_auto
-
         return fit_auto(samples, rig, positions, stage_sigma_mm=stage_sigma_mm, level_bias=level_bias,
                         footprint=footprint, progress=progress)[0]
-    if model == "smooth":
-        from ptpcore.fit.smooth import fit_smooth_lut
-
-        lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
-                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                                    uncertainty=uncertainty)
-        return lut
-    with_sigma = model == "poly" and uncertainty and samples.noise is not None and samples.modulation is not None
-    scale = None
-    if with_sigma:
-        from ptpcore.fit.smooth import sigma_scale
-
-        # Before the LUT: the scale fits a degree-2 LUT of its own, and the two LUTs were the
-        # run's peak of memory when held together (1.3 GB at 5 MP, 2.6 GB at 12 MP).
-        if progress:
-            progress(0.0, f"fitting LUT ({model}): the noise scale")
-        scale = sigma_scale(samples, rig, positions)
-    lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
-    if with_sigma:
-        from ptpcore.fit.smooth import poly_sigma_maps
-
-        lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm, scale=scale)
-    return lut
+    return fit_kind(samples, rig, model, degree, positions, progress, stage_sigma_mm=stage_sigma_mm,
+                    level_bias=level_bias, footprint=footprint, uncertainty=uncertainty)
 
 
 def lut_model(lut: Lut) -> str:

@@ -164,7 +164,7 @@ class _FitPlan:
 
     def fit_tile(self, out: _LutArrays, start: int, stop: int) -> None:
         """Fit pixels ``[start, stop)`` (flat indices) into ``out``."""
-        from ptpcore.io.fastio import read_block
+        from ptpcore.store import read_block
 
         valid_t, n_t, usable_t = self._z_span(out, start, stop, read_block(self.samples.reasons, start, stop, self.sel))
         mask = valid_t & usable_t[None, :]
@@ -206,7 +206,7 @@ class _FitPlan:
         return valid_t, n_t, usable_t
 
     def _offsets(self, start: int, stop: int):
-        from ptpcore.io.fastio import read_block
+        from ptpcore.store import read_block
 
         offs = {a: read_block(getattr(self.samples, a), start, stop, self.sel) for a in "xy"}
         refs = {a: getattr(self.samples, f"{a}_ref").reshape(-1)[start:stop] for a in "xy"}

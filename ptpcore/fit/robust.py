@@ -35,10 +35,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ptpcore.decode.phase import Reason
-from ptpcore.io.fastio import read_block
+from ptpcore.fit.choice import fit_auto
+from ptpcore.fit.kinds import fit_kind
+from ptpcore.fit.smooth import phase_sigma_mm
 from ptpcore.io.samples import SampleStack
-from ptpcore.parallel import map_in_order, release_free_memory
+from ptpcore.parallel import map_in_order
 from ptpcore.rig.rigfile import Rig
+from ptpcore.store import read_block, release_free_memory
 
 __all__ = ["K_SIGMA", "SCREEN_DEGREE", "MAX_PER_PIXEL", "SUSPECT_FRACTION", "RobustReport", "screen_samples",
            "without_outliers", "fit_robust"]
@@ -138,11 +141,9 @@ def _sigma_block(samples: SampleStack, rig: Rig, start: int, stop: int, idx, val
     """(Kp, n) predicted phase-noise sigma (mm) of a block of pixels; 1 without a noise model."""
     if samples.noise is None or samples.modulation is None or samples.background is None:
         return np.where(valid, 1.0, np.nan)
-    from ptpcore.fit.smooth import _phase_sigma_mm
-
     bg = read_block(samples.background, start, stop, idx).astype(float)
     mod = read_block(samples.modulation, start, stop, idx).astype(float)
-    s = _phase_sigma_mm(samples, rig, bg, mod)
+    s = phase_sigma_mm(samples, rig, bg, mod)
     return np.where(valid & np.isfinite(s) & (s > 0), s, np.nan)
 
 
@@ -310,7 +311,7 @@ def without_outliers(samples: SampleStack, report: RobustReport) -> SampleStack:
     positions the ``(K, H, W)`` uint8 copy and its temporaries are 210-315 MB).
     """
     if isinstance(samples.reasons, np.memmap):
-        from ptpcore.io.fastio import SpillStore
+        from ptpcore.store import SpillStore
 
         h, w = samples.shape
         store = SpillStore(samples.z.size, (h, w), {"reasons": np.uint8}, {})
@@ -343,15 +344,16 @@ def fit_robust(samples: SampleStack, rig: Rig, model: str = "auto", degree: int 
         With ``n_rejected`` (H, W) and ``provenance["robust"]`` (:meth:`RobustReport.to_json`).
     report : RobustReport
     """
-    from ptpcore.fit.models import fit_model
-
     if progress:
         progress(0.0, "screening the samples for outliers")
     report = screen_samples(samples, rig, positions, k_sigma=k_sigma, stage_sigma_mm=stage_sigma_mm)
     clean = without_outliers(samples, report) if report.n_outliers else samples
     release_free_memory()  # the screening's blocks, before the fit's
     sub = None if progress is None else (lambda f, msg: progress(0.05 + 0.95 * f, msg))
-    lut = fit_model(clean, rig, model, degree, positions, sub, stage_sigma_mm=stage_sigma_mm, **kwargs)
+    if model == "auto":
+        lut = fit_auto(clean, rig, positions, stage_sigma_mm=stage_sigma_mm, progress=sub, **kwargs)[0]
+    else:
+        lut = fit_kind(clean, rig, model, degree, positions, sub, stage_sigma_mm=stage_sigma_mm, **kwargs)
     lut.n_rejected = report.n_rejected
     lut.provenance["robust"] = report.to_json()
     return lut, report

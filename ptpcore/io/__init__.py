@@ -3,17 +3,19 @@ fast readers and spill stores.
 
 - :mod:`.dataset` — frame sources (dataset folders, the virtual rig) and one-pass validation;
 - :mod:`.images` — grey PNG/TIFF decoded into a caller's buffer (tifffile, imagecodecs);
-- :mod:`.fastio` — page-cache mapped frame reads, block reads, the spill store for big sensors;
+- :mod:`.fastio` — page-cache mapped frame reads (the spill store for big sensors is
+  :mod:`ptpcore.store`'s; ``SpillStore`` and ``read_block`` are re-exported here);
 - :mod:`.samples` — :class:`SampleStack`, every pixel's samples over all positions;
 - :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files;
 - :mod:`.pointcloud` — :class:`PointCloud` (what ``Lut.points`` returns), height maps, PLY/.npy/.h5 writers.
 
-May import :mod:`ptpcore.decode`, :mod:`ptpcore.rig` and the base modules.
+May import :mod:`ptpcore.decode`, :mod:`ptpcore.rig`, :mod:`ptpcore.store` and the base modules.
 """
 
 from .dataset import (FrameSource, DatasetSource, SimulatedSource, ImageHeader, DatasetReport,
     read_image, read_header, validate_dataset, check_calibration_design, open_source)
-from .fastio import read_into, map_frame, tiff_layout, SpillStore, read_block
+from .fastio import read_into, map_frame, tiff_layout
+from ptpcore.store import SpillStore, read_block
 from .samples import SampleStack
 from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
 from .pointcloud import PointCloud, read_height_map, write_point_cloud

@@ -2,7 +2,7 @@
 
 A :class:`SampleStack` holds ``(z_k, X_k, Y_k)`` and the validity reasons of every
 camera pixel at every stage position, in memory or spilled to a file
-(:class:`ptpcore.io.fastio.SpillStore`) on big sensors.
+(:class:`ptpcore.store.SpillStore`) on big sensors.
 """
 
 from __future__ import annotations
@@ -99,11 +99,11 @@ class SampleStack:
     def plane(self, name: str, k: int) -> np.ndarray:
         """Position ``k``'s ``(H, W)`` map of ``name`` (``"x"``, ``"reasons"``, ...), as a new array.
 
-        A spilled stack's map is read with a file read (:func:`ptpcore.io.fastio.read_block`):
+        A spilled stack's map is read with a file read (:func:`ptpcore.store.read_block`):
         indexing its ``numpy.memmap`` would map the pages into the process, where they stay
         (and count in its resident memory) until the stack is gone.
         """
-        from ptpcore.io.fastio import read_block
+        from ptpcore.store import read_block
 
         h, w = self.shape
         return read_block(getattr(self, name), 0, h * w, [k]).reshape(h, w)

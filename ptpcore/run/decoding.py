@@ -22,7 +22,7 @@ import numpy as np
 from ptpcore.decode.phase import REASON_KEYS, REASON_NAMES, DecodeOptions, finish_position
 from ptpcore.errors import DatasetError
 from ptpcore.io.decodedfile import Decoded
-from ptpcore.parallel import release_free_memory
+from ptpcore.store import release_free_memory
 from ptpcore.rig.rigfile import rig_to_toml
 from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, position_report
 

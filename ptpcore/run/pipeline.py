@@ -16,11 +16,11 @@ How it is fast on big sensors (``docs/performance.md`` has the numbers):
   straight into the buffers on every core (:func:`ptpcore.io.read_into`:
   imagecodecs, the GIL released).
 - Between positions the C allocator's free pages go back to the system
-  (:func:`ptpcore.parallel.release_free_memory`), so the resident size does
+  (:func:`ptpcore.store.release_free_memory`), so the resident size does
   not creep up position by position.
 - Unwrapping, pixel classification and the world coordinates run over the
   same row tiles, written straight into the sample stack.
-- Big sample stacks live in a temporary file (:class:`ptpcore.io.fastio.SpillStore`),
+- Big sample stacks live in a temporary file (:class:`ptpcore.store.SpillStore`),
   so memory stays flat however many positions there are; each row tile writes
   its rows of the position there as soon as it has stored them.
 """
@@ -42,7 +42,8 @@ from ptpcore.decode.harmonics import harmonic_noise_samples
 from ptpcore.decode.noise import NoiseAccumulator, NoiseModel
 from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, WrappedPhase, apply_convention,
     black_clipped, decode_and_finish, decode_direction, finish_position, fused_kernels, wrapped_phase)
-from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, release_free_memory, run_tiles, tile_workers
+from ptpcore.parallel import KERNEL_TILE_PIXELS, TILE_PIXELS, run_tiles, tile_workers
+from ptpcore.store import release_free_memory
 from ptpcore.rig.rigfile import Rig, rig_to_toml
 
 __all__ = ["decode_position", "world_xy", "collect_samples", "calibrate", "SPILL_BYTES", "repeat_drift"]
@@ -584,7 +585,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
         spill = k_total * shape[0] * shape[1] * 17 > SPILL_BYTES
     store = spill_maps = None
     if spill:
-        from ptpcore.io.fastio import SpillStore
+        from ptpcore.store import SpillStore
 
         store = SpillStore(k_total, shape, {"x": np.float32, "y": np.float32, "reasons": np.uint8,
                                             "modulation": np.float32, "background": np.float32},

@@ -287,7 +287,7 @@ def run_session(session: Session, path=None, *, progress: Progress | None = None
         listed in reverse); positions that look stuck are a ``DataWarning``.
     """
     from ptpcore.io.dataset import DatasetSource
-    from ptpcore.parallel import release_free_memory
+    from ptpcore.store import release_free_memory
     from ptpcore.run.pipeline import collect_samples
 
     def sub(lo, hi):

@@ -27,7 +27,7 @@ from ptpcore.cli.safety import Terminated
 from ptpcore.errors import ConfigError, DataWarning, OutputError, PtpError
 from ptpcore.io import DatasetSource, SimulatedSource, load_lut
 from ptpcore.io.dataset import read_image
-from ptpcore.io.fastio import SpillStore
+from ptpcore.store import SpillStore
 from ptpcore.io.lutfile import Lut, save_lut
 from ptpcore.io.outputs import check_output_file
 from ptpcore.rig import Camera, load_rig, save_rig

@@ -220,7 +220,7 @@ def test_maps_file_removed_and_disk_full(monkeypatch):
     gc.collect()
     assert not path.exists() and path not in live_temporaries()
 
-    import ptpcore.io.fastio as fastio
+    import ptpcore.store.positions as fastio
 
     def full(fh, nbytes):
         raise OSError(errno.ENOSPC, "No space left on device")

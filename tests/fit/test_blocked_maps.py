@@ -11,7 +11,20 @@ import pytest
 
 from ptpcore.fit import fit_lut, poly_sigma_maps, predicted_poly_sigma, sample_sigma_from_noise
 from ptpcore.fit import smooth as smooth_mod
-from ptpcore.fit.smooth import _nanmean, sigma_scale
+from ptpcore.fit.smooth import (blocks as smooth_blocks, global_model, leave_one_out, noise as smooth_noise,
+                                pixel_fits, smoothing, uncertainty as smooth_uncertainty)
+from ptpcore.fit.smooth import sigma_scale
+from ptpcore.store import FileRows
+from ptpcore.store import rows as store_rows
+
+
+def _nanmean(a, axis=None):
+    """``np.nanmean`` without the all-NaN warning (all-NaN pixels are invalid anyway)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(a, axis=axis)
 
 
 def _whole_image_poly_sigma(samples, rig, lut, positions, stage_sigma_mm):
@@ -37,7 +50,7 @@ def test_poly_sigma_maps_in_row_blocks_are_bit_identical(rough_rig, stage_sigma_
     vr, samples = rough_rig
     cal = list(range(0, samples.z.size, 2))
     lut = fit_lut(samples, "poly", 3, positions=cal)
-    monkeypatch.setattr(smooth_mod, "_BLOCK_PIXELS", 4096)  # many blocks on a 320 x 240 image
+    monkeypatch.setattr(smooth_blocks, "BLOCK_PIXELS", 4096)  # many blocks on a 320 x 240 image
     got = poly_sigma_maps(samples, vr.rig, lut, cal, stage_sigma_mm)
     want = _whole_image_poly_sigma(samples, vr.rig, lut, cal, stage_sigma_mm)
     for g, w in zip(got, want):
@@ -46,10 +59,10 @@ def test_poly_sigma_maps_in_row_blocks_are_bit_identical(rough_rig, stage_sigma_
 
 
 def _whole_image_smooth_sigma(fits, zc, zs, degree, noise_scale):
-    """The former whole-image formula of :func:`ptpcore.fit.smooth._smooth_sigma_maps` (no stage term)."""
+    """The former whole-image formula of :func:`ptpcore.fit.smooth.uncertainty.smooth_sigma_maps` (no stage term)."""
     d1 = degree + 1
     with np.errstate(all="ignore"):
-        mom = smooth_mod._range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
+        mom = pixel_fits.range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
                                         ((fits.pz_max - zc) / zs).astype(np.float64), 2 * degree)
         smooth_diag = np.einsum("jhw,jhw->hw", fits.var, mom[2 * np.arange(d1)])
         s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
@@ -60,7 +73,7 @@ def _whole_image_smooth_sigma(fits, zc, zs, degree, noise_scale):
 def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
     rng = np.random.default_rng(3)
     h, w, degree = 67, 50, 3
-    fits = smooth_mod._PixelFits.empty((h, w), degree + 1)
+    fits = pixel_fits.PixelFits.empty((h, w), degree + 1)
     fits.var[:] = rng.uniform(0.0, 2.0, fits.var.shape)
     lo = rng.uniform(0.0, 30.0, (h, w))
     fits.pz_min[:] = lo
@@ -68,8 +81,8 @@ def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
     fits.own_var[:] = rng.uniform(0.0, 1.0, (h, w))
     fits.own_diag[:] = rng.uniform(-0.1, 1.0, (h, w))  # some <= 0: the uncorrelated form
     fits.var[:, :3] = np.nan
-    monkeypatch.setattr(smooth_mod, "_BLOCK_PIXELS", 512)
-    got = smooth_mod._smooth_sigma_maps(fits, 30.0, 30.0, degree, 1.3, {})
+    monkeypatch.setattr(smooth_blocks, "BLOCK_PIXELS", 512)
+    got = smooth_uncertainty.smooth_sigma_maps(fits, 30.0, 30.0, degree, 1.3, {})
     want = _whole_image_smooth_sigma(fits, 30.0, 30.0, degree, 1.3)
     np.testing.assert_array_equal(got["x"], want)
     np.testing.assert_array_equal(got["y"], want)
@@ -86,11 +99,11 @@ def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
     against held in memory. The
     cross-validation scores are sums over strips: the same to rounding (1e-12 relative)."""
     vr, samples = rough_rig
-    monkeypatch.setattr(smooth_mod, "_STRIP_ROWS", 10 ** 6)
+    monkeypatch.setattr(pixel_fits, "STRIP_ROWS", 10 ** 6)
     ref, ref_info = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
-    monkeypatch.setattr(smooth_mod, "_STRIP_ROWS", 8)
-    monkeypatch.setattr(smooth_mod, "_BLOCK_SAMPLES", 1)
-    monkeypatch.setattr(smooth_mod, "_SPILL_FITS_PIXELS", 0)
+    monkeypatch.setattr(pixel_fits, "STRIP_ROWS", 8)
+    monkeypatch.setattr(smooth_blocks, "BLOCK_SAMPLES", 1)
+    monkeypatch.setattr(store_rows, "SPILL_PIXELS", 0)
     got, info = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
     for name in _LUT_MAPS:
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
@@ -104,24 +117,24 @@ def test_smooth_lut_own_noise_in_a_file_keeps_its_bits(rough_rig, monkeypatch):
     give the same LUT from a temporary file as from memory, LOO and sigma maps included."""
     vr, samples = rough_rig
     ref, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
-    monkeypatch.setattr(smooth_mod, "_OWN_NOISE_BYTES", 0)
+    monkeypatch.setattr(leave_one_out, "OWN_NOISE_BYTES", 0)
     got, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
     for name in _LUT_MAPS:
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
 
 
 def test_row_spill_round_trip():
-    """:class:`ptpcore.fit.smooth._RowSpill`: row ranges written with leading indices read back whole."""
+    """:class:`ptpcore.store.FileRows`: row ranges written with leading indices read back whole."""
     rng = np.random.default_rng(0)
     want = rng.standard_normal((2, 3, 7, 5))
-    spill = smooth_mod._RowSpill(want.shape)
+    spill = FileRows(want.shape)
     for r0, r1 in ((0, 3), (3, 4), (4, 7)):
         spill[0, :, r0:r1] = want[0, :, r0:r1]
         spill[1, :, r0:r1] = want[1, :, r0:r1]
     np.testing.assert_array_equal(spill.rows(4, 2, 6), want[1, 1, 2:6])  # plane 4 = [1, 1]
     np.testing.assert_array_equal(spill.row_block(3, 5), want[:, :, 3:5])
     np.testing.assert_array_equal(spill.load(), want)
-    flat = smooth_mod._RowSpill((7, 5))
+    flat = FileRows((7, 5))
     flat[0:7] = want[1, 2]
     np.testing.assert_array_equal(flat.load(), want[1, 2])
 
@@ -132,7 +145,7 @@ def test_row_spill_dropped_unread_closes_its_file():
     import gc
     import warnings
 
-    spill = smooth_mod._RowSpill((4, 3))
+    spill = FileRows((4, 3))
     spill[0:4] = 1.0
     fh = spill._file
     with warnings.catch_warnings(record=True) as caught:
@@ -144,17 +157,17 @@ def test_row_spill_dropped_unread_closes_its_file():
 
 
 def test_laplacian_of_one_edge_row_is_the_whole_images():
-    """:func:`ptpcore.fit.smooth._laplacian` of one-row blocks (sample blocks at 12 MP and 31 positions
+    """:func:`ptpcore.fit.smooth.global_model._laplacian` of one-row blocks (sample blocks at 12 MP and 31 positions
     are one row) equals the whole image's, edge rows included."""
     rng = np.random.default_rng(1)
     a = rng.standard_normal((6, 5))
-    whole = smooth_mod._laplacian(a, 0, 6)
-    rows = np.concatenate([smooth_mod._laplacian(a, r, r + 1) for r in range(6)])
+    whole = global_model._laplacian(a, 0, 6)
+    rows = np.concatenate([global_model._laplacian(a, r, r + 1) for r in range(6)])
     np.testing.assert_array_equal(rows, whole)
 
 
 def _whole_map_upsample(coarse, b, h, w):
-    """The former :func:`smooth._upsample`: OpenCV's bilinear resize of the padded grid, then every
+    """The former :func:`ptpcore.fit.smooth.smoothing.upsample_bins`: OpenCV's bilinear resize of the padded grid, then every
     NaN pixel from a whole map of repeated bins."""
     import cv2
 
@@ -179,8 +192,8 @@ def test_upsample_in_row_bands_keeps_its_bits(monkeypatch, hc, wc, b, h, w):
     rng = np.random.default_rng(hc * wc)
     coarse = rng.normal(size=(hc, wc)) * 10.0 ** rng.integers(-6, 3)
     coarse[rng.random((hc, wc)) < 0.25] = np.nan
-    monkeypatch.setattr(smooth_mod, "_UPSAMPLE_ROWS", 7)
-    assert np.array_equal(smooth_mod._upsample(coarse, b, h, w), _whole_map_upsample(coarse, b, h, w), equal_nan=True)
+    monkeypatch.setattr(smoothing, "UPSAMPLE_ROWS", 7)
+    assert np.array_equal(smoothing.upsample_bins(coarse, b, h, w), _whole_map_upsample(coarse, b, h, w), equal_nan=True)
 
 
 def test_one_positions_sigma_in_row_blocks_is_the_stacks(rough_rig, monkeypatch):
@@ -188,7 +201,7 @@ def test_one_positions_sigma_in_row_blocks_is_the_stacks(rough_rig, monkeypatch)
     whole stack's :func:`sample_sigma_from_noise`, bit for bit, NaN where invalid."""
     vr, samples = rough_rig
     whole = sample_sigma_from_noise(samples, vr.rig)
-    monkeypatch.setattr(smooth_mod, "_SIGMA_ROWS", 7)
+    monkeypatch.setattr(smooth_noise, "SIGMA_ROWS", 7)
     for k in (0, samples.z.size - 1):
         got = smooth_mod.position_sigma_from_noise(samples, vr.rig, k)
         assert np.isnan(got).any() and np.isfinite(got).any()
@@ -205,11 +218,11 @@ def test_binning_in_bands_of_bin_rows_keeps_its_bits(monkeypatch, h, w, b, r0, u
     weights = rng.random((h, w)) * (rng.random((h, w)) > 0.2)
     values = rng.normal(size=(2, h, w))
     values[:, weights == 0] = np.nan if unweighted_zero else 0.0
-    monkeypatch.setattr(smooth_mod, "BIN_BAND_PIXELS", h * w)
-    whole = [smooth_mod._binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
+    monkeypatch.setattr(smoothing, "BIN_BAND_PIXELS", h * w)
+    whole = [smoothing.binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
     for band_rows in (b, 3 * b):
-        monkeypatch.setattr(smooth_mod, "BIN_BAND_PIXELS", band_rows * w)
-        banded = [smooth_mod._binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
+        monkeypatch.setattr(smoothing, "BIN_BAND_PIXELS", band_rows * w)
+        banded = [smoothing.binned_points(weights, v, b, r0, unweighted_zero) for v in (values, values[0])]
         for one, other in zip(whole, banded):
             for a, c in zip(one, other):
                 assert a.shape == c.shape

@@ -103,7 +103,7 @@ def test_without_outliers_of_a_spilled_stack_stays_spilled(rough_rig):
     from dataclasses import replace
 
     from ptpcore.fit.robust import screen_samples, without_outliers
-    from ptpcore.io.fastio import SpillStore, read_block
+    from ptpcore.store import SpillStore, read_block
 
     vr, samples = rough_rig
     rep = screen_samples(samples, vr.rig, positions=list(range(1, samples.z.size)))

@@ -205,7 +205,7 @@ def test_plain_lut_sigma_maps_agree_with_observed_errors_everywhere(rough_rig):
 
 def test_binned_smoothing_keeps_linear_trends_and_follows_the_per_pixel_one():
     """The large-image path (bins of b x b px, interpolated back) is exact for planes, close otherwise."""
-    from ptpcore.fit.smooth import _smooth_binned
+    from ptpcore.fit.smooth.smoothing import smooth_on_bins as _smooth_binned
 
     rng = np.random.default_rng(2)
     h, w = 96, 130  # not multiples of the bin
@@ -234,12 +234,12 @@ def test_binned_cross_validation_chooses_the_same_scale(which, rough_rig, mild_r
     """Large images cross-validate large scales on bins and small ones per pixel in strips of rows:
     forced onto the 320x240 presets (2 and 4 px bins, strips of 40 rows) it picks the same scale, and
     the per-pixel scales score exactly as on the whole image."""
-    import ptpcore.fit.smooth as smooth
+    import ptpcore.fit.smooth.pixel_fits as pixel_fits
 
     vr, samples = rough_rig if which == "rough" else mild_rig
     cal, _ = _split(samples)
     _, ref = fit_smooth_lut(samples, vr.rig, 1, cal)
-    monkeypatch.setattr(smooth, "_STRIP_ROWS", 40)
+    monkeypatch.setattr(pixel_fits, "STRIP_ROWS", 40)
     for b in (2, 4):
         _, info = fit_smooth_lut(samples, vr.rig, 1, cal, cv_bin=b)
         assert info.scale_px == ref.scale_px, (b, info.cv_rms_mm, ref.cv_rms_mm)

@@ -81,7 +81,7 @@ def test_mapped_pages_are_released_in_ranges_and_the_data_stays(monkeypatch):
     _MADVISE_BYTES, here 3 pages, the last range short) and the values read back unchanged."""
     import mmap
 
-    from ptpcore.io import fastio
+    from ptpcore.store import positions as fastio
 
     def rss_file_mb():
         status = open("/proc/self/status").read()

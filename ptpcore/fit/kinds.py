@@ -1,0 +1,50 @@
+"""One LUT of a named kind, fitted as it is: ``poly``, ``pchip``, ``linear`` or ``smooth``.
+
+Below the choices that fit several of them (:mod:`ptpcore.fit.choice`'s ``auto``, the outlier
+screening of :mod:`ptpcore.fit.robust`) and :func:`ptpcore.fit.models.fit_model`, which dispatches to
+all three: every one of them fits its LUTs here, so none imports another back.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ptpcore.fit.perpixel import fit_lut
+from ptpcore.fit.smooth import fit_smooth_lut, poly_sigma_maps, sigma_scale
+from ptpcore.io.lutfile import Lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig, rig_to_toml
+
+__all__ = ["LUT_KINDS", "fit_kind"]
+
+LUT_KINDS = ("poly", "pchip", "linear", "smooth")
+
+
+def fit_kind(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
+             progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
+             level_bias: bool = True, footprint: bool = True, uncertainty: bool = True) -> Lut:
+    """Fit one LUT of kind ``model`` (one of :data:`LUT_KINDS`) to decoded samples.
+
+    Parameters and result as :func:`ptpcore.fit.models.fit_model` (without ``auto`` and ``robust``).
+    Plain ``poly`` LUTs get their predicted sigma maps when the samples carry a noise model.
+    """
+    if model not in LUT_KINDS:
+        raise ValueError(f"model must be one of {', '.join(LUT_KINDS)}, got {model!r}")
+    toml = rig_to_toml(rig)
+    if model == "smooth":
+        lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
+                                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
+                                    uncertainty=uncertainty)
+        return lut
+    with_sigma = model == "poly" and uncertainty and samples.noise is not None and samples.modulation is not None
+    scale = None
+    if with_sigma:
+        # Before the LUT: the scale fits a degree-2 LUT of its own, and the two LUTs were the
+        # run's peak of memory when held together (1.3 GB at 5 MP, 2.6 GB at 12 MP).
+        if progress:
+            progress(0.0, f"fitting LUT ({model}): the noise scale")
+        scale = sigma_scale(samples, rig, positions)
+    lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
+    if with_sigma:
+        lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm, scale=scale)
+    return lut

@@ -1,0 +1,305 @@
+"""Step 6 of the smooth fit: the real leave-one-position-out, and the model error it reveals.
+
+For every calibration position the smooth LUT is fitted again without it (:func:`leave_one_out`)
+and compared with that position's samples; the residuals' excess over the noise
+(:func:`model_error`, each sample's noise from its pixel's own fit, ``r_own^2 / (1 - h)``) is the
+model error the sigma maps carry. The per-pixel sums wait in :mod:`ptpcore.store` row stores.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ptpcore.fit.smooth.blocks import row_blocks, run_blocks
+from ptpcore.fit.smooth.global_model import GlobalRays, corrected_samples, footprint_bias, global_residuals
+from ptpcore.fit.smooth.noise import noise_rows
+from ptpcore.fit.smooth.pixel_fits import SmoothPass, smoothed_coefficients, weighted_poly_fits
+from ptpcore.fit.smooth.smoothing import bin_sums, upsample_bins
+from ptpcore.io.samples import SampleStack
+from ptpcore.rig.rigfile import Rig
+from ptpcore.store import position_store, release_free_memory, row_store
+
+__all__ = ["MODEL_ERROR_REGIONS", "LooSetup", "LooSums", "ModelError", "OwnNoise", "leave_one_out", "model_error"]
+
+
+MODEL_ERROR_REGIONS = 1
+"""Regions along the image's longer side over which the model-error term of the smooth LUT's
+sigma maps is measured (square regions; the term is interpolated bilinearly between their centres).
+One: the term is a small excess over the sample noise, so its standard error per region grows as the
+square root of the number of regions; on the presets at 96 x 72 px four regions per side leave a
+2-standard-error limit of 3.1 um (realistic) against a model error of 2.3 um."""
+
+
+@dataclass
+class LooSetup:
+    """What the smooth LUT was fitted with, for its leave-one-position-out refits."""
+
+    samples: SampleStack
+    rig: Rig
+    sel: np.ndarray
+    z: np.ndarray
+    z_norm: tuple
+    rays: GlobalRays
+    degree: int
+    scale: float
+    cv_bin: int
+    level_bias: bool
+    footprint: bool
+    noise_scale: float
+
+
+@dataclass
+class ModelError:
+    """The model-error term of the smooth LUT's sigma maps (see :func:`model_error`).
+
+    Attributes
+    ----------
+    var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (0 where not resolved); None once
+        :func:`uncertainty` has added it to the sigma maps
+    rms_mm : float
+        RMS of ``sqrt(var)`` over both axes and the pixels with samples.
+    limit_mm : float
+        RMS over regions and axes of the smallest resolvable model error (2 standard errors).
+    """
+
+    var: dict
+    rms_mm: float
+    limit_mm: float
+
+
+def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -> tuple[dict, ModelError]:
+    """Leave-one-position-out of the smooth LUT, and the model error its residuals reveal.
+
+    For every calibration position ``k`` the smooth LUT is fitted again
+    without it (the global model, the normalisation in z and the smoothing
+    scale kept; every pixel's fit, its weights and the smoothing redone) and
+    its prediction at ``z_k`` compared with position ``k``'s corrected samples.
+    No sample of position ``k`` reaches that prediction, at any pixel, so a
+    per-position error common to all pixels (stage reading, a smooth pattern)
+    is not smoothed into it.
+
+    Parameters
+    ----------
+    setup : LooSetup
+    valid : (H, W) bool
+        The smooth LUT's valid pixels.
+    sums : LooSums
+        Holds ``fit_var``, the LUT's predicted variance from the sample noise (and stage readings),
+        RMS over the calibrated range (mm^2); gets the refits' residual sums.
+    report : callable ``(fraction, message)``
+
+    Returns
+    -------
+    loo : dict ``"x"``, ``"y"`` -> (H, W) float32, mm
+        Per-pixel RMS over the positions of the leave-one-out residual.
+    model : ModelError
+    """
+    s = setup
+    k_all = s.z.size
+    # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
+    grow = k_all / max(k_all - 1, 1)
+    report(0.0, "estimating each sample's noise from its pixel's own fit")
+    own_noise = _own_noise_all(s, [k for k in range(k_all) if s.z.min() < s.z[k] < s.z.max()])
+    for k in range(k_all):
+        report(k / k_all, f"leaving calibration position {k + 1} of {k_all} out")
+        coef = _refit_without(s, k)
+        # Only interior positions measure the model error: the LUT is used inside its calibrated
+        # range, and the fit without an end position extrapolates to it.
+        interior = s.z.min() < s.z[k] < s.z.max()
+        _accumulate_left_out(s, k, coef, valid, sums, grow, interior, own_noise)
+        del coef
+        release_free_memory()  # each refit left ~50 MB resident at 5 MP (3.2 -> 3.6 GB over 21 refits)
+    loo = {}
+    for a in "xy":
+        with np.errstate(all="ignore"):
+            loo[a] = np.where(sums.count > 0, np.sqrt(sums.get("loo_sq", a) / sums.count), np.nan).astype(np.float32)
+    return loo, model_error(sums)
+
+
+def _refit_without(s: LooSetup, k: int) -> dict:
+    """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) fitted without calibration position ``k``."""
+    keep = np.arange(s.z.size) != k
+    run = SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
+                     s.cv_bin, s.level_bias, s.footprint, cross_validate=False, own=False)
+    run.fit_and_cross_validate_fine(lambda f, m: None)
+    return smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm, variance=False)[0]
+
+
+def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
+                         interior: bool, own_noise: "OwnNoise") -> None:
+    """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
+
+    ``loo_sq`` and ``count`` (the leave-one-out map) always. For an ``interior`` position also, per
+    sample, ``x = r^2 - r_own^2 / (1 - h) - grow fit_var`` (:func:`model_error`) into ``excess`` and
+    ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the sample's residual
+    against its pixel's own weighted fit through all calibration positions and ``h`` its leverage
+    there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever the noise
+    model's scale (``own_noise``, :func:`_own_noise_all`); ``grow`` scales ``fit_var`` to a fit
+    with one position less.
+    """
+    h, w = s.samples.shape
+    pos = [int(s.sel[k])]
+    zk = s.z[k:k + 1]
+    t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
+    powers = t_all[k] ** np.arange(s.degree + 1)
+
+    def block(r0, r1):
+        a0, a1 = r0 * w, r1 * w
+        ok_s, mod, bg, _sig = noise_rows(s.samples, s.rig, pos, a0, a1)
+        fb = None
+        if s.footprint:  # the rays' rows are read only for it
+            near, lo = s.rays.window(r0, r1)
+            fb = footprint_bias(near, s.rig, zk, mod, bg, r0 - lo, r1 - lo)
+        own = own_noise.get(k, a0, a1) if interior else None
+        for i_axis, a in enumerate("xy"):
+            pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
+            r = corrected_samples(s.samples, s.rig, i_axis, a0, a1, pos, zk, s.level_bias, fb)[0] - pred
+            ok = ok_s[0] & valid[r0:r1].reshape(-1) & np.isfinite(r)
+            sums.add("loo_sq", a, r0, r1, np.where(ok, r * r, 0.0).reshape(r1 - r0, w))
+            if i_axis == 0:
+                sums.count[r0:r1] += ok.reshape(r1 - r0, w)
+            if own is None:
+                continue
+            x = r * r - own[i_axis] - (sums.rows("fit_var", a, r0, r1) * grow).reshape(-1)
+            ok &= np.isfinite(x)
+            sums.add("excess", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
+            sums.add("excess_sq", a, r0, r1, np.where(ok, x * x, 0.0).reshape(r1 - r0, w))
+            if i_axis == 0:
+                sums.n_model[r0:r1] += ok.reshape(r1 - r0, w)
+
+    run_blocks(block, row_blocks(h, w))
+
+
+class LooSums:
+    """The leave-one-out's per-pixel float64 sums, X and Y (``loo_sq``, ``excess``, ``excess_sq``) and
+    the predicted variance they are judged by (``fit_var``), with the counts ``count`` and
+    ``n_model`` ((H, W) int32, in memory).
+
+    The sums are one row store (:func:`ptpcore.store.row_store`): above
+    :data:`ptpcore.store.SPILL_PIXELS` they wait in a temporary file while the refits run, and each
+    refit's residuals are added row block by row block: at 5 MP they are 310 MB that each refit's own
+    maps would otherwise sit on top of.
+    """
+
+    NAMES = ("loo_sq", "excess", "excess_sq", "fit_var")
+
+    def __init__(self, shape):
+        h, w = shape
+        self.count = np.zeros((h, w), np.int32)  # counts: exact in any type (the float64 sums saw the same values)
+        self.n_model = np.zeros((h, w), np.int32)
+        self._sums = row_store((len(self.NAMES) * 2, h, w), zeros=True)
+
+    def _index(self, name: str, axis: str) -> int:
+        return 2 * self.NAMES.index(name) + "xy".index(axis)
+
+    def rows(self, name: str, axis: str, r0: int, r1: int) -> np.ndarray:
+        """Rows ``[r0, r1)`` of one sum, ``(r1 - r0, W)`` (a copy when spilled, else a view)."""
+        return self._sums.rows(self._index(name, axis), r0, r1)
+
+    def add(self, name: str, axis: str, r0: int, r1: int, values: np.ndarray) -> None:
+        """Add ``values`` ``(r1 - r0, W)`` to rows ``[r0, r1)`` of one sum (blocks of disjoint rows may
+        come from several threads)."""
+        self._sums.add_rows(self._index(name, axis), r0, values)
+
+    def put(self, name: str, axis: str, values: np.ndarray) -> None:
+        """Set one whole ``(H, W)`` sum."""
+        self._sums[self._index(name, axis), 0:values.shape[0]] = values
+
+    def get(self, name: str, axis: str) -> np.ndarray:
+        """One whole ``(H, W)`` sum (read into memory when spilled)."""
+        return self._sums.plane(self._index(name, axis))
+
+
+class OwnNoise:
+    """``r_own^2 / (1 - h)`` of the calibration samples, X and Y, per position: ``(2, K, H * W)``
+    float64, in memory up to :data:`OWN_NOISE_BYTES`, else in a temporary file
+    (:func:`ptpcore.store.position_store`: 1.7 GB at 5 MP x 21 positions)."""
+
+    def __init__(self, k: int, shape):
+        h, w = shape
+        self.w = w
+        self.store = position_store(k, shape, {"x": np.float64, "y": np.float64}, {"x": np.nan, "y": np.nan},
+                                    on_disk=2 * k * h * w * 8 > OWN_NOISE_BYTES)
+
+    def put(self, axis: int, k: int, r0: int, r1: int, values: np.ndarray) -> None:
+        """Rows ``[r0, r1)`` of position ``k``, axis 0 (X) or 1 (Y): ``((r1 - r0) * W,)`` values."""
+        self.store.write_rows("xy"[axis], k, r0, values.reshape(r1 - r0, self.w))
+
+    def get(self, k: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels ``[start, stop)`` (flat) of position ``k``: the X and Y values."""
+        return self.store.read("x", start, stop, [k])[0], self.store.read("y", start, stop, [k])[0]
+
+
+OWN_NOISE_BYTES = 1 << 28
+"""Above this size (256 MiB) :class:`OwnNoise` goes to a temporary file."""
+
+
+def _own_noise_all(s: LooSetup, positions) -> OwnNoise:
+    """``r_own^2 / (1 - h)`` of every sample of calibration ``positions`` (indices into ``s.z``),
+    X and Y; NaN where the pixel has no fit of its own with freedom left, or the sample is not used.
+
+    Every pixel's own fit through all calibration positions is the same whichever position is
+    left out, so it is made once, block by block (the row blocks :func:`_accumulate_left_out`
+    reads them by), for all positions: one pass over the samples instead of one per position.
+    """
+    h, w = s.samples.shape
+    store = OwnNoise(s.z.size, (h, w))
+    t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
+
+    def block(r0, r1):
+        _valid, _sig, wts, resid = global_residuals(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays, s.level_bias,
+                                                    s.footprint)
+        coefs, _v, n, cov = weighted_poly_fits(t_all, resid, wts, s.degree, full=True)
+        for k in positions:
+            powers = t_all[k] ** np.arange(s.degree + 1)
+            lev = wts[k] * np.einsum("i,ijp,j->p", powers, cov, powers)
+            use = (wts[k] > 0) & (n > s.degree + 1) & (lev < 1.0 - 1e-9)
+            for axis, (c, rv) in enumerate(zip(coefs, resid)):
+                with np.errstate(all="ignore"):
+                    r_own = rv[k] - np.einsum("j,jp->p", powers, c)
+                    store.put(axis, k, r0, r1, np.where(use, r_own * r_own / (1.0 - lev), np.nan))
+
+    if positions:
+        run_blocks(block, row_blocks(h, w))
+    return store
+
+
+def model_error(sums: "LooSums") -> ModelError:
+    """The model-error variance per region from the leave-one-out residuals' excess over the noise.
+
+    A left-out sample's residual ``r`` is its own noise, the left-out fit's
+    noise and the model error ``b`` (what the smoothing and the global model
+    cannot follow) at once: ``E[r^2] = sigma^2 + sigma_fit^2 + b^2``. The
+    sample's noise variance ``sigma^2`` is estimated from its pixel's own
+    weighted fit through all positions, ``E[r_own^2 / (1 - h)] = sigma^2``
+    (exact for any scale of the noise model: a 1 % error of that scale would
+    otherwise pass for a model error of 0.7 um on the mild preset at 320 px),
+    ``sigma_fit^2`` is the predicted noise of the left-out fit. Per region
+    (:data:`MODEL_ERROR_REGIONS` along the longer side) the mean of
+    ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``, its
+    standard error from the spread of ``x``. It is kept where it exceeds 2
+    standard errors (the data resolve it) and interpolated bilinearly between
+    the regions' centres; elsewhere the model error is below what the data can
+    tell from the noise and left out. ``sums`` holds ``x`` and ``x^2`` summed per pixel
+    (``excess``, ``excess_sq``) and their count (``n_model``).
+    """
+    count = sums.n_model
+    h, w = count.shape
+    side = max(1, int(np.ceil(max(h, w) / MODEL_ERROR_REGIONS)))
+    n = bin_sums(count, side)
+    var, limits = {}, []
+    for a in "xy":
+        with np.errstate(all="ignore"):
+            b2 = bin_sums(sums.get("excess", a), side) / n
+            spread = np.maximum(bin_sums(sums.get("excess_sq", a), side) / n - b2 * b2, 0.0)
+            se = np.sqrt(spread / np.maximum(n - 1, 1))
+        resolved = (n > 1) & (b2 > 2.0 * se)
+        limits.append(np.where(n > 1, 2.0 * se, np.nan))
+        var[a] = np.maximum(upsample_bins(np.where(resolved, b2, 0.0), side, h, w), 0.0)
+    has = count > 0
+    rms = float(np.sqrt(np.mean([np.mean(var[a][has]) for a in "xy"]))) if has.any() else 0.0
+    lim = np.concatenate([x.ravel() for x in limits])
+    lim = lim[np.isfinite(lim)]
+    return ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)

@@ -1,0 +1,364 @@
+"""Step 3 of the smooth fit: locally linear, inverse-variance weighted Gaussian smoothing of maps.
+
+:func:`local_linear_smooth` fits ``a + b (col - c0) + c (row - r0)`` around every pixel with weights
+``w_q G(q - p)`` (Gaussian moments by OpenCV's separable filter, closed-form 3x3 solves). On big
+images the same regression runs on a grid of ``b x b`` bins (:func:`smooth_on_bins`: each bin a point
+at its weighted centroid) and is interpolated back (:func:`upsample_bins`); :func:`upsample_cubic`
+brings back a map sampled on a coarse grid.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ptpcore.fit.smooth.blocks import row_blocks
+
+__all__ = ["CV_PIXELS", "BIN_BAND_PIXELS", "bin_factor", "final_bin_side", "local_linear_smooth",
+           "local_linear_grid", "bin_sums", "binned_points", "binned_sigma", "smooth_on_bins", "upsample_bins",
+           "upsample_cubic"]
+
+
+CV_PIXELS = 320_000
+"""Above this many pixels the cross-validation runs on a grid binned so it has about this many
+points (a 5 MP image: 4 x 4 bins), and the final smoothing at scales of at least 4 bins runs on
+the same binned grid (interpolated back bilinearly). Up to 640 x 480 everything is per pixel."""
+
+
+def bin_factor(shape) -> int:
+    """Side of the square bins of the cross-validation grid: 1 up to :data:`CV_PIXELS` pixels."""
+    return max(1, int(round(np.sqrt(shape[0] * shape[1] / CV_PIXELS))))
+
+
+def final_bin_side(b: int, scale: float) -> int:
+    """Side (px) of the bins the final smoothing at ``scale`` px runs on: the largest power of two of
+    at most the cross-validation's bin side ``b`` and at most a quarter of the scale (1: per pixel)."""
+    fb = 1
+    while fb * 2 <= b and fb * 2 * 4 <= scale:
+        fb *= 2
+    return fb
+
+
+def _gauss(arr: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian filter with zeros outside the image (truncated at 3 sigma).
+
+    OpenCV's separable SIMD filter is used rather than ``scipy.ndimage``: it is
+    several times faster at the large scales the cross-validation tries.
+    """
+    k = 2 * int(np.ceil(3.0 * sigma)) + 1
+    return cv2.GaussianBlur(np.ascontiguousarray(arr, dtype=np.float64), (k, k), sigma, sigmaY=sigma,
+                            borderType=cv2.BORDER_CONSTANT)
+
+
+def _first_row_of_inverse(a00, a01, a02, a11, a12, a22):
+    """Row 0 of the inverse of symmetric 3x3 matrices given by their six entries, and the determinants.
+
+    Closed-form cofactors: batched LAPACK calls cost far more than the
+    arithmetic for millions of 3x3 systems.
+    """
+    c0 = a11 * a22 - a12 * a12
+    c1 = a02 * a12 - a01 * a22
+    c2 = a01 * a12 - a02 * a11
+    det = a00 * c0 + a01 * c1 + a02 * c2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (c0 / det, c1 / det, c2 / det), det
+
+
+def _local_moments(s0, sx, sy, sxx, sxy, syy, x, y):
+    """Entries (00, 01, 02, 11, 12, 22) of the 3x3 moment matrices about each point from raw weighted moments."""
+    mx = sx - x * s0
+    my = sy - y * s0
+    mxx = sxx - 2 * x * sx + x * x * s0
+    myy = syy - 2 * y * sy + y * y * s0
+    mxy = sxy - x * sy - y * sx + x * y * s0
+    return s0, mx, my, mxx, mxy, myy
+
+
+def local_linear_grid(values: np.ndarray, weights: np.ndarray, sigma: float, xc: np.ndarray, yc: np.ndarray,
+                      xb=None, yb=None, with_variance: bool = True):
+    """Locally linear weighted Gaussian regression on a grid of points (the core of :func:`local_linear_smooth`).
+
+    Parameters
+    ----------
+    values : (n, h, w) float64 (anything where ``weights == 0``)
+    weights : (h, w) float64 >= 0
+    sigma : float
+        Gaussian sigma in grid steps (> 0).
+    xc, yc : (w,), (h,)
+        Coordinates of the grid columns and rows, in units of the smoothing scale.
+    xb, yb : (h, w), optional
+        Where each grid point's datum sits (e.g. the weighted centroid of a bin);
+        default the grid point itself.
+    with_variance : bool
+
+    Returns
+    -------
+    out : (n, h, w) the fitted value at every grid point, NaN without support
+    var : (h, w) or None
+    """
+    h, w = weights.shape
+    xg = xc[None, :]
+    yg = yc[:, None]
+    x = xg if xb is None else xb
+    y = yg if yb is None else yb
+    blocks = row_blocks(h, w)
+
+    def raw(filt, wv):
+        return [filt(wv), filt(wv * x), filt(wv * y), filt(wv * x * x), filt(wv * x * y), filt(wv * y * y)]
+
+    g = lambda arr: _gauss(arr, sigma)  # noqa: E731
+    mom = raw(g, weights)
+    s0 = mom[0]
+    s0_max = max(float(s0.max()), 1e-300)
+    row = np.empty((3, h, w))
+    good = np.empty((h, w), bool)
+    for r0, r1 in blocks:
+        a = _local_moments(*[m[r0:r1] for m in mom], xg, yg[r0:r1])
+        (c0, c1, c2), det = _first_row_of_inverse(*a)
+        row[0, r0:r1], row[1, r0:r1], row[2, r0:r1] = c0, c1, c2
+        s0b = s0[r0:r1]
+        good[r0:r1] = (s0b > 1e-12 * s0_max) & (np.abs(det) > 1e-12 * np.maximum(s0b, 1e-300) ** 3)
+    del mom[1:], a
+    weak = ~good & (s0 > 0)
+    any_good = bool(good.any())
+    out = np.full(values.shape, np.nan)
+    for i, v in enumerate(values):
+        wv = weights * v
+        t0 = g(wv)
+        if any_good:
+            t1 = g(wv * x)
+            t2 = g(wv * y)
+            for r0, r1 in blocks:
+                tb = t0[r0:r1]
+                with np.errstate(invalid="ignore", over="ignore"):  # rows of singular systems: not used
+                    est = (row[0, r0:r1] * tb + row[1, r0:r1] * (t1[r0:r1] - xg * tb)
+                           + row[2, r0:r1] * (t2[r0:r1] - yg[r0:r1] * tb))
+                out[i, r0:r1] = np.where(good[r0:r1], est, np.nan)
+            del t1, t2
+        # Locally constant estimate where the linear system is singular.
+        if weak.any():
+            out[i][weak] = t0[weak] / s0[weak]
+        del wv, t0
+    var = None
+    if with_variance:
+        var = np.full((h, w), np.nan)
+        # var(value_q) = 1 / w_q gives var = (A^-1 B A^-1)[0, 0], B the same
+        # moments under G^2, and G_s^2 = G_{s/sqrt2} / (4 pi s^2).
+        g2 = lambda arr: _gauss(arr, sigma / np.sqrt(2.0)) / (4 * np.pi * sigma ** 2)  # noqa: E731
+        if any_good or weak.any():
+            b = raw(g2, weights) if any_good else [g2(weights)]
+            for r0, r1 in blocks:
+                gb = good[r0:r1]
+                if any_good and gb.any():
+                    b00, b01, b02, b11, b12, b22 = _local_moments(*[m[r0:r1] for m in b], xg, yg[r0:r1])
+                    r_0, r_1, r_2 = row[0, r0:r1], row[1, r0:r1], row[2, r0:r1]
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        v = (r_0 * (b00 * r_0 + b01 * r_1 + b02 * r_2) + r_1 * (b01 * r_0 + b11 * r_1 + b12 * r_2)
+                             + r_2 * (b02 * r_0 + b12 * r_1 + b22 * r_2))
+                    var[r0:r1][gb] = v[gb]
+                wb = weak[r0:r1]
+                if wb.any():
+                    var[r0:r1][wb] = b[0][r0:r1][wb] / s0[r0:r1][wb] ** 2
+            del b
+        var = np.where(np.isfinite(out[0]), var, np.nan)
+    return out, var
+
+
+def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float,
+                        with_variance: bool = True):
+    """Inverse-variance weighted, locally linear Gaussian smoothing of a map.
+
+    At every pixel fits ``a + b*(col - c0) + c*(row - r0)`` to the neighbours
+    with weights ``w_q * G(q - p)``; unbiased for linear trends, also at the
+    edge of the valid region (where a plain normalised convolution is not).
+
+    Parameters
+    ----------
+    values : (H, W) or (n, H, W) float64 (anything where ``weights == 0``)
+        One map or a stack of maps that share the weights (smoothed together:
+        the moment matrices are built once).
+    weights : (H, W) float64 >= 0, e.g. inverse variances
+    scale_px : float
+        Gaussian sigma in camera pixels; 0 returns the input.
+    with_variance : bool
+        Also compute the variance (costs six more filters).
+
+    Returns
+    -------
+    smoothed : same shape as ``values``, float64, NaN where there is no support
+    variance : (H, W) float64 or None
+        Variance of the estimate if ``weights`` are inverse variances.
+    """
+    if scale_px <= 0:
+        with np.errstate(divide="ignore"):
+            return np.where(weights > 0, values, np.nan), np.where(weights > 0, 1.0 / weights, np.nan)
+    h, w = weights.shape
+    weights = np.asarray(weights, dtype=np.float64)
+    vals = np.where(weights > 0, values, 0.0)
+    stacked = vals.ndim == 3
+    vals = vals if stacked else vals[None]
+    # Coordinates in units of the scale keep the 3x3 systems well conditioned.
+    out, var = local_linear_grid(vals, weights, scale_px, np.arange(w) / scale_px, np.arange(h) / scale_px,
+                                 with_variance=with_variance)
+    return (out if stacked else out[0]), var
+
+
+def bin_sums(a: np.ndarray, b: int) -> np.ndarray:
+    """Sums over ``b x b`` bins of the last two axes (zero-padded up to multiples of ``b``)."""
+    if b == 1:
+        return a
+    h, w = a.shape[-2:]
+    hc, wc = -(-h // b), -(-w // b)
+    if (hc * b, wc * b) != (h, w):
+        pad = np.zeros((*a.shape[:-2], hc * b, wc * b), a.dtype)
+        pad[..., :h, :w] = a
+        a = pad
+    return a.reshape(*a.shape[:-2], hc, b, wc, b).sum(axis=(-3, -1))
+
+
+def binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0, unweighted_zero: bool = False):
+    """Bin ``(n, h, w)`` values with ``(h, w)`` weights into inverse-variance weighted means.
+
+    Returns the bins' summed weights, their weighted-mean values ``(n, hc, wc)``
+    (0 where empty) and the weighted centroids (column, row in pixels; the bin
+    centre where empty). ``r0``: the image row of the first row (a multiple of ``b``).
+    ``unweighted_zero``: values where the weight is not positive count as 0.
+
+    The sums are made in bands of whole bins' rows (:data:`BIN_BAND_PIXELS`): each bin's sum
+    is the same reduction of the same numbers, without the weighted maps, the padded copies
+    and the centroid products of the whole image (five float64 maps: 480 MB at 12 MP, the
+    smooth LUT's peak in the global model's leak variance).
+    """
+    h, w = weights.shape
+    stacked = values.ndim == 3
+    vals = values if stacked else values[None]
+    hc, wc = -(-h // b), -(-w // b)
+    wsum, wx, wy = np.empty((hc, wc)), np.empty((hc, wc)), np.empty((hc, wc))
+    binned = np.empty((len(vals), hc, wc))
+    cols = np.arange(w, dtype=float)[None, :]
+    band = b * max(1, BIN_BAND_PIXELS // (b * w))
+    for s0 in range(0, h, band):
+        s1 = min(h, s0 + band)
+        c0, c1 = s0 // b, -(-s1 // b)
+        wt = weights[s0:s1]
+        wsum[c0:c1] = bin_sums(wt, b)
+        for i, v in enumerate(vals):  # one map at a time
+            v = v[s0:s1]
+            binned[i, c0:c1] = bin_sums(wt * (np.where(wt > 0, v, 0.0) if unweighted_zero else v), b)
+        wx[c0:c1] = bin_sums(wt * cols, b)
+        wy[c0:c1] = bin_sums(wt * np.arange(r0 + s0, r0 + s1, dtype=float)[:, None], b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(wsum > 0, 1.0 / wsum, 0.0)
+        mean = binned * inv
+        cx = np.arange(wc) * b + (b - 1) / 2.0
+        cy = r0 + np.arange(hc) * b + (b - 1) / 2.0
+        xbar = np.where(wsum > 0, wx * inv, cx[None, :])
+        ybar = np.where(wsum > 0, wy * inv, cy[:, None])
+    return wsum, (mean if stacked else mean[0]), xbar, ybar
+
+
+def binned_sigma(scale_px: float, b: int, interpolated: bool) -> float:
+    """Gaussian sigma (in bins) on a grid of ``b x b`` bins that smooths like ``scale_px`` per pixel.
+
+    A pixel weighted by the Gaussian at its bin's centre widens the kernel by
+    the bin's variance ``(b^2 - 1) / 12``; bilinear interpolation back to the
+    pixels adds ``b^2 / 6`` on average (its curvature bias): both are taken off.
+    """
+    extra = (b * b - 1) / 12.0 + (b * b / 6.0 if interpolated else 0.0)
+    return float(np.sqrt(max(scale_px ** 2 - extra, 0.25 * scale_px ** 2))) / b
+
+
+def smooth_on_bins(values: np.ndarray, weights: np.ndarray, scale_px: float, b: int, with_variance: bool = True,
+                   out: np.ndarray | None = None):
+    """:func:`local_linear_smooth` on a grid of ``b x b`` bins (each bin a point at its weighted centroid,
+    with the bin's weighted-mean value and summed weight), interpolated back to every pixel (bilinear).
+
+    Exact for linear trends like the per-pixel version; the Gaussian weight of a
+    pixel is taken at its bin's centre. For scales of several bins.
+    ``out``: where the smoothed maps go (the shape of ``values``; may be ``values`` itself, which is
+    read before it is written). Returns ``(smoothed, variance or None)``.
+    """
+    if b == 1 or scale_px <= 0:
+        smoothed, var = local_linear_smooth(values, np.asarray(weights), scale_px, with_variance)
+        if out is None:
+            return smoothed, var
+        out[...] = smoothed
+        return out, var
+    h, w = weights.shape
+    stacked = values.ndim == 3
+    wsum, mean, xbar, ybar = binned_points(weights, values if stacked else values[None], b, unweighted_zero=True)
+    hc, wc = wsum.shape
+    cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
+    cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
+    out_c, var_c = local_linear_grid(mean, wsum, binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px,
+                                     ybar / scale_px, with_variance)
+    if out is None:
+        out = np.empty((len(out_c), h, w)) if stacked else np.empty((h, w))
+    maps = out if stacked else out[None]
+    for i, o in enumerate(out_c):  # into one array: no list of maps beside their stack
+        maps[i] = upsample_bins(o, b, h, w)
+    var = None
+    if var_c is not None:
+        var = upsample_bins(var_c, b, h, w)
+        var[~np.isfinite(maps[0])] = np.nan
+    return out, var
+
+
+def upsample_bins(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:
+    """Bilinear interpolation of a map of ``b x b`` bin centres back to ``(h, w)`` pixels.
+
+    Linearly extrapolated half a bin past the outer centres (exact for planes up
+    to the image edge); pixels next to a bin without a value take their own bin's value.
+    """
+    hc, wc = coarse.shape
+    if hc == wc == 1:
+        # One bin (the model error's single region): its value everywhere, as the interpolation of a
+        # constant gives it, without OpenCV's (3 b)^2 grid (1.15 GB of float64 at 12 MP).
+        return np.full((h, w), coarse[0, 0], dtype=np.float64)
+    p = np.empty((hc + 2, wc + 2))
+    p[1:-1, 1:-1] = coarse
+    p[0, 1:-1] = 2 * coarse[0] - coarse[1] if hc > 1 else coarse[0]
+    p[-1, 1:-1] = 2 * coarse[-1] - coarse[-2] if hc > 1 else coarse[-1]
+    p[:, 0] = 2 * p[:, 1] - p[:, 2] if wc > 1 else p[:, 1]
+    p[:, -1] = 2 * p[:, -2] - p[:, -3] if wc > 1 else p[:, -2]
+    lin = cv2.resize(p, ((wc + 2) * b, (hc + 2) * b), interpolation=cv2.INTER_LINEAR)[b:b + h, b:b + w]
+    # NaN next to an empty bin: the pixel's own bin's value, band by band of rows. A whole map of
+    # repeated bins (np.repeat: 100 MB at 12 MP, freshly paged in while holding the GIL) stalled the
+    # wizard's event loop for 200 ms.
+    for r0 in range(0, h, UPSAMPLE_ROWS):
+        band = lin[r0:r0 + UPSAMPLE_ROWS]
+        bad = np.isnan(band)
+        if bad.any():
+            c0, c1 = r0 // b, -(-(r0 + len(band)) // b)
+            near = np.broadcast_to(coarse[c0:c1, None, :, None], (c1 - c0, b, wc, b)).reshape((c1 - c0) * b, wc * b)
+            np.copyto(band, near[r0 - c0 * b:r0 - c0 * b + len(band), :w], where=bad)
+    return lin
+
+
+UPSAMPLE_ROWS = 256
+"""Rows per band of :func:`upsample_bins`'s nearest-bin fill (a few MB of repeated bins at a time)."""
+
+
+BIN_BAND_PIXELS = 1 << 20
+"""Pixels per band of whole bins' rows in which :func:`binned_points` sums (8 MB a float64 map)."""
+
+
+def upsample_cubic(coarse: np.ndarray, step: int, h: int, w: int, out: np.ndarray | None = None) -> np.ndarray:
+    """A map sampled at every ``step``-th pixel back to (h, w) by Catmull-Rom cubics (two matrices).
+
+    Node ``i`` sits at pixel ``(i - 1) * step``: one node before the image and two past its end,
+    so every pixel has its four nodes. ``out``: an (h, w) float64 array to write the map into.
+    """
+    def weights(n: int, nc: int) -> np.ndarray:
+        pos = np.arange(n) / step + 1.0
+        i = np.floor(pos).astype(int)
+        f = pos - i
+        m = np.zeros((n, nc))
+        rows = np.arange(n)
+        for off, wt in ((-1, (-f ** 3 + 2 * f ** 2 - f) / 2), (0, (3 * f ** 3 - 5 * f ** 2 + 2) / 2),
+                        (1, (-3 * f ** 3 + 4 * f ** 2 + f) / 2), (2, (f ** 3 - f ** 2) / 2)):
+            m[rows, i + off] += wt
+        return m
+
+    hc, wc = coarse.shape
+    return np.matmul(weights(h, hc) @ coarse, weights(w, wc).T, out=out)

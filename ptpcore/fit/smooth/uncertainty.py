@@ -1,0 +1,259 @@
+"""Step 7 of the smooth fit, and the plain LUT's: per-pixel 1-sigma maps.
+
+``sigma^2 = noise^2 + stage + leak + model`` (:func:`uncertainty_maps`): the phase noise propagated
+through the smoothed fit (:func:`smooth_sigma_maps`), the stage readings' error
+(:func:`stage_variance`), the global model's own fit error that the smoothing passes on
+(:func:`global_leak_variance`) and the leave-one-out's model error. :func:`poly_sigma_maps` gives
+a plain ``poly`` LUT its sigma maps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ptpcore.fit.sigma import _normalised_heights, predicted_poly_sigma_flat
+from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks
+from ptpcore.fit.smooth.leave_one_out import LooSetup, LooSums, ModelError, leave_one_out
+from ptpcore.fit.smooth.noise import noise_rows, sigma_scale, stage_leverage
+from ptpcore.fit.smooth.pixel_fits import PixelFits, range_moments
+from ptpcore.fit.smooth.smoothing import final_bin_side, smooth_on_bins, upsample_cubic
+from ptpcore.io.lutfile import Lut
+from ptpcore.io.samples import SampleStack
+from ptpcore.pinhole.camera import PinholeModel
+from ptpcore.rig.rigfile import Rig
+
+__all__ = ["uncertainty_maps", "stage_variance", "global_leak_variance", "smooth_sigma_maps", "poly_sigma_maps",
+           "LEAK_GRID_PX"]
+
+
+def stage_variance(rays, rig: Rig, t: np.ndarray, degree: int, stage_sigma_mm: float) -> dict:
+    """Per-pixel variance (mm^2, float32 (H, W) per axis) from the stage readings' error; empty if none.
+
+    Per-position stage errors move all pixels together (see :func:`stage_leverage`).
+    """
+    if not stage_sigma_mm:
+        return {}
+    lev = stage_leverage(t, degree)
+    out = {a: np.empty(rays.shape, np.float32) for a in "xy"}
+    for r0, r1 in row_blocks(*rays.shape):
+        _, _, gsx, gsy = rays.rows(r0, r1)
+        for a, gs, d in (("x", gsx, 0), ("y", gsy, 1)):
+            out[a][r0:r1] = (np.square((gs - rig.stage.direction[d]) * stage_sigma_mm) * lev).astype(np.float32)
+    return out
+
+
+def uncertainty_maps(setup: LooSetup, gfit, inputs: dict, fits: "PixelFits", valid: np.ndarray,
+                     stage_var: dict, full: bool, report):
+    """The smooth LUT's sigma maps, leave-one-out maps and model-error term.
+
+    ``sigma^2 = noise^2 + stage + leak + model``: the propagated phase noise (``inputs["noise"]``,
+    (H, W) mm), the stage readings' term (``stage_var``, :func:`stage_variance`), the global
+    model's error passed on by the smoothing (:func:`global_leak_variance`, with the smoothing
+    weights ``inputs["leak_w"]``) and the model error the leave-one-out resolves
+    (:func:`leave_one_out`). Without ``full`` only the first two, and NaN leave-one-out maps.
+    ``inputs`` is emptied once its maps are used (not held through the leave-one-out).
+
+    Returns
+    -------
+    sig, loo : dict ``"x"``, ``"y"`` -> (H, W) float32, mm ; model : ModelError
+    """
+    s = setup
+    leak = {}
+    if full:
+        report(0.91, "propagating the global model's uncertainty")
+        leak = global_leak_variance(gfit, inputs["leak_w"], s.scale, s.cv_bin, fits.pz_min, fits.pz_max,
+                                    s.z_norm)
+    noise = inputs.pop("noise")
+    inputs.clear()
+    sums = LooSums(valid.shape)
+    for a in "xy":
+        sums.put("fit_var", a, np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
+                 + np.nan_to_num(leak.pop(a, 0.0), nan=0.0))
+    del noise, leak
+    if full:
+        loo, merr = leave_one_out(s, valid, sums, lambda f, m: report(0.92 + 0.07 * f, m))
+    else:
+        loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
+        merr = ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
+    sig = {a: np.empty(valid.shape, np.float32) for a in "xy"}
+    for a in "xy":
+        for r0, r1 in row_blocks(*valid.shape):
+            sig[a][r0:r1] = np.sqrt(sums.rows("fit_var", a, r0, r1) + merr.var[a][r0:r1]).astype(np.float32)
+    merr.var = None  # in the sigma maps now: not held while the LUT's coefficients come back (190 MB at 12 MP)
+    return sig, loo, merr
+
+
+def _pinhole_from_params(names, values) -> PinholeModel:
+    """A :class:`PinholeModel` from :class:`PinholeFit`-ordered parameter values."""
+    v = dict(zip(names, values))
+    K = np.array([[v["fx"], 0.0, v["cx"]], [0.0, v["fy"], v["cy"]], [0.0, 0.0, 1.0]])
+    dist = [v[n] for n in names if n[0] in "kp"]
+    return PinholeModel(K=K, dist=np.asarray(dist), rvec=np.array([v["rx"], v["ry"], v["rz"]]),
+                        tvec=np.array([v["tx"], v["ty"], v["tz"]]))
+
+
+def _rays_at(model: PinholeModel, cols: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``x0, y0, sx, sy`` (len(rows), len(cols)) of ``model``'s rays at the grid of ``cols`` x ``rows`` (px)."""
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    a0, b0 = model.pixel_to_world_at_z(cc, rr, 0.0)
+    a1, b1 = model.pixel_to_world_at_z(cc, rr, 1.0)
+    return a0, b0, a1 - a0, b1 - b0
+
+
+LEAK_GRID_PX = 8
+"""Grid step (px) on which :func:`global_leak_variance` recomputes the perturbed global rays."""
+
+
+def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min, pz_max,
+                         z_norm) -> dict:
+    """Per-pixel variance (mm^2) of the global model's own fit error that the smoothed correction passes on.
+
+    The correction is fitted to the samples minus the global model, so an error
+    ``dg`` of the global rays reaches the LUT as ``dg - S dg``, ``S`` the final
+    smoothing (locally linear: it follows ``dg`` only where ``dg`` is linear
+    over the smoothing scale). ``dg`` comes from the global fit's parameter
+    covariance (:func:`ptpcore.pinhole.camera.fit_pinhole`): along each of its
+    eigenvectors (1 sigma) the rays are recomputed, the change written as
+    coefficients in ``t`` (``x0 + sx z``), smoothed with the final smoothing's
+    weights, and the remainder's square averaged over the pixel's calibrated
+    range; the directions' contributions add.
+
+    Parameters
+    ----------
+    gfit : PinholeFit
+    weights : (2, H, W) float64 row store (:func:`ptpcore.store.row_store`), the smoothing weights of
+        coefficients 0 and 1
+        (:func:`smoothing_weights`)
+    scale : float, px ; b : int, the cross-validation's bin side
+    pz_min, pz_max : (H, W) the pixels' calibrated range (mm)
+    z_norm : (zc, zs)
+
+    Returns
+    -------
+    dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (zeros without smoothing or covariance)
+    """
+    h, w = pz_min.shape
+    out = {a: np.zeros((h, w)) for a in "xy"}
+    cov = getattr(gfit, "covariance", None)
+    if scale <= 0 or cov is None or not np.all(np.isfinite(cov)):
+        return out
+    zc, zs = z_norm
+    fb = final_bin_side(b, scale)
+    def moments(r0, r1):  # of the pixels' calibrated ranges, rows [r0, r1) (not held whole: 120 MB at 5 MP)
+        with np.errstate(all="ignore"):
+            return range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
+                                 ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
+
+    weights = [weights.plane_rows(j) for j in range(2)]  # read band by band where they are used (files)
+    lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    # The change of a pinhole's rays is smooth over the image: computed on a grid of every
+    # LEAK_GRID_PX-th pixel and interpolated (cubic).
+    step = max(1, min(LEAK_GRID_PX, (min(h, w) - 1) // 4))
+    rows = np.arange(-step, h + 2 * step, step, dtype=float)[: (h - 1) // step + 4]
+    cols = np.arange(-step, w + 2 * step, step, dtype=float)[: (w - 1) // step + 4]
+    base = _rays_at(gfit.model, cols, rows)
+    dirs = [np.sqrt(li) * vi for li, vi in zip(lam, vec.T) if li > 0]
+    # One direction and one axis at a time (issue 15): the directions' maps smoothed together were the
+    # smooth command's peak; each map is smoothed alone either way, and the remainders add per pixel
+    # in the same order.
+    for dv in dirs:
+        moved = _rays_at(_pinhole_from_params(gfit.param_names, gfit.param_values + dv), cols, rows)
+        for a, (i0, i1) in zip("xy", ((0, 2), (1, 3))):
+            # The change as coefficients in t, d0 + d1 zc and d1 zs, made in place (the changes
+            # d0, d1 and the products beside them were the 12 MP wizard's peak, 380 MB).
+            c = np.empty((2, 1, h, w))  # [coefficient j][map]
+            upsample_cubic(moved[i0] - base[i0], step, h, w, out=c[0, 0])
+            upsample_cubic(moved[i1] - base[i1], step, h, w, out=c[1, 0])
+            for r0, r1 in row_blocks(h, w):
+                c[0, 0, r0:r1] += c[1, 0, r0:r1] * zc
+            c[1, 0] *= zs
+            for j in range(2):
+                smoothed = np.nan_to_num(c[j])
+                c[j] -= smooth_on_bins(smoothed, weights[j], scale, fb, False, out=smoothed)[0]
+                del smoothed
+            for r0, r1 in row_blocks(h, w):
+                mom = moments(r0, r1)
+                l0, l1 = c[0, 0, r0:r1], c[1, 0, r0:r1]
+                out[a][r0:r1] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
+            del c
+    return out
+
+
+def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_scale: float,
+                      stage_var: dict) -> dict:
+    """Predicted 1-sigma maps (mm, float32 (H, W) per axis) of the smooth LUT.
+
+    RMS over the calibrated range (uniform in t) of the smoothed correction's
+    noise propagated from the phase noise. The model error beyond it
+    (smoothing bias) is estimated by cross-validation and reported in
+    SmoothInfo.excess_sigma_mm, not folded into the map: the fold fits use half
+    the positions, so it is an upper bound. Smoothing averages neighbouring
+    pixels' coefficients, each map on its own: its variance reduction is
+    measured on the uncorrelated form and applied to the pixel's own exact
+    variance over its calibrated range.
+    """
+    d1 = degree + 1
+    h, w = fits.pz_min.shape
+    sig1 = np.empty((h, w), np.float32)
+    for r0, r1 in row_blocks(h, w):  # row blocks: the moments are (2D+1) float64 maps
+        with np.errstate(all="ignore"):
+            mom = range_moments(((fits.pz_min[r0:r1] - zc) / zs).astype(np.float64),
+                                ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
+            var = fits.var.row_block(r0, r1)
+            smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
+            own_diag = fits.own_diag[r0:r1]
+            s2 = fits.own_var[r0:r1] * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+            # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
+            s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+        sig1[r0:r1] = np.sqrt(s2) * noise_scale
+    sig = {"x": sig1, "y": sig1.copy()}
+    for a, sv in stage_var.items():
+        sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
+    return sig
+
+
+def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
+                    stage_sigma_mm: float = 0.0, scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted 1-sigma maps (mm) of a plain, unweighted ``poly`` LUT.
+
+    The variance of the fitted value at each calibrated node, propagated from
+    every sample's phase noise through the pixel's own least-squares fit, and
+    averaged (RMS) over the pixel's calibrated range. With ``stage_sigma_mm``
+    (the stage readings' 1-sigma error) each sample also carries
+    ``|dX/dz - a| * stage_sigma_mm``, with the pixel's own slope ``dX/dz``.
+    Built in row blocks from the (possibly spilled) samples: never a whole
+    ``(K, H, W)`` array.
+
+    ``scale``: :func:`sigma_scale` of these samples and positions when already known.
+
+    Returns
+    -------
+    sigma_x, sigma_y : (H, W) float32
+    """
+    positions = list(range(samples.z.size)) if positions is None else list(positions)
+    if scale is None:
+        scale = sigma_scale(samples, rig, positions)
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
+    # RMS over the calibrated range: evaluate on a fine uniform grid of z.
+    zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
+    t, te = _normalised_heights(z, zs)
+    h, w = samples.shape
+    # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
+    axes = ((0, lut.x), (1, lut.y)) if stage_sigma_mm else ((0, None),)
+    maps = [np.empty((h, w), np.float32) for _ in axes]
+
+    def block(r0, r1):
+        valid, _, _, sig = noise_rows(samples, rig, sel, r0 * w, r1 * w)
+        sig = sig * scale
+        inside = (zs[:, None] >= lut.pixel_z_min[r0:r1].reshape(-1)) & (zs[:, None] <= lut.pixel_z_max[r0:r1].reshape(-1))
+        for (d, coef), out in zip(axes, maps):
+            s = sig if coef is None else np.hypot(sig, np.abs(
+                coef[1, r0:r1].reshape(-1) / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm)
+            pred = predicted_poly_sigma_flat(t, te, valid, s, lut.degree)  # (E, n)
+            with np.errstate(all="ignore"):
+                rms = np.sqrt(nanmean0(np.where(inside, pred * pred, np.nan)))
+            out[r0:r1] = np.where(lut.valid[r0:r1].reshape(-1), rms, np.nan).reshape(r1 - r0, w)
+
+    run_blocks(block, row_blocks(h, w))
+    return (maps[0], maps[0].copy()) if len(maps) == 1 else tuple(maps)
