@@ -25,9 +25,11 @@ from ptpcore.io import DatasetSource, SimulatedSource
 from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
+from ptpcore.run import check_samples
 from ptpcore.evaluate import DISPLAY_PIXELS, display_step, mask_rgba, reason_counts, reduce_for_display
 
-__all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
+__all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "check_and_report",
+           "tour_session"]
 
 SOURCE_KINDS = ("simulated", "folder", "live")
 _DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
@@ -99,6 +101,19 @@ class FramePreview:
             image = reduce_for_display(frame, step) if step > 1 else frame.copy()  # a new array, or the reader's buffer copied
             overlay = mask_rgba(reduce_for_display(sat, step, "any"), SATURATION_RGBA) if sat.any() else None
             self.ctx.emit(("frame", k, spec, image, overlay, float(sat.mean()), step, frame.shape[:2]))
+
+
+def check_and_report(samples, ctx) -> None:
+    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
+
+    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
+    reverse (the job fails with that message) and returns one message per pair
+    of positions that look stuck; those go to the page as a ``("warnings", [...])``
+    partial result, shown under the progress bar.
+    """
+    findings = check_samples(samples, warn=False)
+    if findings:
+        ctx.emit(("warnings", findings))
 
 
 @dataclass

@@ -9,12 +9,12 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
                                QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
 
 from ptpcore.io import DatasetSource
-from ptpcore.run import check_samples, collect_samples
+from ptpcore.run import collect_samples
 from ptpcore.simulate import simulate_dataset
 from ptpcore.evaluate import REASON_ORDER
 from ptpcore.decode import REASON_NAMES
 
-from ..session import FramePreview, PositionStatus, session_truth
+from ..session import FramePreview, PositionStatus, check_and_report, session_truth
 from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
@@ -74,19 +74,6 @@ def acquisition_job(session, write_folder: Path | None = None, preview_pixels=No
         return samples, truth
 
     return Job(run, "acquisition")
-
-
-def check_and_report(samples, ctx) -> None:
-    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
-
-    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
-    reverse (the job fails with that message) and returns one message per pair
-    of positions that look stuck; those go to the page as a ``("warnings", [...])``
-    partial result, shown under the progress bar.
-    """
-    findings = check_samples(samples, warn=False)
-    if findings:
-        ctx.emit(("warnings", findings))
 
 
 class AcquirePage(StudioPage):
