@@ -310,6 +310,16 @@ class StudioWizard(QWizard):
         self.stop_jobs()
         super().done(result)
 
+    def keyPressEvent(self, event) -> None:  # noqa: N802 - Qt API
+        # QDialog presses its default button (Next, or Finish on the last page) on a Return or Enter
+        # that the focused widget leaves unused: a line edit's, a spin box's, a combo box's. Return in
+        # the Export page's reference-LUT field finished the wizard. A focused button still takes its
+        # own Return (QPushButton handles it before this).
+        if event.key() in (Qt.Key_Return, Qt.Key_Enter):
+            event.accept()
+            return
+        super().keyPressEvent(event)
+
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt API
         if self.closing or not self.isVisible():
             self.stop_jobs()
