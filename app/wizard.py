@@ -18,6 +18,7 @@ from .pages.phasemaps import PhaseMapsPage
 from .pages.rig import RigPage
 from .session import Session, SessionModel
 from .sessionfile import Autosave, OpenedSession
+from .wheel import install as install_wheel_guard
 from .widgets.confirm import confirm
 from .worker import _ACTIVE, wait_for_jobs
 
@@ -49,7 +50,7 @@ def configure_app(app: QApplication) -> None:
     app.setApplicationName("PTP Studio")
     app.setApplicationVersion(__version__)
     app.setWindowIcon(QIcon(str(icon_path("app"))))
-    app.setStyle("Fusion")
+    install_wheel_guard(app, "Fusion")  # the style: Fusion; the wheel turns only a focused field
     app.setStyleSheet(stylesheet())
 
 
