@@ -367,4 +367,7 @@ class AcquirePage(StudioPage):
             return f"The acquisition was cancelled: press {self.start_button.text()} to run it again."
         if self._outcome == "errored":
             return "The acquisition failed (see the message above): fix the cause and press Start again."
+        if self.model.stale is not None:
+            return (f"Acquire the images first: press {self.start_button.text()} (the previous results are"
+                    " stale: see above).")
         return f"Acquire the images first: press {self.start_button.text()}."
