@@ -349,7 +349,7 @@ def cmd_diff(args) -> int:
         with atomic_path(args.json) as tmp:
             Path(tmp).write_text(json.dumps({"a": str(args.lut_a), "b": str(args.lut_b), **r.summary()}, indent=1))
     if args.png:
-        diff_png(r, args.png)
+        diff_png(r, args.png, title=f"LUT difference per pixel: {Path(args.lut_a).name} vs {Path(args.lut_b).name}")
     return 0 if r.consistent else 1
 
 
