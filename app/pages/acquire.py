@@ -13,6 +13,7 @@ from ptpcore.run import collect_samples
 from ptpcore.simulate import simulate_dataset
 from ptpcore.evaluate import REASON_ORDER
 from ptpcore.decode import REASON_NAMES
+from ptpcore.rig import position_label
 
 from ..session import FramePreview, PositionStatus, check_and_report, session_truth
 from ..widgets.maps import MapView
@@ -250,7 +251,7 @@ class AcquirePage(StudioPage):
             self._overlay = overlay
             self._overlay_toggled()
             self.frame_label.setText(
-                f"position {k + 1} (z = {s.rig.stage.z_mm[k]:g} mm), direction {d}, period {t} px,"
+                f"{position_label(k, s.rig.stage.z_mm[k])}, direction {d}, period {t} px,"
                 f" step {n + 1}/{big_n} — {100 * sat_frac:.2f} % saturated")
         elif kind in ("captured", "kept"):
             k = payload[1]
@@ -320,7 +321,7 @@ class AcquirePage(StudioPage):
         colours = {"done": "#1b7f4c", "running": "#2b6cb0", "captured": "#2b6cb0", "kept": "#2b6cb0",
                    "cancelled": "#c0392b", "not reached": "#c0392b"}
         for i, st in enumerate(s.positions):
-            cells = [str(st.index + 1), f"{st.z_mm:g}", st.state,
+            cells = [str(st.index), f"{st.z_mm:g}", st.state,  # counted from 0, as the dataset's folders
                      "" if st.valid_fraction is None else f"{100 * st.valid_fraction:.1f} %",
                      self._main_reason(st)]
             for c, text in enumerate(cells):

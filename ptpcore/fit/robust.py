@@ -38,6 +38,7 @@ from ptpcore.decode.phase import Reason
 from ptpcore.io.fastio import read_block
 from ptpcore.io.samples import SampleStack
 from ptpcore.parallel import map_in_order, release_free_memory
+from ptpcore.rig.naming import position_label
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["K_SIGMA", "SCREEN_DEGREE", "MAX_PER_PIXEL", "SUSPECT_FRACTION", "RobustReport", "screen_samples",
@@ -128,8 +129,7 @@ class RobustReport:
                f" {self.noise_scale:.2f} predicted sigma), at {int((self.n_rejected > 0).sum())} pixels"]
         for k in self.suspect:
             i = int(np.flatnonzero(self.positions == k)[0])
-            where = f" (z = {z[k]:g} mm)" if z is not None else ""
-            out.append(f"SUSPECT position {k + 1}{where}: {100 * self.fraction[i]:.0f} % of its samples are far"
+            out.append(f"SUSPECT {position_label(k, None if z is None else z[k])}: {100 * self.fraction[i]:.0f} % of its samples are far"
                        " from the curve of the others (wrong images? a stage glitch?); left out everywhere")
         return out
 
