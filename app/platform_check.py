@@ -79,7 +79,8 @@ def needed_sonames(path) -> list[str]:
     if strtab is None:
         return []
     # DT_STRTAB is a virtual address: the file offset of the loadable segment that holds it.
-    base = next(off - vaddr for p_type, off, vaddr, filesz in segments if p_type == 1 and vaddr <= strtab < vaddr + filesz)
+    base = next(off - vaddr for p_type, off, vaddr, filesz in segments
+                if p_type == 1 and vaddr <= strtab < vaddr + filesz)
     start = strtab + base
     return [data[start + n:data.index(b"\0", start + n)].decode() for n in needed]
 

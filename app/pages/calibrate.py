@@ -86,7 +86,8 @@ def robust_text(lut) -> str:
     out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
     z = lut_stage_z(lut)
     for k in d.get("suspect_positions", []):
-        out += (f" <b>SUSPECT {position_label(k, z[k] if k < len(z) else None)}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
+        name = position_label(k, z[k] if k < len(z) else None)
+        out += (f" <b>SUSPECT {name}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
                 " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
     return out
 

@@ -129,7 +129,8 @@ class RobustReport:
                f" {self.noise_scale:.2f} predicted sigma), at {int((self.n_rejected > 0).sum())} pixels"]
         for k in self.suspect:
             i = int(np.flatnonzero(self.positions == k)[0])
-            out.append(f"SUSPECT {position_label(k, None if z is None else z[k])}: {100 * self.fraction[i]:.0f} % of its samples are far"
+            name = position_label(k, None if z is None else z[k])
+            out.append(f"SUSPECT {name}: {100 * self.fraction[i]:.0f} % of its samples are far"
                        " from the curve of the others (wrong images? a stage glitch?); left out everywhere")
         return out
 
