@@ -74,6 +74,13 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.tour:
         os.environ["QT_QPA_PLATFORM"] = "offscreen"
+    else:
+        from .platform_check import startup_problem
+
+        problem = startup_problem()  # before Qt is loaded: Qt would abort (exit 134) on it
+        if problem:
+            print(f"ptp-studio: cannot open a window: {problem}.", file=sys.stderr)
+            return 2
     from PySide6.QtWidgets import QApplication
 
     from .wizard import StudioWizard, configure_app, freeze_startup_objects

@@ -36,7 +36,7 @@ from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
 from .widgets.maps import axis_label
-from .session import FramePreview, LiveSettings
+from .session import FramePreview, LiveSettings, check_and_report
 from .worker import Job
 
 __all__ = ["LivePanel", "StageAsker", "ReadingDialog", "build_devices", "live_capture_job",
@@ -228,8 +228,6 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
 
         samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
                                   on_position=decoded, full_positions=session.full_positions())
-        from .pages.acquire import check_and_report
-
         check_and_report(samples, ctx)
         ctx.progress(1.0, "done")
         return samples, truth, result.rig

@@ -6,9 +6,12 @@ samples, the LUT and the comparison. :class:`SessionModel` is a thin
 ``QObject`` around it that performs every change and emits a signal for it, so
 views subscribe instead of polling.
 
-Changing something upstream drops what was computed from it: a new rig drops
-the samples, new samples drop the LUT and the comparison. Opening a session
-file replaces everything at once (:meth:`SessionModel.restore`).
+An edit upstream never discards results: when the rig, the simulator or the
+source no longer match the :class:`Inputs` the results were computed from,
+the results (samples, LUT, comparison) are set aside as :class:`StaleResults`
+with the reason, and come back as they were when the values are set back; the
+next acquisition replaces them. New samples drop the LUT and the comparison.
+Opening a session file replaces everything at once (:meth:`SessionModel.restore`).
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ from ptpcore.io import DatasetSource, SimulatedSource
 from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
+from ptpcore.run import check_samples
 from ptpcore.evaluate import DISPLAY_PIXELS, display_step, mask_rgba, reason_counts, reduce_for_display
 
-__all__ = ["LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "tour_session"]
+__all__ = ["Inputs", "LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "StaleResults",
+           "check_and_report", "describe_change", "tour_session"]
 
 SOURCE_KINDS = ("simulated", "folder", "live")
 _DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
@@ -99,6 +104,19 @@ class FramePreview:
             image = reduce_for_display(frame, step) if step > 1 else frame.copy()  # a new array, or the reader's buffer copied
             overlay = mask_rgba(reduce_for_display(sat, step, "any"), SATURATION_RGBA) if sat.any() else None
             self.ctx.emit(("frame", k, spec, image, overlay, float(sat.mean()), step, frame.shape[:2]))
+
+
+def check_and_report(samples, ctx) -> None:
+    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
+
+    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
+    reverse (the job fails with that message) and returns one message per pair
+    of positions that look stuck; those go to the page as a ``("warnings", [...])``
+    partial result, shown under the progress bar.
+    """
+    findings = check_samples(samples, warn=False)
+    if findings:
+        ctx.emit(("warnings", findings))
 
 
 @dataclass
@@ -263,6 +281,84 @@ class Session:
         self.decoded[decoded.index] = decoded
 
 
+_RESULT_FIELDS = ("samples", "truth", "decode_options", "positions", "lut", "lut_positions", "compare",
+                  "saved_comparison", "exports")
+"""The :class:`Session` fields computed from its :class:`Inputs` (set aside together when they go stale)."""
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What a session's results are computed from; equal inputs give the same results.
+
+    The simulator's settings count for simulated and live sources (the live capture's simulated camera),
+    the folder for the others. Stage readings are compared to 1 nm: the Rig form recomputes them as
+    ``start + step * k``.
+    """
+
+    rig: Rig
+    source_kind: str
+    dataset_folder: Path | None
+    preset_name: str | None
+    sim_settings: SimSettings | None
+    seed: int | None
+
+    @classmethod
+    def of(cls, s: "Session") -> "Inputs":
+        rig = replace(s.rig, stage=replace(s.rig.stage, z_mm=tuple(round(float(z), 6) for z in s.rig.stage.z_mm)))
+        sim = s.source_kind in ("simulated", "live")
+        return cls(rig, s.source_kind, None if s.source_kind == "simulated" else s.dataset_folder,
+                   s.preset_name if sim else None, s.sim_settings if sim else None, s.seed if sim else None)
+
+
+_RIG_PARTS = {"camera": "the camera", "lcd": "the LCD", "fringes": "the fringe design", "display": "the display",
+              "decode": "the decode settings"}
+
+
+def _z_range(z) -> str:
+    return f"{len(z)} positions, z = {min(z):g} … {max(z):g} mm" if len(z) else "no positions"
+
+
+def describe_change(old: Inputs, new: Inputs) -> str:
+    """What differs between the inputs ``old`` (the results') and ``new`` (now), in words.
+
+    e.g. ``"the stage positions (11 positions, z = 0 … 40 mm then, 9 positions, z = 0 … 32 mm now)"``.
+    """
+    parts = []
+    if (old.source_kind, old.dataset_folder) != (new.source_kind, new.dataset_folder):
+        parts.append(f"the source ({old.source_kind} then, {new.source_kind} now)")
+    if (old.preset_name, old.seed) != (new.preset_name, new.seed) or old.sim_settings != new.sim_settings:
+        parts.append("the simulator (preset, seed or view offset)")
+    zo, zn = old.rig.stage.z_mm, new.rig.stage.z_mm
+    if zo != zn:
+        parts.append(f"the stage positions ({_z_range(zo)} then, {_z_range(zn)} now)")
+    elif old.rig.stage != new.rig.stage:
+        parts.append("the stage travel")
+    for f in fields(Rig):
+        if f.name != "stage" and getattr(old.rig, f.name) != getattr(new.rig, f.name):
+            parts.append(_RIG_PARTS.get(f.name, f"the rig's {f.name.replace('_', ' ')}"))
+    parts = list(dict.fromkeys(parts))
+    return ", ".join(parts[:-1]) + " and " + parts[-1] if len(parts) > 1 else (parts[0] if parts else "nothing")
+
+
+@dataclass
+class StaleResults:
+    """Results set aside because the inputs changed: the :data:`_RESULT_FIELDS` of the session as they were.
+
+    Attributes
+    ----------
+    inputs : Inputs
+        What they were computed from; setting the inputs back to these restores them.
+    values : dict
+        Session field name -> value.
+    saved : bool
+        A session file held them as they are when they were set aside.
+    """
+
+    inputs: Inputs
+    values: dict
+    saved: bool
+
+
 class SessionModel(QObject):
     """Qt wrapper of a :class:`Session`: every change goes through it and is signalled.
 
@@ -272,6 +368,9 @@ class SessionModel(QObject):
     datasetReplaced
         The images now come from another dataset (a new import, another rig or simulator):
         what was computed belongs to the previous one (the autosave lets go of its file).
+    staleChanged
+        Results were set aside as stale, or brought back, or the stale ones were dropped
+        (:attr:`stale`, :meth:`stale_reason`).
 
     Attributes
     ----------
@@ -282,6 +381,11 @@ class SessionModel(QObject):
     work, saved_work : int
         ``work`` counts changes of the results (samples, LUT, comparison); ``saved_work``
         is its value when they were last written to a session file.
+    results_inputs : Inputs or None
+        What the present samples (and the LUT and comparison from them) were computed from.
+    stale : StaleResults or None
+        Results set aside because the inputs changed since; back when the inputs are set back to
+        theirs, dropped by the next acquisition, import or opened session.
     """
 
     rigChanged = Signal()
@@ -294,6 +398,7 @@ class SessionModel(QObject):
     compareChanged = Signal()
     exportsChanged = Signal()
     datasetReplaced = Signal()
+    staleChanged = Signal()
 
     def __init__(self, session: Session, parent: QObject | None = None):
         super().__init__(parent)
@@ -304,6 +409,8 @@ class SessionModel(QObject):
         self.version = 0
         self.work = 0
         self.saved_work = 0
+        self.results_inputs: Inputs | None = None
+        self.stale: StaleResults | None = None
 
     # ---- what would be lost ------------------------------------------------------
     @property
@@ -314,20 +421,28 @@ class SessionModel(QObject):
 
     @property
     def unsaved_work(self) -> bool:
-        """Results exist that no session file holds in their present state."""
-        return self.has_results and self.work != self.saved_work
+        """Results exist that no session file holds in their present state (stale ones included)."""
+        return (self.has_results and self.work != self.saved_work) or (self.stale is not None and not self.stale.saved)
 
     def mark_saved(self, work: int | None = None) -> None:
         """The results as they were at ``work`` (default: now) are in a session file."""
         self.saved_work = self.work if work is None else int(work)
 
     def describe_results(self) -> str:
-        """'the decoded samples, the LUT and the comparison' (what exists), for questions."""
+        """'the decoded samples, the LUT and the comparison' (what exists), for questions; the stale
+        ones when none are current ('... (stale, set aside)')."""
         s = self.session
-        have = [name for name, v in (("the decoded samples", s.samples), ("the LUT", s.lut),
-                                     ("the comparison", s.compare if s.compare is not None else s.saved_comparison))
-                if v is not None]
-        return " and ".join([", ".join(have[:-1]), have[-1]] if len(have) > 1 else have) or "nothing"
+        if not self.has_results and self.stale is not None:
+            return f"{_describe(self.stale.values)} (stale, set aside)"
+        return _describe({f: getattr(s, f) for f in _RESULT_FIELDS})
+
+    def stale_reason(self) -> str | None:
+        """Why results are set aside, in words (None: none are)."""
+        if self.stale is None:
+            return None
+        return (f"{_describe(self.stale.values).capitalize()} are stale, set aside: computed before"
+                f" {describe_change(self.stale.inputs, Inputs.of(self.session))} changed. Set the values back"
+                " to restore them; acquiring again replaces them.")
 
     # Upstream changes drop what was computed from them.
     def _drop_samples(self) -> None:
@@ -368,22 +483,81 @@ class SessionModel(QObject):
             self.exportsChanged.emit()
         self.datasetReplaced.emit()
 
+    def _inputs_changed(self) -> None:
+        """After an edit of the inputs: set the results aside (stale) if they no longer match, bring
+        stale ones back if the inputs are theirs again, else (no results) start afresh."""
+        now = Inputs.of(self.session)
+        if self.has_results and self.results_inputs is not None:
+            if now == self.results_inputs:
+                return
+            self._set_aside()
+        elif self.stale is not None and now == self.stale.inputs:
+            self._bring_back()
+            return
+        else:
+            self._drop_samples()
+        self._replaced()
+
+    def _set_aside(self) -> None:
+        s = self.session
+        # The values as they are; _drop_samples and _replaced then put new objects in the session's
+        # fields (a new positions list, exports dict, decode options), never change these.
+        self.stale = StaleResults(self.results_inputs, {f: getattr(s, f) for f in _RESULT_FIELDS},
+                                  saved=self.work == self.saved_work)
+        self.results_inputs = None
+        self._drop_samples()  # as before: a new generation and version, every signal
+        self.staleChanged.emit()
+
+    def _bring_back(self) -> None:
+        s, stale = self.session, self.stale
+        self.stale = None
+        self.generation += 1  # a job started before finishes into the void
+        self.version += 1
+        for f, value in stale.values.items():
+            setattr(s, f, value)
+        s.decoded.clear()  # not kept aside: the Phase maps page decodes again what it shows
+        self.results_inputs = stale.inputs
+        self.work += 1
+        if stale.saved:
+            self.saved_work = self.work
+        for signal in (self.samplesChanged, self.positionsChanged, self.lutChanged, self.compareChanged,
+                       self.exportsChanged, self.staleChanged):
+            signal.emit()
+
+    def restore_stale_inputs(self) -> None:
+        """Set the rig, simulator and source back to those of the stale results: they come back."""
+        if self.stale is None:
+            return
+        s, old = self.session, self.stale.inputs
+        s.rig = old.rig
+        s.source_kind = old.source_kind
+        if old.source_kind != "simulated":
+            s.dataset_folder = old.dataset_folder
+        if old.sim_settings is not None:
+            s.preset_name, s.sim_settings, s.seed = old.preset_name, old.sim_settings, old.seed
+        self._inputs_changed()
+        self.rigChanged.emit()
+        self.sourceChanged.emit()
+
+    def _drop_stale(self) -> None:
+        if self.stale is not None:
+            self.stale = None
+            self.staleChanged.emit()
+
     def set_rig(self, rig: Rig) -> None:
         if rig == self.session.rig:
             return
         self.session.rig = rig
+        self._inputs_changed()  # first: the results are set aside (or back) before a view reacts to the rig
         self.rigChanged.emit()
-        self._drop_samples()
-        self._replaced()
 
     def set_simulator(self, preset_name: str, settings: SimSettings, seed: int) -> None:
         s = self.session
         if (preset_name, settings, seed) == (s.preset_name, s.sim_settings, s.seed):
             return
         s.preset_name, s.sim_settings, s.seed = preset_name, settings, int(seed)
+        self._inputs_changed()
         self.sourceChanged.emit()
-        self._drop_samples()
-        self._replaced()
 
     def set_source(self, kind: str, folder: Path | None = None) -> None:
         if kind not in SOURCE_KINDS:
@@ -393,9 +567,8 @@ class SessionModel(QObject):
         if (kind, folder) == (s.source_kind, s.dataset_folder):
             return
         s.source_kind, s.dataset_folder = kind, folder
+        self._inputs_changed()
         self.sourceChanged.emit()
-        self._drop_samples()
-        self._replaced()
 
     def import_dataset(self, folder: Path, rig: Rig) -> None:
         """Take the ``ptp-dataset/1`` folder ``folder`` (whose rig.toml says ``rig``) as the source.
@@ -412,10 +585,12 @@ class SessionModel(QObject):
             self.sourceChanged.emit()
         if rig_changed:
             self.rigChanged.emit()
+        self._drop_stale()
         self._drop_samples()
         self._replaced()
 
     def start_acquisition(self) -> None:
+        self._drop_stale()  # "until the next run"
         self._drop_samples()
 
     def update_position(self, status: PositionStatus) -> None:
@@ -436,8 +611,10 @@ class SessionModel(QObject):
     def set_samples(self, samples, truth=None) -> None:
         self.version += 1
         self.work += 1
+        self._drop_stale()
         self.session.samples = samples
         self.session.truth = truth
+        self.results_inputs = Inputs.of(self.session)
         self._drop_lut()
         self._drop_compare()
         self.samplesChanged.emit()
@@ -467,13 +644,24 @@ class SessionModel(QObject):
         for f in fields(Session):
             if f.name != "live":
                 setattr(s, f.name, getattr(other, f.name))
+        self.stale = None
+        self.results_inputs = Inputs.of(s)
         for signal in (self.rigChanged, self.sourceChanged, self.samplesChanged, self.positionsChanged,
-                       self.lutChanged, self.compareChanged, self.exportsChanged):
+                       self.lutChanged, self.compareChanged, self.exportsChanged, self.staleChanged):
             signal.emit()
 
     def add_export(self, what: str, path: Path) -> None:
         self.session.exports[what] = Path(path)
         self.exportsChanged.emit()
+
+
+def _describe(values: dict) -> str:
+    """'the decoded samples, the LUT and the comparison': those of ``values`` (Session fields) that exist."""
+    have = [name for name, v in (("the decoded samples", values.get("samples")), ("the LUT", values.get("lut")),
+                                 ("the comparison", values.get("compare") if values.get("compare") is not None
+                                  else values.get("saved_comparison")))
+            if v is not None]
+    return " and ".join([", ".join(have[:-1]), have[-1]] if len(have) > 1 else have) or "nothing"
 
 
 def session_truth(kind: str, rig: Rig, settings: SimSettings, seed: int, folder):

@@ -18,6 +18,7 @@ from .pages.phasemaps import PhaseMapsPage
 from .pages.rig import RigPage
 from .session import Session, SessionModel
 from .sessionfile import Autosave, OpenedSession
+from .wheel import install as install_wheel_guard
 from .widgets.confirm import confirm
 from .worker import _ACTIVE, wait_for_jobs
 
@@ -49,7 +50,7 @@ def configure_app(app: QApplication) -> None:
     app.setApplicationName("PTP Studio")
     app.setApplicationVersion(__version__)
     app.setWindowIcon(QIcon(str(icon_path("app"))))
-    app.setStyle("Fusion")
+    install_wheel_guard(app, "Fusion")  # the style: Fusion; the wheel turns only a focused field
     app.setStyleSheet(stylesheet())
 
 
@@ -309,6 +310,16 @@ class StudioWizard(QWizard):
     def done(self, result: int) -> None:  # noqa: D401 - Qt API
         self.stop_jobs()
         super().done(result)
+
+    def keyPressEvent(self, event) -> None:  # noqa: N802 - Qt API
+        # QDialog presses its default button (Next, or Finish on the last page) on a Return or Enter
+        # that the focused widget leaves unused: a line edit's, a spin box's, a combo box's. Return in
+        # the Export page's reference-LUT field finished the wizard. A focused button still takes its
+        # own Return (QPushButton handles it before this).
+        if event.key() in (Qt.Key_Return, Qt.Key_Enter):
+            event.accept()
+            return
+        super().keyPressEvent(event)
 
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt API
         if self.closing or not self.isVisible():

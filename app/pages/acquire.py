@@ -9,12 +9,13 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
                                QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
 
 from ptpcore.io import DatasetSource
-from ptpcore.run import check_samples, collect_samples
+from ptpcore.run import collect_samples
 from ptpcore.simulate import simulate_dataset
 from ptpcore.evaluate import REASON_ORDER
 from ptpcore.decode import REASON_NAMES
+from ptpcore.rig import position_label
 
-from ..session import FramePreview, PositionStatus, session_truth
+from ..session import FramePreview, PositionStatus, check_and_report, session_truth
 from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
@@ -74,19 +75,6 @@ def acquisition_job(session, write_folder: Path | None = None, preview_pixels=No
         return samples, truth
 
     return Job(run, "acquisition")
-
-
-def check_and_report(samples, ctx) -> None:
-    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
-
-    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
-    reverse (the job fails with that message) and returns one message per pair
-    of positions that look stuck; those go to the page as a ``("warnings", [...])``
-    partial result, shown under the progress bar.
-    """
-    findings = check_samples(samples, warn=False)
-    if findings:
-        ctx.emit(("warnings", findings))
 
 
 class AcquirePage(StudioPage):
@@ -263,7 +251,7 @@ class AcquirePage(StudioPage):
             self._overlay = overlay
             self._overlay_toggled()
             self.frame_label.setText(
-                f"position {k + 1} (z = {s.rig.stage.z_mm[k]:g} mm), direction {d}, period {t} px,"
+                f"{position_label(k, s.rig.stage.z_mm[k])}, direction {d}, period {t} px,"
                 f" step {n + 1}/{big_n} — {100 * sat_frac:.2f} % saturated")
         elif kind in ("captured", "kept"):
             k = payload[1]
@@ -333,7 +321,7 @@ class AcquirePage(StudioPage):
         colours = {"done": "#1b7f4c", "running": "#2b6cb0", "captured": "#2b6cb0", "kept": "#2b6cb0",
                    "cancelled": "#c0392b", "not reached": "#c0392b"}
         for i, st in enumerate(s.positions):
-            cells = [str(st.index + 1), f"{st.z_mm:g}", st.state,
+            cells = [str(st.index), f"{st.z_mm:g}", st.state,  # counted from 0, as the dataset's folders
                      "" if st.valid_fraction is None else f"{100 * st.valid_fraction:.1f} %",
                      self._main_reason(st)]
             for c, text in enumerate(cells):
@@ -380,4 +368,7 @@ class AcquirePage(StudioPage):
             return f"The acquisition was cancelled: press {self.start_button.text()} to run it again."
         if self._outcome == "errored":
             return "The acquisition failed (see the message above): fix the cause and press Start again."
+        if self.model.stale is not None:
+            return (f"Acquire the images first: press {self.start_button.text()} (the previous results are"
+                    " stale: see above).")
         return f"Acquire the images first: press {self.start_button.text()}."

@@ -9,6 +9,7 @@ from PySide6.QtWidgets import QFrame, QLabel, QScrollArea, QVBoxLayout, QWidget,
 from ..assets import icon_path
 from ..session import SessionModel
 from ..widgets.jobpanel import JobPanel
+from ..widgets.stale import StaleBanner
 from ..worker import Job
 
 __all__ = ["StudioPage"]
@@ -38,6 +39,7 @@ class StudioPage(QWizardPage):
         self.setSubTitle(self.subheading)
         outer = QVBoxLayout(self)
         outer.setContentsMargins(4, 4, 4, 4)
+        outer.addWidget(StaleBanner(model, self))  # results set aside by an edit: why, and how to get them back
         # The body scrolls when the window is smaller than the page needs (a 1366x768 laptop screen):
         # the page's minimum size never forces the window past the screen.
         self.scroll = QScrollArea(self)

@@ -12,6 +12,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QVBoxLayout)
 
 from ptpcore.fit import describe_lut
+from ptpcore.rig import lut_stage_z, position_label
 from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
 from ptpcore.fit.glass import describe_corrections
 from ptpcore.fit.choice import ModelChoice
@@ -83,8 +84,10 @@ def robust_text(lut) -> str:
     except ValueError:
         return ""
     out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
+    z = lut_stage_z(lut)
     for k in d.get("suspect_positions", []):
-        out += (f" <b>SUSPECT position {k + 1}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
+        name = position_label(k, z[k] if k < len(z) else None)
+        out += (f" <b>SUSPECT {name}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
                 " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
     return out
 
@@ -106,7 +109,7 @@ def drift_text(lut) -> str:
             continue
         pred = r.get("predicted_rms_um")
         m = r.get("mean_um") or [float("nan")] * 2
-        out += (f" Drift at z = {r['z_mm']:g} mm (position {r['position'] + 1} again): RMS {r['rms_um']:.3f} µm"
+        out += (f" Drift at z = {r['z_mm']:g} mm ({position_label(r['position'])} again): RMS {r['rms_um']:.3f} µm"
                 + (f" (noise predicts {pred:.3f} µm)" if pred is not None else "")
                 + f", mean ({m[0]:+.3f}, {m[1]:+.3f}) µm.")
     return out

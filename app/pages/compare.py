@@ -403,7 +403,8 @@ class ComparePage(StudioPage):
         notes = "".join(f" {n}." for n in r.notes)
         notes += "".join(f" {line[0].upper()}{line[1:]}." for line in describe_corrections(r.corrections))
         self.coverage.setText(
-            f"Held-out positions {', '.join(str(int(k) + 1) for k in r.held_positions)}; pixels compared"
+            f"Held-out positions {', '.join(str(int(k)) for k in r.held_positions)}"
+            f" (z = {', '.join(f'{z:g}' for z in r.z_held)} mm); pixels compared"
             f" {100 * c.n_compared.sum() / nm:.1f} % of the valid held-out samples; pairs "
             f"{len(r.pairs['same_height'])} same height, {len(r.pairs['across_heights'])} across heights."
             f"{smooth}{notes}{noise}")

@@ -209,7 +209,7 @@ class ExportPage(StudioPage):
         write_rig = self.do_rig.isChecked()
         targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
                    *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else []),
-                   *(out / f"residuals_position_{k + 1}.png" for k in worst)]
+                   *(out / f"residuals_position_{k}.png" for k in worst)]  # k from 0, as the dataset's folders
         # Files this session wrote itself (an earlier export, its autosaved session file) are replaced
         # without asking; anything else already there is another session's.
         own = {Path(p) for p in s.exports.values()}
@@ -244,7 +244,7 @@ class ExportPage(StudioPage):
                 _save_png(image, path)
                 written.append(path)
             for k in worst:
-                path = out / f"residuals_position_{k + 1}.png"
+                path = out / f"residuals_position_{k}.png"
                 step(f"writing {path.name}")
                 residual_png(residuals, k, path)
                 written.append(path)

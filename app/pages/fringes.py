@@ -15,7 +15,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
 from ptpcore.decode import design_check, fringe_image, fringe_profile
 from ptpcore.decode.harmonics import measured_harmonics
 from ptpcore.decode.patterns import GRAY_TEMPLATE, gray_bits_needed
-from ptpcore.rig import DirectionFringes, FringeDesign, format_period, rig_from_toml, rig_to_toml
+from ptpcore.rig import DirectionFringes, FringeDesign, format_period, position_label, rig_from_toml, rig_to_toml
 from ptpcore.evaluate import predicted_signal
 
 from ..widgets.maps import MapView, axis_label, plain_axes
@@ -347,7 +347,8 @@ class FringesPage(StudioPage):
             k, m = measured
             self.report = design_check(rig, modulation_dn=m.modulation_dn, noise_dn=m.noise_dn,
                                        harmonic_dn=m.harmonic_dn)
-            basis = (f"measured at position {k + 1}: modulation {m.modulation_dn:.0f}, noise {m.noise_dn:.2g},"
+            z = rig.stage.z_mm[k] if k < rig.stage.n_positions else None
+            basis = (f"measured at {position_label(k, z)}: modulation {m.modulation_dn:.0f}, noise {m.noise_dn:.2g},"
                      f" display harmonics {m.harmonic_dn:.2g} grey levels")
         elif s.source_kind == "simulated":
             mod, noise = predicted_signal(rig, s.sim_settings)
@@ -420,7 +421,7 @@ class FringesPage(StudioPage):
         shift = f.carrier(d) * z
         self.preview_label.setText(
             f"{d}, T = {format_period(period)} px ({j + 1}/{len(periods)}), step {step + 1}/{n_steps},"
-            f" position {k + 1}/{rig.stage.n_positions}: z = {z:g} mm, carrier shift {shift:.1f} px")
+            f" {position_label(k, z)} (of 0 … {rig.stage.n_positions - 1}), carrier shift {shift:.1f} px")
         prof = fringe_profile(rig.lcd, f, d, period, step, n_steps, z)
         span = min(prof.size, max(int(2 * period), 256))
         self.profile_curve.setData(np.arange(span), prof[:span].astype(float))

@@ -7,7 +7,7 @@ import pyqtgraph as pg
 from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, QLabel, QVBoxLayout)
 
 from ptpcore.decode import REASON_NAMES
-from ptpcore.rig import format_period
+from ptpcore.rig import format_period, position_label
 from ptpcore.run import decode_position
 from ptpcore.run.decoding import direction_reasons
 from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
@@ -40,7 +40,7 @@ class _CountingSource:
     def frames(self, k):
         total = self.rig.fringes.frames_per_position
         for i, (spec, img) in enumerate(self.source.frames(k)):
-            self.ctx.progress(i / total, f"decoding position {k + 1}: frame {i + 1}/{total}")
+            self.ctx.progress(i / total, f"decoding {position_label(k, self.rig.stage.z_mm[k])}: frame {i + 1}/{total}")
             yield spec, img
 
     def __getattr__(self, name: str):
@@ -138,7 +138,7 @@ class PhaseMapsPage(StudioPage):
         k_prev = self.pos_combo.currentIndex()
         self.pos_combo.clear()
         for k, z in enumerate(rig.stage.z_mm):
-            self.pos_combo.addItem(f"{k + 1}: z = {z:g} mm", k)
+            self.pos_combo.addItem(position_label(k, z), k)
         self.dir_combo.clear()
         for d in rig.fringes.directions:
             self.dir_combo.addItem(f"{d} ({'u, columns' if d == 'x' else 'v, rows'})", d)
@@ -217,7 +217,7 @@ class PhaseMapsPage(StudioPage):
             self.jobs.show_error(str(exc))
             return
         self._decoding = k
-        job = Job(lambda ctx: decode_position(_CountingSource(source, ctx), k), f"decoding position {k + 1}")
+        job = Job(lambda ctx: decode_position(_CountingSource(source, ctx), k), f"decoding {position_label(k)}")
         job.finished.connect(self.model.set_decoded)
         self.run_job(job)
 
@@ -239,7 +239,7 @@ class PhaseMapsPage(StudioPage):
             lines = [fd.message() for fd in convention_check(rig, pos)]
         except Exception as exc:  # noqa: BLE001 - a diagnosis must never break the page
             lines = [f"convention check failed: {exc}"]
-        line = position_report(f"position {pos.index + 1} (z = {pos.z_mm:g} mm)", pos.reasons)
+        line = position_report(position_label(pos.index, pos.z_mm), pos.reasons)
         if line:
             lines.append(line)
         if lines:
@@ -265,7 +265,7 @@ class PhaseMapsPage(StudioPage):
         j = len(periods) - 1 if j is None else min(j, len(periods) - 1)
         dec = pos.directions[d]
         period = format_period(periods[j])
-        where = f"position {pos.index + 1} (z = {pos.z_mm:g} mm), direction {d}"
+        where = f"{position_label(pos.index, pos.z_mm)}, direction {d}"
         self.current = (pos.index, d, kind, j)
         reasons = self.reasons_of(d)
         self._reasons = reasons

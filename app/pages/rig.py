@@ -254,7 +254,7 @@ class RigPage(StudioPage):
                      "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
                      "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"
                      "Nothing in the data reveals them: left 'not declared', a bare panel is assumed and the\n"
-                     "LUT is off by the refraction, tens to hundreds of um at oblique pixels. 0 declares a\n"
+                     "LUT is off by the refraction, tens to hundreds of µm at oblique pixels. 0 declares a\n"
                      "panel without glass.")
         self.glass_t = _dspin(GLASS_UNDECLARED, 20.0, GLASS_UNDECLARED, 3, 0.1, " mm")
         self.glass_t.setSpecialValueText("not declared")  # shown at the minimum: the key is absent

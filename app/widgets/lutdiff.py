@@ -67,7 +67,9 @@ class LutDiffPanel(QGroupBox):
         self.compare_button = QPushButton("Compare")
         self.compare_button.setToolTip("Per-pixel difference over the pixels and heights both LUTs cover, against"
                                        " the difference their sigma maps predict")
-        self.compare_button.clicked.connect(self.compare)
+        # clicked(bool) would hand its ``checked`` (False) to compare's ``reference``: no argument.
+        self.compare_button.clicked.connect(lambda: self.compare())
+        self.reference.returnPressed.connect(lambda: self.compare())  # Return in the field compares
         self.jobs = JobPanel(self)
         for w in (self.reference, browse, self.compare_button):
             row.addWidget(w, 1 if w is self.reference else 0)

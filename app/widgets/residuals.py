@@ -17,6 +17,7 @@ import pyqtgraph as pg
 from PySide6.QtWidgets import QComboBox, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout
 
 from ptpcore.evaluate.residuals import ResidualField
+from ptpcore.rig import position_label
 
 from .maps import axis_label
 
@@ -102,7 +103,8 @@ class ResidualPanel(QGroupBox):
             for k in field.worst_positions:
                 if np.isfinite(field.rms_um[k]):
                     held = "" if field.used[k] else ", held out"
-                    self.position.addItem(f"{k + 1}: z = {field.z[k]:g} mm{held}, RMS {field.rms_um[k]:.3f} µm",
+                    self.position.addItem(f"{position_label(k, field.z[k])}{held}: RMS (X and Y)"
+                                          f" {field.rms_um[k]:.3f} µm",
                                           int(k))
         self.position.blockSignals(False)
         self.worst.setText("<br>".join(field.lines()) if field is not None else "")
@@ -152,4 +154,4 @@ class ResidualPanel(QGroupBox):
         self.arrows.setData(x, y, connect="pairs")
         self.bases.setData(x[::2], y[::2])
         merged = f", blocks of {field.block} px" if group > 1 else ""
-        self.plot.setTitle(f"position {self._k + 1}: arrows {scale:.3g} px per µm{merged}")
+        self.plot.setTitle(f"{position_label(self._k, field.z[self._k])}: arrows {scale:.3g} px per µm{merged}")

@@ -26,7 +26,7 @@ TIPS = {
     "flatness_u_px": ("[lcd] flatness_u_px: the LCD columns (px) of the grid the panel's measured shape is given on,\n"
                       "increasing, e.g. 0, 1920, 3840. Empty: the panel is taken as flat."),
     "flatness_v_px": "[lcd] flatness_v_px: the LCD rows (px) of that grid, increasing, e.g. 0, 1080, 2160.",
-    "flatness_um": ("[lcd] flatness_um: the measured height of the pixel plane at the grid points (um),\n"
+    "flatness_um": ("[lcd] flatness_um: the measured height of the pixel plane at the grid points (µm),\n"
                     "one row per v, rows separated by ';' (e.g. 0 5 0; 5 12 5; 0 5 0); + = farther from\n"
                     "the camera. Interpolated bilinearly between the points."),
     "display_levels": ("[display] levels: displayed grey levels (0..255, increasing) at which the display's\n"

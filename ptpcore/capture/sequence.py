@@ -49,6 +49,7 @@ from ptpcore.io.dataset import check_calibration_design, read_image
 from ptpcore.capture.devices import describe
 from ptpcore.capture.devices.camera import FrameError
 from ptpcore.errors import CaptureError, ConfigError, DeviceError, PtpError
+from ptpcore.rig import position_label
 from ptpcore.decode.patterns import fringe_profile, gray_profile, reference_profile
 from ptpcore.rig.rigfile import Display, FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
 
@@ -640,7 +641,7 @@ def _verify_kept_positions(out: Path, rig: Rig, state: dict, report, on_position
     kept = []
     n_pos = len(state["positions"])
     for k, pos in enumerate(state["positions"]):
-        report(0.0, f"verifying position {k + 1}/{n_pos}")
+        report(0.0, f"verifying position {k} (0 … {n_pos - 1})")
         if pos.get("state") == "done" and _position_complete(out, rig, k):
             kept.append(k)
             if on_position:
@@ -722,7 +723,7 @@ class _CaptureRun:
     def move_to(self, k: int, z_planned: float, tolerance_mm: float) -> float:
         """Move the stage to position ``k``; its reading (mm), checked against the plan."""
         self.report(self.done_frames / self.total,
-                    f"position {k + 1}/{self.n_pos}: moving the stage to z = {z_planned:g} mm")
+                    f"position {k} (0 … {self.n_pos - 1}): moving the stage to z = {z_planned:g} mm")
         _call(self.stage, "move_to", z_planned)
         z = float(_call(self.stage, "position"))
         if not math.isfinite(z) or abs(z - z_planned) > tolerance_mm:
@@ -788,15 +789,15 @@ class _CaptureRun:
         """One pattern ``spec = (dir, level, period, step, N)``: show, settle, grab, check, write atomically."""
         rig = self.rig
         d, _j, t, s, big_n = spec
-        self.report(self.done_frames / self.total, f"position {k + 1}/{self.n_pos} (z = {z:g} mm): {d} period"
+        self.report(self.done_frames / self.total, f"{position_label(k, z)} (0 … {self.n_pos - 1}): {d} period"
                                                    f" {t} px, step {s + 1}/{big_n}")
         _call(self.display, "show", pattern_image(rig, d, t, s, big_n, z))
         _call(self.display, "settle")
-        frame = _check_frame(_grab(self.camera, f"position {k + 1}, {d} period {t} step {s + 1}", self.retries),
+        frame = _check_frame(_grab(self.camera, f"position {k}, {d} period {t} step {s + 1}", self.retries),
                              rig, self.camera)
         ok, buf = cv2.imencode(self.image_ext, frame)
         if not ok:
-            raise OSError(f"could not encode the frame of position {k + 1} as {self.image_ext}")
+            raise OSError(f"could not encode the frame of position {k} as {self.image_ext}")
         path = self.out / rig.image_name(k, d, t, s, big_n)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_bytes_atomic(path, buf.tobytes())
@@ -807,13 +808,13 @@ class _CaptureRun:
 
     def capture_image(self, k: int, z: float, name: str, image: np.ndarray, what: str) -> None:
         """One frame besides the phase steps (:func:`extra_frames`): show, settle, grab, check, write atomically."""
-        self.report(self.done_frames / self.total, f"position {k + 1}/{self.n_pos} (z = {z:g} mm): {what}")
+        self.report(self.done_frames / self.total, f"{position_label(k, z)} (0 … {self.n_pos - 1}): {what}")
         _call(self.display, "show", image)
         _call(self.display, "settle")
-        frame = _check_frame(_grab(self.camera, f"position {k + 1}, {what}", self.retries), self.rig, self.camera)
+        frame = _check_frame(_grab(self.camera, f"position {k}, {what}", self.retries), self.rig, self.camera)
         ok, buf = cv2.imencode(self.image_ext, frame)
         if not ok:
-            raise OSError(f"could not encode the frame of position {k + 1} as {self.image_ext}")
+            raise OSError(f"could not encode the frame of position {k} as {self.image_ext}")
         path = self.out / name
         path.parent.mkdir(parents=True, exist_ok=True)
         write_bytes_atomic(path, buf.tobytes())

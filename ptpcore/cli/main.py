@@ -23,6 +23,7 @@ from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLi
                                 seed, signals_as_interrupts, termination_requested)
 from ptpcore.errors import Cancelled, OutputError, PtpError
 from ptpcore.io.outputs import check_output_file, check_output_folder
+from ptpcore.rig import lut_stage_z, position_label
 
 
 # --------------------------------------------------------------------------- commands
@@ -199,7 +200,7 @@ def _lut_summary(lut, path) -> str:
             z = ()
         if len(z) != len(lut.stage_pose):
             z = np.arange(len(lut.stage_pose), dtype=float)  # positions by index
-        lines.append("  stage pose refined  per position (um, urad; up to a common offset, scale and linear trend):")
+        lines.append("  stage pose refined  per position (µm, µrad; up to a common offset, scale and linear trend):")
         sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
     lines += _choice_lines(lut)
@@ -264,7 +265,7 @@ def _choice_lines(lut) -> list[str]:
     lines = [f"  model chosen by its error at held-out positions ({held}; {choice.rule}):"]
     lines += ["    " + row for row in choice.table()]
     if np.isfinite(choice.noise_rms_um):
-        lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} um RMS;"
+        lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} µm RMS;"
                      " model error = held-out RMS with it taken out)")
     return lines
 
@@ -280,7 +281,9 @@ def _robust_lines(lut) -> list[str]:
         d = json.loads(text)
     except ValueError:
         return ["  robust fit          (unreadable /provenance robust)"]
-    lines = [f"  SUSPECT position    {k + 1}: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its samples"
+    z = lut_stage_z(lut)
+    lines = [f"  SUSPECT             {position_label(k, z[k] if k < len(z) else None)}:"
+             f" {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its samples"
              " far from the curve of the others (wrong images? a stage glitch?); left out everywhere"
              for k in d.get("suspect_positions", [])]
     n_pix = int((lut.n_rejected > 0).sum()) if lut.n_rejected is not None else 0
@@ -357,7 +360,7 @@ def cmd_diff(args) -> int:
         with atomic_path(args.json) as tmp:
             Path(tmp).write_text(json.dumps({"a": str(args.lut_a), "b": str(args.lut_b), **r.summary()}, indent=1))
     if args.png:
-        diff_png(r, args.png)
+        diff_png(r, args.png, title=f"LUT difference per pixel: {Path(args.lut_a).name} vs {Path(args.lut_b).name}")
     return 0 if r.consistent else 1
 
 
@@ -418,12 +421,13 @@ def _demo(args, workdir: Path) -> int:
           f" {1e3 * np.nanmedian(sig):.2f} µm (median)")
     print(f"  LUT                 poly degree {args.degree}, fitted on {len(cal)} positions, "
           f"valid for {100 * lut.valid.mean():.1f} % of pixels")
-    print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays:")
+    print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays,"
+          " per-axis error (X and Y errors pooled):")
     print(f"    RMS {acc.rms_um:.2f} µm   95th percentile {acc.p95_um:.2f} µm   max {acc.max_um:.2f} µm")
     print(f"    predicted from phase noise: RMS {acc.predicted_rms_um:.2f} µm"
           f"  (observed / predicted = {acc.rms_um / acc.predicted_rms_um:.2f})")
-    print("    per position: " + ", ".join(f"z={rig.stage.z_mm[p]:g}: {e:.2f}" for p, e in
-                                           zip(held, acc.per_position_rms_um)) + " µm")
+    print("    per-axis RMS per position: " + "; ".join(f"{position_label(p, rig.stage.z_mm[p])}: {e:.2f} µm"
+                                                         for p, e in zip(held, acc.per_position_rms_um)))
     if args.compare:
         _demo_compare(args, workdir, samples, rig, truth)
     return 0
@@ -488,7 +492,7 @@ def _add_diff_parser(sub) -> None:
     df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
                     help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
     df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
-                    help="absolute floor of the tolerance in um (needed for LUTs without sigma maps)")
+                    help="absolute floor of the tolerance in µm (needed for LUTs without sigma maps)")
     df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
                     help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
     df.set_defaults(func=cmd_diff)
@@ -532,7 +536,7 @@ def _add_simulate(sub) -> None:
                    help="show the first position again at the end (its own noise and stage error; rig.toml"
                         " [stage] repeat_z_mm, ptp-dataset/2): calibrate reports the drift")
     s.add_argument("--drift-um", nargs=2, type=float, metavar=("DX", "DY"),
-                   help="with --repeat: the camera moved sideways by DX, DY um (world X, Y) before the repeat")
+                   help="with --repeat: the camera moved sideways by DX, DY µm (world X, Y) before the repeat")
     s.add_argument("--gray", type=positive_int, metavar="LEVELS",
                    help="Gray-code unwrapping (ptp-dataset/2, unwrap = \"gray\"): keep the finest LEVELS periods,"
                         " and as many Gray-code bits as cover the LCD")
@@ -575,7 +579,7 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
                    help="polynomial degree 1-5 (poly and smooth, default 3; auto chooses its own)")
     c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
-                   help="1-sigma error of the stage readings in um (its specification); part of the LUT's"
+                   help="1-sigma error of the stage readings in µm (its specification); part of the LUT's"
                         " predicted sigma maps (default 0)")
     c.add_argument("--no-level-bias", action="store_true",
                    help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")

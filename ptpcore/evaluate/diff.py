@@ -14,7 +14,8 @@ is about 1 for two sweeps of one rig whose models follow it.
 Two sweeps of one rig at interleaved heights answer "is my model right?" (a model
 error that depends on where the calibrated heights are does not cancel); today's
 LUT against last month's answers "has the rig drifted?". No drawing here:
-:func:`diff_png` colours the map with OpenCV for the command line, the GUI draws its own.
+:func:`diff_png` draws the map with its colour bar, title and scale with OpenCV for the command
+line, the GUI draws its own.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ptpcore.io.lutfile import Lut
+
+from .pngtext import put_text, text_width, write_png
 
 __all__ = ["N_HEIGHTS", "LutDiff", "diff_luts", "diff_png"]
 
@@ -184,28 +187,71 @@ def _verdict(a, b, z, dx, dy, sx, sy, d, common, tolerance_sigma, tolerance_um, 
                    float(tolerance_um), float(max_fraction), frac <= max_fraction)
 
 
-def diff_png(result: LutDiff, path) -> None:
-    """Write the per-pixel difference in units of its tolerance as a colour PNG (OpenCV).
+def diff_png(result: LutDiff, path, title: str | None = None) -> None:
+    """Write the per-pixel difference in units of its tolerance as a colour PNG (OpenCV), atomically.
 
-    Colour scale: 0 (dark) to 2x the tolerance (bright, ``COLORMAP_INFERNO``); pixels
-    beyond the tolerance are bright, pixels outside the common set are grey. Written
-    atomically.
+    The map (pixels of the camera, enlarged to at least 400 px) with a title, a line saying what the
+    colour is, and a colour bar with its scale: 0 (dark) to 2x the tolerance and beyond (bright,
+    ``COLORMAP_INFERNO``), marked in units of the tolerance and in µm at the median tolerance. Pixels
+    outside the common set are grey.
+
+    Parameters
+    ----------
+    result : LutDiff
+    path : str or Path
+    title : str, optional
+        The first line (default "LUT difference per pixel"); ``ptp diff`` names the two LUTs.
     """
     import cv2
-
-    from ptpcore.atomic import atomic_path
 
     tol = np.fmax(result.tolerance_sigma * result.predicted, result.tolerance_um * 1e-3)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.clip(result.diff / tol / 2.0, 0.0, 1.0)
     img = cv2.applyColorMap(np.nan_to_num(r * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
     img[~result.common] = 128
+    f = 1
     if max(img.shape[:2]) < 400:
         f = int(np.ceil(400 / max(img.shape[:2])))
         img = cv2.resize(img, None, fx=f, fy=f, interpolation=cv2.INTER_NEAREST)
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", img)
-        if not ok:
-            raise ValueError(f"{path}: could not encode the PNG")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
+    tol_med_um = float(np.nanmedian(tol[result.common])) * 1e3 if result.common.any() else float("nan")
+    what = (f"colour: |difference| / tolerance ({result.tolerance_sigma:g} sigma"
+            + (f", at least {result.tolerance_um:g} µm" if result.tolerance_um else "")
+            + f", median {tol_med_um:.3g} µm); grey: not in both LUTs")
+    h, w = result.diff.shape
+    scale_line = (f"{w} x {h} camera pixels" + (f", shown {f}x" if f > 1 else "")
+                  + f"; {100 * result.fraction_beyond:.2f} % beyond the tolerance:"
+                  f" {'consistent' if result.consistent else 'DIFFER'}")
+    page = _diff_page(img, title or "LUT difference per pixel", what, scale_line, tol_med_um)
+    write_png(page, path)
+
+
+COLOUR_BAR_TICKS = (0.0, 0.5, 1.0, 1.5, 2.0)
+"""Marks of the colour bar, in units of the tolerance (2: the top, and everything beyond)."""
+
+
+def _diff_page(img: np.ndarray, title: str, what: str, scale_line: str, tol_med_um: float) -> np.ndarray:
+    """``img`` (H, W, 3) on a white page with the title and notes above and the colour bar beside it."""
+    import cv2
+
+    top, left, gap, bar_w = 64, 10, 16, 22
+    labels = [f"{t:g}" + (" = tolerance" if t == 1 else "+" if t == 2 else "")
+              + (f"  ({t * tol_med_um:.3g} µm)" if np.isfinite(tol_med_um) else "") for t in COLOUR_BAR_TICKS]
+    label_w = max(text_width(t, 0.45) for t in labels) + 12
+    h, w = img.shape[:2]
+    width = max(left + w + gap + bar_w + label_w, text_width(what, 0.45) + 2 * left,
+                text_width(title, 0.6) + 2 * left)
+    page = np.full((top + h + 34, width, 3), 255, np.uint8)
+    page[top:top + h, left:left + w] = img
+    put_text(page, title, (left, 22), 0.6)
+    put_text(page, what, (left, 48), 0.45, (60, 60, 60))
+    put_text(page, scale_line, (left, top + h + 24), 0.45, (60, 60, 60))
+    x0 = left + w + gap
+    levels = np.linspace(255, 0, h).astype(np.uint8)  # top: 2x the tolerance, bottom: 0
+    bar = cv2.applyColorMap(np.repeat(levels[:, None], bar_w, axis=1), cv2.COLORMAP_INFERNO)
+    page[top:top + h, x0:x0 + bar_w] = bar
+    cv2.rectangle(page, (x0 - 1, top - 1), (x0 + bar_w, top + h), (0, 0, 0), 1)
+    for t, label in zip(COLOUR_BAR_TICKS, labels):
+        y = top + int(round((1 - t / 2) * (h - 1)))
+        cv2.line(page, (x0 + bar_w, y), (x0 + bar_w + 4, y), (0, 0, 0), 1)
+        put_text(page, label, (x0 + bar_w + 7, min(max(y + 5, top + 10), top + h)), 0.45)
+    return page

@@ -19,6 +19,7 @@ from ptpcore.evaluate.statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS,
     CoordinateStats, Verdict, _block_rms, _jsonable)
 from ptpcore.atomic import DiskFullError
 from ptpcore.fit.glass import describe_corrections
+from ptpcore.rig import position_label
 from ptpcore.store import SpillStore
 from ptpcore.pinhole import PinholeFit
 
@@ -593,14 +594,15 @@ def format_summary(result: CompareResult) -> str:
                 cells.append(" ".join(_g(v) for v in (s.rms_um, s.mean_um, s.p95_um, s.max_um)) if s.n else "n/a")
             lines.append(f"    {label:<26}" + "".join(f"{c:^25}" for c in cells))
 
-        row("coordinate |(dX, dY)|", lambda mr: mr.coordinate)
+        row("vector error |(dX, dY)|", lambda mr: mr.coordinate)
         cells = [f"{rr.methods[m].coordinate.rms_x_um:.3g} / {rr.methods[m].coordinate.rms_y_um:.3g}" for m in ms]
         lines.append(f"    {'  per axis, RMS X / Y':<26}" + "".join(f"{c:^25}" for c in cells))
         row("distance, same height", lambda mr: mr.distance["same_height"].stats)
         row("distance, across heights", lambda mr: mr.distance["across_heights"].stats)
-        per = ", ".join(f"z={z:g}: " + "/".join(f"{rr.methods[m].per_position[i].rms_um:.3g}" for m in ms)
-                        for i, z in enumerate(result.z_held))
-        lines.append(f"    coordinate RMS per height, {'/'.join(METHOD_LABELS[m] for m in ms)}: {per}")
+        per = "; ".join(f"{position_label(k, z)}: " + "/".join(f"{rr.methods[m].per_position[i].rms_um:.3g}"
+                                                             for m in ms)
+                        for i, (k, z) in enumerate(zip(result.held_positions, result.z_held)))
+        lines.append(f"    vector error RMS per position, {'/'.join(METHOD_LABELS[m] for m in ms)}: {per}")
         lines.append(f"    -> {rr.verdict.text}")
     return "\n".join(line.rstrip() for line in lines)
 

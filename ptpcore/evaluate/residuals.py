@@ -17,6 +17,9 @@ import numpy as np
 
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.rig import position_label
+
+from .pngtext import put_text, write_png
 
 __all__ = ["ResidualField", "residual_field", "residual_png"]
 
@@ -63,9 +66,9 @@ class ResidualField:
     block: int
 
     def lines(self, n: int = 5) -> list[str]:
-        """The worst positions and pixels in words (positions 1-based, as the summary names them)."""
-        out = ["worst positions (residual RMS): " + ", ".join(
-            f"{k + 1} (z = {self.z[k]:g} mm{'' if self.used[k] else ', held out'}) {self.rms_um[k]:.3f} µm"
+        """The worst positions and pixels in words (positions counted from 0, with their height)."""
+        out = ["worst positions (residual RMS over X and Y): " + ", ".join(
+            f"{position_label(k, self.z[k])}{'' if self.used[k] else ' (held out)'}: {self.rms_um[k]:.3f} µm"
             for k in self.worst_positions[:n] if np.isfinite(self.rms_um[k]))]
         out.append("worst pixels (RMS over positions): " + ", ".join(
             f"({r}, {c}) {self.pixel_rms_um[r, c]:.3f} µm" for r, c in self.worst_pixels[:n]))
@@ -229,8 +232,6 @@ def residual_png(field: ResidualField, k: int, path, size_px: int = 800) -> None
     """
     import cv2
 
-    from ptpcore.atomic import atomic_path
-
     gy, gx = field.dx.shape[1:]
     f = size_px / max(gx, gy) / field.block
     h_img, w_img = int(round(gy * field.block * f)) + 40, int(round(gx * field.block * f))
@@ -247,12 +248,7 @@ def residual_png(field: ResidualField, k: int, path, size_px: int = 800) -> None
             p0 = (int(round(x0)), int(round(y0)))
             p1 = (int(round(x0 + dx[i, j] * scale)), int(round(y0 + dy[i, j] * scale)))
             cv2.arrowedLine(img, p0, p1, (178, 114, 0), 1, cv2.LINE_AA, tipLength=0.3)
-    text = (f"position {k + 1}, z = {field.z[k]:g} mm: residual RMS {field.rms_um[k]:.3f} um;"
-            f" longest arrow {longest * 1e3:.3f} um")
-    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", img)
-        if not ok:
-            raise ValueError(f"{path}: could not encode the PNG")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
+    text = (f"{position_label(k, field.z[k])}: residual RMS (X and Y) {field.rms_um[k]:.3f} µm;"
+            f" longest arrow {longest * 1e3:.3f} µm")
+    put_text(img, text, (8, 26))
+    write_png(img, path)

@@ -155,7 +155,7 @@ class ModelChoice:
             if c.note:
                 lines.append(f"{c.name:<22} {'-':>13} {'-':>12}  ({c.note})")
             else:
-                lines.append(f"{c.name:<22} {c.held_out_rms_um:>10.3f} um {c.model_error_um:>9.3f} um{mark}")
+                lines.append(f"{c.name:<22} {c.held_out_rms_um:>10.3f} µm {c.model_error_um:>9.3f} µm{mark}")
         return lines
 
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from ptpcore.fit.smooth import position_sigma_from_noise
 from ptpcore.io.samples import SampleStack
+from ptpcore.rig.naming import position_label
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["RMS_LIMIT", "MEAN_LIMIT", "Drift", "RepeatSource", "sweep_drift"]
@@ -113,7 +114,7 @@ class Drift:
             if j < 0:
                 out.append(f"drift at z = {z:g} mm: no sweep position at that reading, not judged")
             else:
-                out.append(f"drift at z = {z:g} mm (position {j + 1} again): RMS {r:.3f} µm (noise predicts"
+                out.append(f"drift at z = {z:g} mm ({position_label(j)} again): RMS {r:.3f} µm (noise predicts"
                            f" {p:.3f} µm), mean ({m[0]:+.3f}, {m[1]:+.3f}) µm")
         return out
 
@@ -187,7 +188,7 @@ def sweep_drift(samples: SampleStack, repeats: SampleStack, rig: Rig, *, stage_s
             s2 = position_sigma_from_noise(samples, rig, j) ** 2 + position_sigma_from_noise(repeats, rig, r) ** 2
             var = 2 * s2[ok] + 2 * (gx[ok] ** 2 + gy[ok] ** 2) * stage_sigma_mm ** 2  # |d|^2: X and Y
             pred[r] = float(np.sqrt(np.nanmean(var)) * 1e3)
-        where = f"z = {repeats.z[r]:g} mm (position {j + 1} again)"
+        where = f"z = {repeats.z[r]:g} mm ({position_label(j)} again)"
         if np.isfinite(pred[r]) and rms[r] > RMS_LIMIT * pred[r]:
             warnings.append(f"{where}: RMS {rms[r]:.3f} µm, {rms[r] / pred[r]:.1f}x the predicted noise"
                             f" {pred[r]:.3f} µm")

@@ -39,7 +39,7 @@ __all__ = ["GlassCorrection", "plate_offset_mm", "pixel_slopes", "correct_cover_
            "NO_GLASS"]
 
 BARE_PANEL = ("no cover glass declared ([lcd] cover_glass_mm): a bare panel is assumed; a real LCD's"
-              " glass and polarizer (about 1 mm, see its datasheet) would leave the LUT tens of um off")
+              " glass and polarizer (about 1 mm, see its datasheet) would leave the LUT tens of µm off")
 NO_GLASS = "no cover glass (declared: [lcd] cover_glass_mm = 0): nothing to remove"
 ROW_BLOCK_PIXELS = 1 << 20
 

@@ -40,6 +40,7 @@ from ptpcore.fit.kinds import fit_kind
 from ptpcore.fit.smooth import phase_sigma_mm
 from ptpcore.io.samples import SampleStack
 from ptpcore.parallel import map_in_order
+from ptpcore.rig.naming import position_label
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import read_block, release_free_memory
 
@@ -131,8 +132,8 @@ class RobustReport:
                f" {self.noise_scale:.2f} predicted sigma), at {int((self.n_rejected > 0).sum())} pixels"]
         for k in self.suspect:
             i = int(np.flatnonzero(self.positions == k)[0])
-            where = f" (z = {z[k]:g} mm)" if z is not None else ""
-            out.append(f"SUSPECT position {k + 1}{where}: {100 * self.fraction[i]:.0f} % of its samples are far"
+            name = position_label(k, None if z is None else z[k])
+            out.append(f"SUSPECT {name}: {100 * self.fraction[i]:.0f} % of its samples are far"
                        " from the curve of the others (wrong images? a stage glitch?); left out everywhere")
         return out
 

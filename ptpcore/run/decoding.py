@@ -23,6 +23,7 @@ from ptpcore.decode.phase import REASON_KEYS, REASON_NAMES, DecodeOptions, finis
 from ptpcore.errors import DatasetError
 from ptpcore.io.decodedfile import Decoded
 from ptpcore.store import release_free_memory
+from ptpcore.rig.naming import position_label
 from ptpcore.rig.rigfile import rig_to_toml
 from ptpcore.run.diagnose import MIN_VALID_FRACTION, convention_check, position_report
 
@@ -207,7 +208,7 @@ def _decode_into(source, todo, options, min_fraction, check_conventions, progres
     with contextlib.closing(decode_positions(source, todo, options, spatial=False)) as decoded:
         for i, k in enumerate(todo):
             if progress:
-                progress(i / len(todo), f"decoding position {k + 1}/{rig.stage.n_positions}")
+                progress(i / len(todo), f"decoding {position_label(k, rig.stage.z_mm[k])} ({i + 1} of {len(todo)})")
             pos = next(decoded)
             maps = _position_maps(rig, pos, direction_reasons(rig, pos, options), run, min_fraction)
             tally.add(maps[4][present])

@@ -38,6 +38,7 @@ import numpy as np
 from ptpcore.io.lutfile import Lut
 from ptpcore.fit.perpixel import fit_lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.rig.naming import position_label
 from ptpcore.decode.harmonics import harmonic_noise_samples
 from ptpcore.decode.noise import NoiseAccumulator, NoiseModel
 from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, WrappedPhase, apply_convention,
@@ -607,7 +608,7 @@ def collect_samples(source, *, options: DecodeOptions = DecodeOptions(), positio
     try:
         for i, k in enumerate(todo):
             if progress:
-                progress(i / len(todo), f"decoding position {k + 1}/{k_total} (z = {rig.stage.z_mm[k]:g} mm)")
+                progress(i / len(todo), f"decoding {position_label(k, rig.stage.z_mm[k])} ({i + 1} of {len(todo)})")
             sets = reader.sets_of(k) if reader else _source_sets(source, k)
             if on_frame is not None:
                 sets = _tapped(sets, rig, k, on_frame)

@@ -142,8 +142,8 @@ def _stuck_pairs(z: np.ndarray, xs: np.ndarray, ys: np.ndarray, ks) -> list[str]
             moved = float(np.median(np.hypot(dx - np.median(dx), dy - np.median(dy))))
             if moved < STUCK_RATIO * expected:
                 found.append(f"positions {ks[i]} (z = {z[i]:g} mm) and {ks[j]} (z = {z[j]:g} mm): decoded"
-                             f" maps agree (they vary by {1e3 * moved:.2f} um across the image where the rays'"
-                             f" slopes say {1e3 * expected:.1f} um): a stuck stage or duplicated images?")
+                             f" maps agree (they vary by {1e3 * moved:.2f} µm across the image where the rays'"
+                             f" slopes say {1e3 * expected:.1f} µm): a stuck stage or duplicated images?")
     return found
 
 

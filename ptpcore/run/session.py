@@ -220,7 +220,7 @@ def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
 
     _check_model(model, degree)
     if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0):
-        raise ValueError(f"stage sigma must be a finite number >= 0 um, got {stage_sigma_um}")
+        raise ValueError(f"stage sigma must be a finite number >= 0 µm, got {stage_sigma_um}")
     source = DatasetSource(dataset)
     if positions is not None:
         positions = tuple(int(p) for p in positions)

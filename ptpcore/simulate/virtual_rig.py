@@ -784,7 +784,7 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
     k_total = rig.stage.n_positions + len(rig.stage.repeat_z_mm)  # the repeats after the sweep
     for k in range(k_total):
         if progress:
-            progress(k / k_total, f"rendering position {k + 1}/{k_total}")
+            progress(k / k_total, f"rendering position {k} (0 … {k_total - 1})")
         for (d, _j, t, n, big_n), img in vr.frames(k):
             _write_image(out / rig.image_name(k, d, t, n, big_n), img, image_ext)
         for (d, b, inv), img in vr.gray_frames(k).items():

@@ -99,7 +99,7 @@ def test_capture_can_end_the_sweep_at_its_first_position_again(tmp_path, capsys)
     assert cli.main(["calibrate", str(cap), "--out", str(tmp_path / "a.lut.h5"), "--model", "poly", "--degree", "1",
                      "-q"]) == 0
     said = capsys.readouterr().out
-    assert "drift at z = 0 mm (position 1 again)" in said and "DRIFT WARNING" not in said
+    assert "drift at z = 0 mm (position 0 again)" in said and "DRIFT WARNING" not in said
 
 
 @pytest.mark.parametrize("name", ["ideal", "realistic", "rough"])
@@ -228,7 +228,7 @@ def test_a_camera_that_stops_delivering_leaves_a_resumable_capture(reference, tm
     out = tmp_path / "cap"
     n = 2 + 3 * rig.fringes.frames_per_position + 7  # in the 4th position
     camera, stage, display = simulated_devices(rig, settings, 3, camera_faults=lambda i: "none" if i >= n else None)
-    with pytest.raises(FrameError, match=r"no frame for position 4, .* after 3 tries .*3 of 5 positions are saved"):
+    with pytest.raises(FrameError, match=r"no frame for position 3, .* after 3 tries .*3 of 5 positions are saved"):
         capture(out, rig, camera, stage, display)
     assert capture_state(out)["done"] == 3
     assert len(images(out)) == 3 * rig.fringes.frames_per_position + 7  # the partial position stays until resumed

@@ -46,7 +46,7 @@ def test_calibrate_smooth_and_inspect(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "predicted sigma X" in text
     # the robust fit's report and the residual diagnostics, worst first
-    assert "robust fit" in text and "worst positions (residual RMS): " in text and "worst pixels" in text
+    assert "robust fit" in text and "worst positions (residual RMS over X and Y): " in text and "worst pixels" in text
     # the stage's reading error enters the sigma maps only; the corrections move the coefficients
     staged = tmp_path / "staged.lut.h5"
     assert main(["calibrate", str(data), "--out", str(staged), "--model", "smooth", "--degree", "1",

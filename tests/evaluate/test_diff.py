@@ -134,3 +134,50 @@ def test_with_and_without_the_cover_glass_declared_the_luts_differ_by_the_refrac
     # ...and along each pixel's ray: the glass shows the pixel plane nearer the foot of the ray's normal.
     along = (r.signed_x * truth.sx + r.signed_y * truth.sy) / np.hypot(truth.sx, truth.sy)
     assert np.mean(np.abs(along[m]) >= 0.95 * shown[m]) > 0.95
+
+
+def _synthetic_diff(h=60, w=80):
+    """A LutDiff whose difference rises left to right from 0 to 3 tolerances (tolerance 3 x 1 µm), a
+    corner outside the common pixels."""
+    from ptpcore.evaluate.diff import LutDiff
+
+    predicted = np.full((h, w), 1e-3)  # mm: 1 µm
+    diff = np.tile(np.linspace(0, 9e-3, w), (h, 1))  # up to 9 µm = 3 tolerances
+    common = np.ones((h, w), bool)
+    common[:10, :10] = False
+    zero = np.zeros((h, w))
+    return LutDiff(np.array([0.0, 40.0]), zero, zero, zero, zero, diff, predicted, diff > 3e-3, common,
+                   int(common.sum()), 1.0, 2.0, 9.0, 1.0, 1.0, float((diff > 3e-3).mean()), 3.0, 0.0, 0.01, False)
+
+
+def test_diff_png_has_a_title_a_colour_bar_and_its_scale(tmp_path):
+    import cv2
+
+    from ptpcore.evaluate.diff import diff_png
+
+    r = _synthetic_diff()
+    diff_png(r, tmp_path / "d.png")
+    page = cv2.imread(str(tmp_path / "d.png"))
+    f = 5  # 80 px wide: enlarged to 400
+    inferno = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]
+    # The map: where the page shows it (below the title), the colour of |d| / (2 tol), grey outside.
+    grey = (page == 128).all(axis=2)  # the map's grey corner (10 x 10 camera pixels) is its top left
+    top, left = np.argmax(grey.sum(axis=1) >= 10 * f), np.argmax(grey.sum(axis=0) >= 10 * f)
+    shown = page[top:top + 60 * f, left:left + 80 * f]
+    level = np.clip(r.diff / (3 * r.predicted) / 2, 0, 1)
+    want = inferno[np.nan_to_num(level * 255).astype(np.uint8)]
+    want[~r.common] = 128
+    np.testing.assert_array_equal(shown, np.repeat(np.repeat(want, f, axis=0), f, axis=1))
+    assert top >= 40 and (page[:top - 5] < 100).any()  # the title and the note above the map
+    # The colour bar right of the map: bright (2 tolerances and beyond) at the top, dark (0) at the bottom,
+    # its ticks and labels beside it.
+    right = page[top:top + 60 * f, left + 80 * f:]
+    bar_cols = [j for j in range(right.shape[1]) if (right[:, j] == inferno[255]).all(axis=1)[0]
+                and (right[:, j] == inferno[0]).all(axis=1)[-1]]
+    assert len(bar_cols) >= 15, "no colour bar"
+    bar = right[:, bar_cols[len(bar_cols) // 2]]
+    np.testing.assert_array_equal(bar[0], inferno[255])
+    assert np.all(np.diff(bar.astype(int).sum(axis=1)) <= 3)  # darker downwards (inferno: brightness falls)
+    labels = right[:, bar_cols[-1] + 8:]
+    assert labels.shape[1] > 80 and (labels < 100).any()
+    assert (page[top + 60 * f:] < 100).any()  # the scale line under the map

@@ -40,7 +40,7 @@ def test_a_sideways_stage_move_shows_as_parallel_arrows(mild, tmp_path):
     # the worst pixels are real pixels ranked by their RMS over positions
     r, c = f.worst_pixels[0]
     assert f.pixel_rms_um[r, c] == np.nanmax(f.pixel_rms_um)
-    assert f.lines()[0].startswith(f"worst positions (residual RMS): {k + 1} ")
+    assert f.lines()[0].startswith(f"worst positions (residual RMS over X and Y): position {k}, z = {f.z[k]:g} mm")
     png = tmp_path / "res.png"
     residual_png(f, k, png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -89,7 +89,7 @@ def test_calibrate_reports_the_drift_of_the_simulators_repeat(tmp_path, capsys):
         found.append((capsys.readouterr().out, json.loads(load_lut(out).provenance["drift"])))
     (said, d), (said_moved, d_moved) = found
     r = d["repeats"][0]
-    assert "drift at z = 0 mm (position 1 again)" in said and "DRIFT WARNING" not in said and not d["warnings"]
+    assert "drift at z = 0 mm (position 0 again)" in said and "DRIFT WARNING" not in said and not d["warnings"]
     assert r["position"] == 0 and 0.8 <= r["rms_um"] / r["predicted_rms_um"] <= 1.25, r
     assert all(abs(m) < 5 * se for m, se in zip(r["mean_um"], r["mean_se_um"]))
     # Moved 3 um in X (a tenth of a pixel's noise at 80 px): the mean drift finds it, X only.

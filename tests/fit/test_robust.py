@@ -76,7 +76,7 @@ def test_a_position_with_another_positions_images_is_named_suspect(mild, tmp_pat
     path = tmp_path / "bad.lut.h5"
     save_lut(lut, path)
     assert main(["inspect", str(path)]) == 0
-    assert "SUSPECT position    11" in capsys.readouterr().out
+    assert "SUSPECT             position 10, z = " in capsys.readouterr().out
 
 
 def test_k_sigma_must_be_positive(mild):
@@ -94,7 +94,7 @@ def test_the_calibrate_page_names_a_suspect_position():
                                             "rejected_fraction": {"3": 0.97}})}
 
     text = robust_text(L())
-    assert "120 samples left out" in text and "SUSPECT position 4" in text and "97 %" in text
+    assert "120 samples left out" in text and "SUSPECT position 3" in text and "97 %" in text
 
 
 def test_without_outliers_of_a_spilled_stack_stays_spilled(rough_rig):

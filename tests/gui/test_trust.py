@@ -111,8 +111,8 @@ def test_calibrate_shows_residual_arrows_and_export_writes_them(wizard, qtbot, t
     assert run_job(qtbot, ex.export()) == "finished"
     names = {f.name for f in ex.files}
     for k in want.worst_positions[:N_RESIDUAL_PNGS]:
-        assert f"residuals_position_{k + 1}.png" in names
-        assert (tmp_path / "out" / f"residuals_position_{k + 1}.png").read_bytes()[:4] == b"\x89PNG"
+        assert f"residuals_position_{k}.png" in names
+        assert (tmp_path / "out" / f"residuals_position_{k}.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_calibrate_page_shows_the_drift_of_a_repeated_position(wizard, qtbot):
@@ -131,7 +131,7 @@ def test_calibrate_page_shows_the_drift_of_a_repeated_position(wizard, qtbot):
     r = d["repeats"][0]
     assert r["position"] == 0 and d["warnings"] and abs(abs(r["mean_um"][0]) - 2.0) < 5 * r["mean_se_um"][0]
     text = cal.stats.text()
-    assert "DRIFT WARNING" in text and "Drift at z = " in text and "position 1 again" in text
+    assert "DRIFT WARNING" in text and "Drift at z = " in text and "position 0 again" in text
     button = cal.map_buttons.button(cal._map_keys.index("drift"))
     assert button.isVisibleTo(cal)
     cal.show_map("drift")

@@ -208,7 +208,7 @@ def test_full_walk(wizard, qtbot, tmp_path):
 
 
 def test_upstream_change_drops_results(wizard, qtbot):
-    """A new rig after acquisition drops samples, LUT and comparison, and Acquire blocks again."""
+    """A new rig after acquisition sets the samples aside as stale (issue 31), and Acquire blocks again."""
     wiz = wizard
     wiz.next()
     wiz.next()
@@ -219,7 +219,7 @@ def test_upstream_change_drops_results(wizard, qtbot):
     wiz.back()
     rig_page = wiz.page_by_key["rig"]
     rig_page.z_count.setValue(7)
-    assert wiz.model.session.samples is None
+    assert wiz.model.session.samples is None and wiz.model.stale is not None
     assert wiz.model.session.rig.stage.n_positions == 7
     wiz.next()
     wiz.next()
