@@ -12,7 +12,7 @@ import numpy as np
 
 from benchmarks.lutcmp import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _write(path, created="2026-11-26T10:00:00", x=None, nan_bits=0x7FF8000000000000, scale=16.0, extra=False):
