@@ -65,6 +65,8 @@ BEYOND_3 = 0.02
 BEST_RATIO, POLY1_RATIO = 1.1, 1.0
 SYMMETRY = 1.5
 SAME_RIG_DIFFER_MAX, CHANGE_DIFFER_MIN = 0.1, 0.9
+ACCURACY_KEPT = 1.05
+"""The default's held-out RMS against a baseline run's (``--baseline``: today's results.json)."""
 
 PAIRS = {"same_heights": "B", "interleaved": "C", "glass_undeclared": "B_undeclared", "move2um": "move2um",
          "move05um": "move05um"}
@@ -405,6 +407,17 @@ def check_diff(row: dict) -> dict:
     return checks
 
 
+def compare_baseline(results: dict, baseline: dict) -> None:
+    """Add each accuracy row's default RMS against the same half and rig of ``baseline`` (and its check)."""
+    for half, rows in results["accuracy"].items():
+        for kind, row in rows.items():
+            old = baseline.get("accuracy", {}).get(half, {}).get(kind)
+            if old is None:
+                continue
+            row["vs_baseline"] = row["rms_um"]["default"] / old["rms_um"]["default"]
+            row["checks"]["accuracy_kept"] = row["vs_baseline"] <= ACCURACY_KEPT
+
+
 def aggregate(out_dir: Path) -> dict:
     """Pool every finished task of ``out_dir/tasks`` into rows per half and kind."""
     results = {"accuracy": {}, "diff": {}, "times": []}
@@ -427,6 +440,10 @@ def aggregate(out_dir: Path) -> dict:
     return results
 
 
+def _vs(row: dict) -> str:
+    return f" ({row['vs_baseline']:.2f}x baseline)" if "vs_baseline" in row else ""
+
+
 def _pf(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
@@ -443,8 +460,8 @@ def markdown(results: dict) -> str:
     for half, rows in sorted(results["accuracy"].items()):
         lines += [f"## Accuracy and sigma, half {half}", "",
                   "| rig | draws | axis | RMS(z) | RMS(z) per decile of sigma | \\|z\\|>3 | default / best (worst draw)"
-                  " | default / poly1 (worst draw) | median sigma um | default model | verdict |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  " | default / poly1 (worst draw) | default RMS um | median sigma um | default model | verdict |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for kind, row in rows.items():
             bad = [k for k, ok in row["checks"].items() if not ok]
             for axis in "xy":
@@ -453,6 +470,7 @@ def markdown(results: dict) -> str:
                     f" {_deciles(row[f'decile_rms_z_{axis}'])} | {100 * row[f'beyond3_{axis}']:.1f} % |"
                     f" {row['default_vs_best']:.2f} ({row['worst_draw_vs_best']:.2f}, best {row['best_candidate']}) |"
                     f" {row['default_vs_poly1']:.2f} ({row['worst_draw_vs_poly1']:.2f}) |"
+                    f" {row['rms_um']['default']:.3f}{_vs(row)} |"
                     f" {row[f'median_sigma_{axis}_um']:.3f} | {'; '.join(sorted(set(row['default_models'])))[:60]} |"
                     f" {_pf(not bad)}{'' if not bad or axis == 'y' else ' (' + ', '.join(bad) + ')'} |")
         lines.append("")
@@ -485,6 +503,9 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=1, metavar="J", help="tasks run at once (processes, default 1)")
     p.add_argument("--only", choices=["accuracy", "diff"], help="run one kind of task")
     p.add_argument("--aggregate-only", action="store_true", help="pool the finished tasks, run nothing")
+    p.add_argument("--baseline", metavar="RESULTS.json",
+                   help=f"an earlier run's results.json: the default's RMS must stay within {ACCURACY_KEPT}x of it"
+                        " (same draws: same seeds and sizes)")
     p.add_argument("--width", type=int, default=WIDTH, help=argparse.SUPPRESS)  # a quick check of the harness only
     args = p.parse_args(argv)
     _set_width(args.width)
@@ -497,6 +518,8 @@ def main(argv=None) -> int:
     if not args.aggregate_only:
         _run_all(specs, out_dir, args.jobs)
     results = aggregate(out_dir)
+    if args.baseline:
+        compare_baseline(results, json.loads(Path(args.baseline).read_text()))
     (out_dir / "results.json").write_text(json.dumps(results, indent=1))
     (out_dir / "table.md").write_text(markdown(results))
     print(markdown(results))
