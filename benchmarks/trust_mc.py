@@ -493,6 +493,35 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def time_estimate(results: dict, cores: int = 2) -> list[str]:
+    """Measured CPU per task and the full run (one half, :data:`FULL`) projected from it.
+
+    CPU seconds (user + system, all threads) are what a loaded machine measures well; on a quiet
+    machine with ``cores`` cores and ``--jobs cores`` the wall time is about their sum / ``cores``.
+    """
+    acc = [t for t in results["times"] if t["task"].startswith("accuracy")]
+    diff = [t for t in results["times"] if t["task"].startswith("diff")]
+    lines = ["## Times (CPU s measured; wall s on the machine as loaded then)", "",
+             "| task | wall s | CPU s | CPU s per step |", "|---|---|---|---|"]
+    for t in results["times"]:
+        steps = ", ".join(f"{k} {v['cpu_s']:.0f}" for k, v in t["steps"].items())
+        lines.append(f"| {t['task']} | {t['wall_s']:.0f} | {t['cpu_s']:.0f} | {steps} |")
+    if acc and diff:
+        per_acc = float(np.mean([t["cpu_s"] for t in acc]))
+        # A drift-check draw of FULL runs 5 sweeps (A, B, C, 2 um, 0.5 um) and 6 default fits.
+        sweeps = [(v["cpu_s"]) for t in diff for k, v in t["steps"].items() if k.startswith(("simulate_", "calibrate_"))]
+        n_sweeps = sum(1 for t in diff for k in t["steps"] if k.startswith("simulate_"))
+        per_sweep = float(np.sum(sweeps)) / max(n_sweeps, 1)
+        n_acc = FULL["accuracy_draws"] * len(RIG_TYPES)
+        n_diff = FULL["diff_draws"] * len(DIFF_PRESETS)
+        total = n_acc * per_acc + n_diff * 5 * per_sweep
+        lines += ["", f"Projected full run (one half: {n_acc} accuracy draws at {per_acc:.0f} CPU s, {n_diff} drift"
+                  f" draws of 5 sweeps at {per_sweep:.0f} CPU s per sweep incl. its fits): {total / 60:.0f} CPU min,"
+                  f" about {total / 60 / cores:.0f} min on {cores} quiet cores with --jobs {cores}"
+                  " (an estimate from CPU times measured on a loaded machine)."]
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.trust_mc", description=__doc__.split("\n\n")[0])
     p.add_argument("out_dir", metavar="OUT_DIR")
@@ -521,7 +550,7 @@ def main(argv=None) -> int:
     if args.baseline:
         compare_baseline(results, json.loads(Path(args.baseline).read_text()))
     (out_dir / "results.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "table.md").write_text(markdown(results))
+    (out_dir / "table.md").write_text(markdown(results) + "\n".join(time_estimate(results)) + "\n")
     print(markdown(results))
     return 0
 
