@@ -532,6 +532,8 @@ def main(argv=None) -> int:
                    help="A: development draws (default); B: the held-aside half; all: both")
     p.add_argument("--jobs", type=int, default=1, metavar="J", help="tasks run at once (processes, default 1)")
     p.add_argument("--only", choices=["accuracy", "diff"], help="run one kind of task")
+    p.add_argument("--rigs", metavar="LIST", help="comma-separated rig types or diff presets to run, in this order"
+                                                   f" (default all of the size: {', '.join(RIG_TYPES)})")
     p.add_argument("--aggregate-only", action="store_true", help="pool the finished tasks, run nothing")
     p.add_argument("--baseline", metavar="RESULTS.json",
                    help=f"an earlier run's results.json: the default's RMS must stay within {ACCURACY_KEPT}x of it"
@@ -545,6 +547,9 @@ def main(argv=None) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     specs = [t for t in task_list(args.reduced, args.draws, args.half) if args.only in (None, t[0])]
+    if args.rigs:
+        order = [r.strip() for r in args.rigs.split(",")]
+        specs = sorted((t for t in specs if t[1] in order), key=lambda t: order.index(t[1]))
     if not args.aggregate_only:
         _run_all(specs, out_dir, args.jobs)
     results = aggregate(out_dir)
