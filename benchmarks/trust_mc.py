@@ -72,7 +72,7 @@ PAIRS = {"same_heights": "B", "interleaved": "C", "glass_undeclared": "B_undecla
          "move05um": "move05um"}
 """Drift checks: sweep A of a rig against the LUT named here (see :func:`diff_task`)."""
 FULL = {"accuracy_draws": 3, "diff_draws": 2}
-"""Per half: about 83 min on 2 quiet cores with --jobs 2 (estimated from CPU times, see table.md's end)."""
+"""Per half: about 80 min on 2 quiet cores with --jobs 2 (estimated from CPU times, see table.md's end)."""
 REDUCED = {"accuracy_draws": 1, "diff_draws": 1, "rig_types": ("realistic", "ripple"),
            "diff_presets": ("realistic",), "pairs": ("same_heights", "glass_undeclared", "move05um")}
 
