@@ -7,6 +7,8 @@ May import :mod:`ptpcore.fit` and everything below it (today it needs only
 
 from . import virtual_rig
 from .virtual_rig import *  # noqa: F401,F403  (the names of virtual_rig.__all__)
+from . import draws, lens_models  # noqa: E402  (lens models beyond Brown; rigs drawn per seed)
+from .draws import *  # noqa: F401,F403,E402
 
 # One list of public names: each module's own __all__.
-__all__ = list(virtual_rig.__all__)
+__all__ = list(virtual_rig.__all__) + list(draws.__all__)

@@ -29,7 +29,7 @@ import numpy as np
 from ptpcore.atomic import write_bytes_atomic
 from ptpcore.errors import ConfigError
 from ptpcore.io.lutfile import write_hdf5_atomic
-from ptpcore.pinhole.lens import undistort_normalised
+from ptpcore.simulate import lens_models
 from ptpcore.simulate.lcd_physics import LcdPhysics, draw_stage_poses, pose_matrix
 from ptpcore.decode.patterns import (display_inverse, fringe_profile, fringe_values, gray_profile, gray_values,
                                      reference_profile)
@@ -41,6 +41,7 @@ __all__ = [
     "PRESETS",
     "preset",
     "scaled_preset",
+    "scale_rig",
     "GroundTruth",
     "VirtualRig",
     "simulate_dataset",
@@ -68,6 +69,13 @@ class LensSettings:
     pupil_shift_mm : float
         Non-central entrance pupil: a ray at normalised radius r leaves from
         ``pupil_shift_mm * r**2`` along the optical axis.
+    projection : {"perspective", "equidistant"}
+        ``r = f tan(theta)`` (pinhole) or ``r = f theta`` (fisheye-like), before Brown.
+    prism : (4,) float
+        Thin-prism ``s1, s2, s3, s4`` (OpenCV's convention), with Brown.
+    ripple_px, ripple_wavelength_px : float
+        A short-scale image-side distortion field: RMS displacement per axis and
+        typical wavelength (px). The last three: :mod:`ptpcore.simulate.lens_models`.
     """
 
     focal_px: float = 800.0
@@ -75,6 +83,10 @@ class LensSettings:
     dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     field_amplitude_px: float = 0.0
     pupil_shift_mm: float = 0.0
+    projection: str = "perspective"
+    prism: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    ripple_px: float = 0.0
+    ripple_wavelength_px: float = 40.0
 
 
 @dataclass(frozen=True)
@@ -232,13 +244,19 @@ def scaled_preset(name: str, width: int, height: int | None = None,
     positions : int, optional
         Number of stage positions over the same z range.
     """
-    rig, s = preset(name)
+    return scale_rig(*preset(name), width, height, positions)
+
+
+def scale_rig(rig: Rig, s: SimSettings, width: int, height: int | None = None,
+              positions: int | None = None) -> tuple[Rig, SimSettings]:
+    """:func:`scaled_preset` of any rig and settings (e.g. a drawn rig, :mod:`ptpcore.simulate.draws`)."""
     scale = width / rig.camera.width
     if height is None:
         height = int(round(rig.camera.height * scale))
     lens = replace(s.lens, focal_px=s.lens.focal_px * scale,
                    principal_offset_px=tuple(p * scale for p in s.lens.principal_offset_px),
                    field_amplitude_px=s.lens.field_amplitude_px * scale)
+    lens = lens_models.scale_lens_extensions(lens, scale)
     s = replace(s, lens=lens, blur_sigma_px=s.blur_sigma_px * scale, blur_per_mm=s.blur_per_mm * scale)
     rig = replace(rig, camera=Camera(width, height, rig.camera.bit_depth))
     if scale < 1:
@@ -320,12 +338,16 @@ class VirtualRig:
         What ``rig.toml`` says (camera size and bit depth, LCD, stage readings, fringes).
     settings : SimSettings
     seed : int
+    noise_seed : int, optional
+        The noise's own seed (default ``seed``): another sweep of the same rig
+        (same lens field, stage errors and poses) with independent noise.
     """
 
-    def __init__(self, rig: Rig, settings: SimSettings, seed: int = 0):
+    def __init__(self, rig: Rig, settings: SimSettings, seed: int = 0, noise_seed: int | None = None):
         self.rig = rig
         self.settings = settings
         self.seed = int(seed)
+        self.noise_seed = self.seed if noise_seed is None else int(noise_seed)
         rng = np.random.default_rng([self.seed, 1])
         cam = rig.camera
         lens = settings.lens
@@ -351,6 +373,10 @@ class VirtualRig:
         ]
         norm = sum(np.hypot(*m[2]) for m in self._modes)
         self._field_scale = lens.field_amplitude_px / norm if norm > 0 else 0.0
+        # A short-scale field (lens_models; its own stream, so lenses without it render as before).
+        self._ripple = (lens_models.RippleField(lens.ripple_px, lens.ripple_wavelength_px,
+                                                np.random.default_rng([self.seed, 30]))
+                        if lens.ripple_px > 0 else None)
         z = np.asarray(rig.stage.z_mm, dtype=float)
         self.z_true = z + rng.normal(0.0, settings.stage_error_um * 1e-3, size=z.size)
         self.skew = np.array([settings.skew[0], settings.skew[1]])
@@ -393,6 +419,9 @@ class VirtualRig:
             wave = np.sin(k[0] * cols + ph[0]) * np.cos(k[1] * rows + ph[1])
             dx += amp[0] * wave
             dy += amp[1] * np.cos(k[0] * cols + ph[1]) * np.sin(k[1] * rows + ph[0])
+        if self._ripple is not None:
+            rx, ry = self._ripple(cols, rows)
+            return dx * self._field_scale + rx, dy * self._field_scale + ry
         return dx * self._field_scale, dy * self._field_scale
 
     def rays(self, cols, rows) -> tuple[np.ndarray, np.ndarray]:
@@ -416,7 +445,8 @@ class VirtualRig:
         # is the observed one minus the field.
         xd = (cols - fx - self.K[0, 2]) / self.K[0, 0]
         yd = (rows - fy - self.K[1, 2]) / self.K[1, 1]
-        x, y = undistort_normalised(xd, yd, self.dist)
+        # Brown (plus a thin prism, an equidistant projection: lens_models) -> ray tangents.
+        x, y = lens_models.image_to_tangent(xd, yd, self.settings.lens, self.dist)
         if np.any(~np.isfinite(x)):
             raise ConfigError("simulated lens distortion is not invertible over the image; reduce it")
         d_cam = np.stack([x, y, np.ones_like(x)], axis=-1)
@@ -708,7 +738,7 @@ class VirtualRig:
         irr = irr[m:h - m, m:w - m]
         electrons = (irr * self._vignetting() * s.exposure + s.ambient) * s.full_well_e
         if s.noise:
-            rng = np.random.default_rng([self.seed, *noise_key])
+            rng = np.random.default_rng([self.noise_seed, *noise_key])
             electrons = electrons + rng.standard_normal(electrons.shape) * np.sqrt(
                 np.maximum(electrons, 0.0) + s.read_noise_e ** 2)
         dn = electrons / s.e_per_dn(rig.camera)
@@ -733,14 +763,18 @@ class VirtualRig:
             yield spec, self.render(k, d, t, n, big_n)
 
 
-def _settings_json(settings: SimSettings, seed: int) -> str:
-    return json.dumps({"seed": seed, **asdict(settings)})
+def _settings_json(settings: SimSettings, seed: int, noise_seed: int | None = None) -> str:
+    record = asdict(settings)
+    record["lens"] = lens_models.compact_lens_record(record["lens"])  # older truth files stay byte-identical
+    extra = {} if noise_seed is None or noise_seed == seed else {"noise_seed": int(noise_seed)}
+    return json.dumps({"seed": seed, **extra, **record})
 
 
 def settings_from_json(text: str) -> tuple[SimSettings, int]:
     """Inverse of the settings record stored in ``truth.h5``."""
     d = json.loads(text)
     seed = d.pop("seed")
+    d.pop("noise_seed", None)  # another sweep of the same rig (VirtualRig's noise_seed)
     lens = LensSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("lens").items()})
     d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
     if "dust" in d:
@@ -750,7 +784,7 @@ def settings_from_json(text: str) -> tuple[SimSettings, int]:
 
 def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
                      progress: Callable[[float, str], None] | None = None,
-                     image_ext: str = ".png") -> Path:
+                     image_ext: str = ".png", noise_seed: int | None = None) -> Path:
     """Render a whole dataset folder plus ``truth.h5``.
 
     ``ptp-dataset/1``, or ``/2`` when the rig uses a ``/2`` key; a Gray-code rig
@@ -766,6 +800,8 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
     progress : callable, optional
         ``progress(fraction, message)``; may raise to cancel.
     image_ext : {".png", ".tif"}
+    noise_seed : int, optional
+        See :class:`VirtualRig` (recorded in ``truth.h5`` when it differs from ``seed``).
 
     Returns
     -------
@@ -779,7 +815,7 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
         t = getattr(rig, key)
         if t is not None and Path(t).suffix != image_ext:
             rig = replace(rig, **{key: str(Path(t).with_suffix(image_ext))})
-    vr = VirtualRig(rig, settings, seed)
+    vr = VirtualRig(rig, settings, seed, noise_seed)
     save_truth(out / TRUTH_FILE, vr)
     k_total = rig.stage.n_positions + len(rig.stage.repeat_z_mm)  # the repeats after the sweep
     for k in range(k_total):
@@ -812,7 +848,7 @@ def save_truth(path, vr: VirtualRig) -> None:
 
     def fill(f) -> None:
         f.attrs["format"] = "ptp-truth/1"
-        f.attrs["settings"] = _settings_json(vr.settings, vr.seed)
+        f.attrs["settings"] = _settings_json(vr.settings, vr.seed, vr.noise_seed)
         for name in ("x0", "y0", "sx", "sy"):
             f.create_dataset(name, data=getattr(truth, name), compression="gzip", compression_opts=1)
         f["z_true"] = truth.z_true
