@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import pyqtgraph as pg
-from PySide6.QtCore import QRect
+from PySide6.QtCore import QRect, Qt
 from PySide6.QtGui import QFontMetrics, QTextDocument
 from PySide6.QtWidgets import QAbstractScrollArea, QHeaderView, QLabel, QWidget
 
@@ -118,9 +118,9 @@ def cut_headers(page) -> list[str]:
             text = model.headerData(i, header.orientation())
             text = "" if text is None else str(text)
             need = fm.horizontalAdvance(text) + 8  # the section's margins
-            if text and need > header.sectionSize(i) and header.orientation() == 1:
+            if text and need > header.sectionSize(i) and header.orientation() == Qt.Horizontal:
                 out.append(f"header '{text}' needs {need} px, has {header.sectionSize(i)}")
-            elif text and header.orientation() == 2 and need > header.width():
+            elif text and header.orientation() == Qt.Vertical and need > header.width():
                 out.append(f"row name '{text}' needs {need} px, has {header.width()}")
     return out
 
@@ -134,7 +134,7 @@ def cut_plot_titles(page) -> list[str]:
         for item in widget.scene().items():
             if isinstance(item, pg.PlotItem) and item.titleLabel.isVisible() and item.titleLabel.text:
                 need = item.titleLabel.item.boundingRect().width()
-                room = item.width()
+                room = min(item.width(), widget.viewport().width())  # a plot wider than its widget is cut too
                 if need > room + 1:
                     out.append(f"plot title '{item.titleLabel.item.toPlainText()[:40]}' needs {need:.0f} px,"
                                f" has {room:.0f}")

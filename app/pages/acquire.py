@@ -135,7 +135,8 @@ class AcquirePage(StudioPage):
         pos_box = QGroupBox("Positions")
         pl = QVBoxLayout(pos_box)
         self.table = QTableWidget(0, 5)
-        self.table.setHorizontalHeaderLabels(["#", "z (mm)", "status", "valid", "main rejection"])
+        self.table.setHorizontalHeaderLabels(["#", "z (mm)", "status", "valid", "rejection"])
+        self.table.horizontalHeaderItem(4).setToolTip("The most frequent reason a pixel was rejected")
         self.table.verticalHeader().hide()
         self.table.setEditTriggers(QTableWidget.NoEditTriggers)
         hh = self.table.horizontalHeader()
@@ -152,7 +153,7 @@ class AcquirePage(StudioPage):
         sl.setContentsMargins(0, 0, 4, 0)
         sl.addWidget(top)
         sl.addWidget(pos_box, 1)
-        self.split_body(side, frame_box, controls_width=300)
+        self.split_body(side, frame_box, controls_width=350)
 
         self._overlay = None
         self._outcome: str | None = None

@@ -16,7 +16,7 @@ from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histo
 from ptpcore.fit.corrected import correct_all
 from ptpcore.fit.glass import corrected_samples, describe_corrections
 
-from ..widgets.maps import PEN, MapView, axis_label, colormap, legend_below, plain_axes
+from ..widgets.maps import PEN, MapView, axis_label, colormap, plain_axes
 from ..worker import Job
 from .base import StudioPage
 
@@ -83,13 +83,16 @@ class ComparePage(StudioPage):
         sl.addWidget(self._build_run_controls())
         self._build_results(sl)
         sl.addStretch(1)
+        # The maps, the error table (full width: every row name and number whole), the plots.
         view = QSplitter(Qt.Vertical)
         view.addWidget(self._build_heatmaps())
+        view.addWidget(self.st_box)
         view.addWidget(self._build_plots())
         view.setStretchFactor(0, 3)
-        view.setStretchFactor(1, 2)
+        view.setStretchFactor(1, 0)
+        view.setStretchFactor(2, 3)
         view.setChildrenCollapsible(False)
-        self.split_body(side, view, controls_width=310)
+        self.split_body(side, view, controls_width=350)
         self._connect(model)
 
     def _build_run_controls(self) -> QGroupBox:
@@ -138,8 +141,13 @@ class ComparePage(StudioPage):
         self.reference.setMinimumContentsLength(16)
         rl.addWidget(self.reference, 1)
         lay.addLayout(rl)
-        st_box = QGroupBox("Errors at held-out heights (µm)")
+        self.coverage = QLabel()
+        self.coverage.setWordWrap(True)
+        self.coverage.setObjectName("hint")
+        lay.addWidget(self.coverage)
+        self.st_box = st_box = QGroupBox("Errors at the held-out heights (µm)")
         sl = QVBoxLayout(st_box)
+        sl.setContentsMargins(4, 4, 4, 4)
         self.stats = QTableWidget(0, 5)
         self.stats.setHorizontalHeaderLabels(["error", "RMS", "mean", "p95", "max"])
         self.stats.horizontalHeaderItem(0).setToolTip("coord.: coordinate error |(dX, dY)|; same z, across z: the"
@@ -151,13 +159,9 @@ class ComparePage(StudioPage):
         # The row names (first column) as wide as they need: the numbers share the rest.
         self.stats.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
         self.stats.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeToContents)
-        self.stats.setMinimumHeight(9 * 20 + 28)
+        self.stats.setMinimumHeight(9 * 20 + 32)  # the nine rows (three per method) and the header
+        self.stats.setMaximumHeight(9 * 20 + 32)
         sl.addWidget(self.stats)
-        self.coverage = QLabel()
-        self.coverage.setWordWrap(True)
-        self.coverage.setObjectName("hint")
-        sl.addWidget(self.coverage)
-        lay.addWidget(st_box)
         par_box = QGroupBox("3DSTC camera (pinhole + Brown)")
         pl = QVBoxLayout(par_box)
         self.reproj = QLabel()
@@ -194,13 +198,18 @@ class ComparePage(StudioPage):
 
     def _build_plots(self) -> QWidget:
         """Distance error against distance, the distance error histogram and the RMS per held-out height,
-        each with its legend under its axes (never over the data)."""
+        under one colour key (a legend in each plot sat on its data, one under each was cut at 1366x768)."""
         box = QWidget()
         lay = QVBoxLayout(box)
         lay.setContentsMargins(0, 0, 0, 0)
+        self.colour_key = QLabel("  ".join(f"<span style='color:{COLOURS[m]}'>■</span> {METHOD_LABELS[m]}" for m in METHODS)
+                          + "  <span style='color:#666'>— distance error: solid, pairs at one height; dashed,"
+                            " across heights</span>")
+        self.colour_key.setWordWrap(True)
+        lay.addWidget(self.colour_key)
         plots = QHBoxLayout()
         self.vs_dist = pg.PlotWidget()
-        self.vs_dist.setTitle("Distance error vs distance (— same z, - - across)", size="9pt")
+        self.vs_dist.setTitle("Distance error vs distance", size="9pt")
         axis_label(self.vs_dist, "left", "RMS error", "µm")
         axis_label(self.vs_dist, "bottom", "distance", "mm")
         self.hist = pg.PlotWidget()
@@ -212,9 +221,7 @@ class ComparePage(StudioPage):
         self.per_pos.setTitle("Coordinate RMS per held-out z", size="9pt")
         axis_label(self.per_pos, "left", "RMS", "µm")
         axis_label(self.per_pos, "bottom", "z", "mm")
-        self.vs_dist.getPlotItem().titleLabel.setToolTip("solid: pairs at the same height; dashed: across heights")
         for p in (self.vs_dist, self.hist, self.per_pos):
-            legend_below(p)
             p.setMinimumHeight(150)
             plots.addWidget(p, 1)
         lay.addLayout(plots, 1)
@@ -450,8 +457,8 @@ class ComparePage(StudioPage):
         for m in methods:
             d = displays[m]
             self.heat[m].set_map(d.image, levels=levels, cmap="inferno", step=d.step, extent=d.extent, full=maps[m])
-            self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]}: RMS {_fmt(rr.methods[m].coordinate.rms_um)} µm",
-                                       size="9pt")
+            # "RMS" is in the box's title: a longer title was cut over a narrow map
+            self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]} {_fmt(rr.methods[m].coordinate.rms_um)} µm", size="9pt")
         self.heat_bar.setLevels(levels)
         self.heat_bar.rounding = max(levels[1] / 1000, 1e-9)
 

@@ -8,9 +8,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
-                               QSplitter, QVBoxLayout, QWidget)
+                               QTabWidget, QVBoxLayout, QWidget)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
 from ptpcore.evaluate.residuals import residual_png
@@ -94,7 +94,8 @@ class ExportPage(StudioPage):
         self.do_lut.setToolTip("ptp-lut/1, HDF5: what a scanner loads")
         self.do_lut.setChecked(True)
         self.do_lut.setEnabled(False)  # the product of the session: always written
-        self.do_report = QCheckBox(f"Comparison report {REPORT_NAME} + PNG plots")
+        self.do_report = QCheckBox("Comparison report (JSON, PNG plots)")
+        self.do_report.setToolTip(f"{REPORT_NAME} and the Compare page's plots as PNG")
         self.do_quality = QCheckBox("LUT quality heatmaps (PNG)")
         self.do_quality.setToolTip("One PNG per map of the Calibrate page, named after it: lut_quality_rms_x.png,"
                                    " lut_quality_loo_x.png, … and lut_quality_sigma_x.png when the LUT has"
@@ -128,14 +129,14 @@ class ExportPage(StudioPage):
         sl.addStretch(1)
         # The views: the LUT in use (a height map, or one height, into a point cloud, shown and saved) and
         # trusting it (its difference to a reference LUT: a second sweep, last month's).
-        view = QSplitter(Qt.Vertical)
+        # One tab each: both as tall as the page (one above the other, neither had room for its plot).
+        self.view_tabs = view = QTabWidget()
         self.cloud_panel = PointCloudPanel(lambda: self.model.session.lut,
                                            lambda: Path(self.folder.text().strip() or "."))
         self.diff_panel = LutDiffPanel(lambda: self.model.session.lut)
-        view.addWidget(self.cloud_panel)
-        view.addWidget(self.diff_panel)
-        view.setChildrenCollapsible(False)
-        self.split_body(side, view, controls_width=300)
+        view.addTab(self.cloud_panel, "Use the LUT: point cloud")
+        view.addTab(self.diff_panel, "Trust the LUT: against a reference LUT")
+        self.split_body(side, view, controls_width=330)
         self.files: list[Path] = []
         self._outcome = None
         self.export_button.clicked.connect(self.export)

@@ -174,7 +174,7 @@ class FringesPage(StudioPage):
         self.floor_plot.setMinimumHeight(120)
         axis_label(self.floor_plot, "left", "noise floor", "µm")
         axis_label(self.floor_plot, "bottom", "z", "mm")
-        self.floor_plot.setTitle("Predicted 1σ coordinate noise per position", size="9pt")
+        self.floor_plot.setTitle("Predicted 1σ noise per position", size="9pt")
         self.floor_bars = pg.BarGraphItem(x=[0], height=[0], width=1, brush="#2b6cb0")
         self.floor_plot.addItem(self.floor_bars)
         cl.addWidget(self.floor_plot, 1)

@@ -137,6 +137,10 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
     col = cmp_page.stats.columnWidth(0)
     fm = cmp_page.stats.fontMetrics()
     assert all(fm.horizontalAdvance(n) + 6 <= col for n in names), (names, col)  # no "PTP ..." in the cells
+    for c in range(1, cmp_page.stats.columnCount()):  # nor "1..." for a number
+        width = cmp_page.stats.columnWidth(c)
+        texts = [cmp_page.stats.item(i, c).text() for i in range(cmp_page.stats.rowCount())]
+        assert all(fm.horizontalAdvance(t) + 6 <= width for t in texts), (c, texts, width)
     r = wiz.model.session.compare
     bars = [i for i in cmp_page.per_pos.getPlotItem().items if isinstance(i, pg.BarGraphItem)]
     left = min(float(np.min(b.opts["x"] - b.opts["width"] / 2)) for b in bars)
