@@ -105,12 +105,12 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
     _laid_out(qtbot, wiz)  # Fringes
     _next(qtbot, wiz)
     _click(qtbot, p["acquire"].start_button)
-    assert run_job(qtbot, p["acquire"].jobs.job) == "finished"
+    assert run_job(qtbot, p["acquire"].jobs.job, timeout=300000) == "finished"
     _laid_out(qtbot, wiz)
     _next(qtbot, wiz)
     ph = p["phase"]
     if ph.jobs.busy:
-        run_job(qtbot, ph.jobs.job)
+        run_job(qtbot, ph.jobs.job, timeout=300000)
     _laid_out(qtbot, wiz)
     _next(qtbot, wiz)
 
@@ -121,7 +121,7 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
         QTest.keyClick(cal.model_combo, Qt.Key_Down)
     assert cal.model_combo.currentData() == "poly"
     _click(qtbot, cal.fit_button)
-    assert run_job(qtbot, cal.jobs.job) == "finished"
+    assert run_job(qtbot, cal.jobs.job, timeout=300000) == "finished"
     _laid_out(qtbot, wiz)
     h, w = wiz.model.session.rig.camera.shape
     _extent_ok(cal.heatmap.view, h, w)
@@ -129,7 +129,7 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
 
     cmp_page = p["compare"]
     _click(qtbot, cmp_page.run_button)
-    assert run_job(qtbot, cmp_page.jobs.job, timeout=120000) == "finished"
+    assert run_job(qtbot, cmp_page.jobs.job, timeout=300000) == "finished"
     _laid_out(qtbot, wiz)
     names = [cmp_page.stats.item(i, 0).text() for i in range(cmp_page.stats.rowCount())]
     assert len(set(names)) == len(names) == cmp_page.stats.rowCount() > 0, names
