@@ -11,14 +11,15 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from PySide6.QtCore import QEventLoop
-from PySide6.QtWidgets import QApplication
+from PySide6.QtCore import QEventLoop, QSize, Qt
+from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QApplication, QWizard
 
 from .session import tour_session
 from .wizard import StudioWizard
 from .worker import Job
 
-__all__ = ["run_tour", "wait_job", "settle"]
+__all__ = ["QtDriver", "run_tour", "tour_size", "wait_job", "settle"]
 
 
 def settle(ms: int = 50) -> None:
@@ -50,8 +51,58 @@ def wait_job(job: Job | None, timeout: float = 300.0) -> str:
     return job.outcome
 
 
-def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, log=print) -> list[Path]:
-    """Walk every page; returns the PNGs written.
+class QtDriver:
+    """Presses the wizard's buttons as a person does: mouse clicks and keys as Qt events to the widget
+    under them (:mod:`QTest`). ``benchmarks.gui_walk`` sends real X events instead (xdotool)."""
+
+    def click(self, widget) -> None:
+        """A left click at the middle of ``widget``."""
+        QTest.mouseClick(widget, Qt.LeftButton, pos=widget.rect().center())
+        settle(50)
+
+    def choose(self, combo, index: int) -> None:
+        """Pick item ``index`` of a combo box with the keyboard (focus, Home, Down ``index`` times)."""
+        combo.setFocus(Qt.OtherFocusReason)
+        QTest.keyClick(combo, Qt.Key_Home)
+        for _ in range(index):
+            QTest.keyClick(combo, Qt.Key_Down)
+        settle(50)
+
+    def type_text(self, line_edit, text: str) -> None:
+        """Replace a line edit's text by typing (select all, type, Return)."""
+        line_edit.setFocus(Qt.OtherFocusReason)
+        QTest.keyClick(line_edit, Qt.Key_A, Qt.ControlModifier)
+        QTest.keyClicks(line_edit, text)
+        QTest.keyClick(line_edit, Qt.Key_Tab)  # leave the field: editingFinished, never Return (the default button)
+        settle(50)
+
+
+def tour_size() -> QSize:
+    """The window's size on this screen (its available geometry); 1366x768 with no screen to measure
+    (the offscreen platform's is 800x800)."""
+    app = QApplication.instance()
+    screen = app.primaryScreen() if app is not None else None
+    if screen is None or app.platformName() in ("offscreen", "minimal"):
+        return QSize(1366, 768)
+    return screen.availableGeometry().size()
+
+
+def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, log=print, driver=None,
+             size: QSize | None = None, on_page=None, smooth: bool = True) -> list[Path]:
+    """Walk every page with clicks and keys; returns the PNGs written.
+
+    Parameters
+    ----------
+    outdir : folder of the screenshots (and ``export/``)
+    width, height, positions : the simulated camera and the stage positions
+    driver : QtDriver, optional
+        How buttons are pressed (default: Qt events, :class:`QtDriver`).
+    size : QSize, optional
+        The window's size; default :func:`tour_size` (the screen's).
+    on_page : callable (name, wizard) -> None, optional
+        Called at each screenshot (``benchmarks.gui_walk`` checks the layout there).
+    smooth : bool
+        Also fit the smooth LUT on the Calibrate page (a slower fit).
 
     Raises
     ------
@@ -60,26 +111,39 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     """
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
+    drv = driver or QtDriver()
     wiz = StudioWizard(tour_session(width, height, positions))
-    wiz.resize(1366, 768)  # a laptop screen, whatever screen the tour runs on (offscreen: 800x800)
+    size = size or tour_size()
+    wiz.resize(size)
     wiz.show()
-    settle(200)
+    settle(300)
     shots: list[Path] = []
 
     def shot(name: str) -> None:
-        settle(150)
+        settle(300)
         path = out / f"{len(shots) + 1:02d}-{name}.png"
         if not wiz.grab().save(str(path), "PNG"):
             raise OSError(f"{path}: could not write the screenshot")
         shots.append(path)
         log(f"  {path}")
+        if on_page is not None:
+            on_page(name, wiz)
 
     def next_page() -> None:
         reason = wiz.next_blocker()
         if reason:
             raise RuntimeError(f"page '{wiz.currentPage().heading}' cannot go on: {reason}")
-        wiz.next()
-        settle(100)
+        drv.click(wiz.button(QWizard.NextButton))
+        settle(150)
+
+    def press(button):
+        """Click a page's button that starts a job; the job."""
+        page = wiz.currentPage()
+        before = page.jobs.job
+        drv.click(button)
+        if page.jobs.job is before:
+            raise RuntimeError(f"'{button.text()}' on page '{page.heading}' started no job (the click missed?)")
+        return page.jobs.job
 
     t0 = time.monotonic()
     log(f"PTP Studio tour: simulated '{wiz.model.session.preset_name}' rig, camera {width}x{height},"
@@ -93,7 +157,7 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     next_page()
 
     shot("acquire-before")  # Next disabled, with its reason
-    wait_job(p["acquire"].start())
+    wait_job(press(p["acquire"].start_button))
     shot("acquire")
     next_page()
 
@@ -111,31 +175,33 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     next_page()
 
     cal = p["calibrate"]
-    cal.configure("poly", 3, "all")
-    wait_job(cal.fit())
+    drv.choose(cal.model_combo, cal.model_combo.findData("poly"))
+    wait_job(press(cal.fit_button))
     rows, cols = (wiz.model.session.lut.valid).nonzero()
     if rows.size:
         i = rows.size // 3
         cal.select_pixel(int(rows[i]), int(cols[i]))
-    cal.show_map("rms_x")
+    drv.click(cal.map_buttons.button(cal._map_keys.index("rms_x")))
     shot("calibrate")
-    cal.show_map("loo_y")
+    drv.click(cal.map_buttons.button(cal._map_keys.index("loo_y")))
     shot("calibrate-loo")
-    cal.configure("smooth", 2, "all")  # the smooth LUT, with its predicted uncertainty map
-    wait_job(cal.fit())
-    if rows.size:
-        cal.select_pixel(int(rows[i]), int(cols[i]))
-    cal.show_map("sigma_x")
-    shot("calibrate-smooth-sigma")
+    if smooth:  # the smooth LUT, with its predicted uncertainty map
+        drv.choose(cal.model_combo, cal.model_combo.findData("smooth"))
+        cal.degree.setValue(2)
+        wait_job(press(cal.fit_button))
+        if rows.size:
+            cal.select_pixel(int(rows[i]), int(cols[i]))
+        drv.click(cal.map_buttons.button(cal._map_keys.index("sigma_x")))
+        shot("calibrate-smooth-sigma")
     next_page()
 
-    wait_job(p["compare"].run())
+    wait_job(press(p["compare"].run_button))
     shot("compare")
     next_page()
 
     ex = p["export"]
-    ex.set_folder(out / "export")
-    wait_job(ex.export())
+    drv.type_text(ex.folder, str(out / "export"))
+    wait_job(press(ex.export_button))
     shot("export")
     if wiz.next_blocker():
         raise RuntimeError(f"Finish is disabled: {wiz.next_blocker()}")

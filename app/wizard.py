@@ -74,9 +74,9 @@ class StepList(QListWidget):
         self.setMouseTracking(True)
         for i, page in enumerate(pages):
             item = QListWidgetItem(page.icon, f"{i + 1}  {page.heading}")
-            item.setSizeHint(QSize(150, 36))
+            item.setSizeHint(QSize(140, 34))
             self.addItem(item)
-        self.setFixedWidth(170)
+        self.setFixedWidth(164)  # narrow: the pages' views take the width (a 1366x768 screen)
         self.reachable: set[int] = set()
         self.itemClicked.connect(self._clicked)
 

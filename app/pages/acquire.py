@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from PySide6.QtGui import QBrush, QColor
-from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView,
-                               QLabel, QLineEdit, QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout)
+from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, QHeaderView, QLabel, QLineEdit,
+                               QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from ptpcore.io import DatasetSource
 from ptpcore.run import collect_samples
@@ -85,21 +85,17 @@ class AcquirePage(StudioPage):
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
-        grid = QGridLayout(self.body)
-        grid.setColumnStretch(0, 3)
-        grid.setColumnStretch(1, 2)
-
         top = QGroupBox("Run")
         tl = QVBoxLayout(top)
         self.source_label = QLabel()
         self.source_label.setWordWrap(True)
         tl.addWidget(self.source_label)
+        self.write_check = QCheckBox("Also write the images to a folder:")
+        tl.addWidget(self.write_check)
         wl = QHBoxLayout()
-        self.write_check = QCheckBox("Also write the simulated images to a dataset folder:")
         self.write_edit = QLineEdit()
         self.write_edit.setPlaceholderText("folder (created if needed)")
         self.write_browse = QPushButton("Browse…")
-        wl.addWidget(self.write_check)
         wl.addWidget(self.write_edit, 1)
         wl.addWidget(self.write_browse)
         tl.addLayout(wl)
@@ -107,42 +103,45 @@ class AcquirePage(StudioPage):
 
         self.live = LivePanel(model)
         tl.addWidget(self.live)
-        bl = QHBoxLayout()
         self.start_button = QPushButton("Start acquisition")
         self.start_button.setObjectName("primary")
-        bl.addWidget(self.start_button)
-        bl.addWidget(self.make_job_panel(), 1)
-        tl.addLayout(bl)
-        grid.addWidget(top, 0, 0, 1, 2)
+        tl.addWidget(self.start_button)
+        tl.addWidget(self.make_job_panel())
 
         frame_box = QGroupBox("Latest frame")
         fl = QVBoxLayout(frame_box)
         self.frame_label = QLabel("no frame yet")
         self.frame_label.setObjectName("panelTitle")
+        self.frame_label.setWordWrap(True)
         fl.addWidget(self.frame_label)
         self.frame_view = MapView(colour_bar=True)
         fl.addWidget(self.frame_view, 1)
         self.sat_check = QCheckBox("Show saturated pixels (red)")
         self.sat_check.setChecked(True)
         fl.addWidget(self.sat_check)
-        grid.addWidget(frame_box, 1, 0)
 
         pos_box = QGroupBox("Positions")
         pl = QVBoxLayout(pos_box)
         self.table = QTableWidget(0, 5)
-        self.table.setHorizontalHeaderLabels(["#", "z (mm)", "status", "valid", "main rejection"])
+        self.table.setHorizontalHeaderLabels(["#", "z (mm)", "status", "valid", "rejection"])
+        self.table.horizontalHeaderItem(4).setToolTip("The most frequent reason a pixel was rejected")
         self.table.verticalHeader().hide()
         self.table.setEditTriggers(QTableWidget.NoEditTriggers)
         hh = self.table.horizontalHeader()
         for c in range(4):
             hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
         hh.setSectionResizeMode(4, QHeaderView.Stretch)
+        self.table.setMinimumHeight(12 * 30)
         pl.addWidget(self.table)
         self.summary = QLabel()
         self.summary.setWordWrap(True)
         pl.addWidget(self.summary)
-        grid.addWidget(pos_box, 1, 1)
-        grid.setRowStretch(1, 1)
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 4, 0)
+        sl.addWidget(top)
+        sl.addWidget(pos_box, 1)
+        self.split_body(side, frame_box, controls_width=350)
 
         self._overlay = None
         self._outcome: str | None = None

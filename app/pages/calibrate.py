@@ -7,9 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QGridLayout, QGroupBox,
-                               QHBoxLayout, QLabel, QPushButton, QSpinBox, QTableWidget, QTableWidgetItem,
-                               QVBoxLayout)
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout,
+                               QGroupBox, QHBoxLayout, QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget,
+                               QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
 from ptpcore.fit import describe_lut
 from ptpcore.rig import lut_stage_z, position_label
@@ -219,33 +220,58 @@ class CalibratePage(StudioPage):
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
-        grid = QGridLayout(self.body)
-        grid.setColumnStretch(0, 3)
-        grid.setColumnStretch(1, 2)
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 4, 0)
+        sl.addWidget(self._build_model_controls())
+        sl.addWidget(self._build_map_choice())
+        sl.addWidget(self._build_summary())
+        self.stage_pose = StagePosePanel()  # shown when the LUT carries a refined stage pose
+        sl.addWidget(self.stage_pose)
+        sl.addStretch(1)
+        view = QSplitter(Qt.Horizontal)
+        view.addWidget(self._build_maps_view())
+        view.addWidget(self._build_pixel_view())
+        view.setStretchFactor(0, 3)
+        view.setStretchFactor(1, 2)
+        view.setSizes([600, 400])
+        self.split_body(side, view, controls_width=300)
 
+        self.maps: dict = {}
+        self.displays: dict = {}  # key -> DisplayMap of self.maps (LutView.displays)
+        self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
+        self.residual_field = None
+        self._view: LutView | None = None  # what the fit job computed for the LUT it hands over
+        self.series = None
+        self.selected: tuple[int, int] | None = None
+        self._outcome = None
+        self.drift = None  # ptpcore.fit.drift.Drift of the LUT the session holds, when fitted here
+        self._connect(model)
+
+    def _build_model_controls(self) -> QGroupBox:
+        """The model, its options and the Fit button with the job's progress (the side panel's top)."""
         ctl = QGroupBox("Model")
-        cl = QGridLayout(ctl)
+        form = QFormLayout(ctl)
+        form.setRowWrapPolicy(QFormLayout.WrapLongRows)
         self.model_combo = QComboBox()
         self.model_combo.setToolTip("Auto: polynomial degrees 1-3 and smooth, each fitted without some positions and"
                                     " judged at them; the most accurate is chosen (a simpler one within 5 %)")
         for k, label in MODELS.items():
             self.model_combo.addItem(label, k)
         self.model_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
-        self.model_combo.setMinimumContentsLength(26)
+        self.model_combo.setMinimumContentsLength(16)
         self.degree = QSpinBox()
         self.degree.setRange(1, 5)
         self.degree.setValue(3)
-        self.degree.setPrefix("degree ")
         self.positions_combo = QComboBox()
         self.positions_combo.addItem("all positions", "all")
         self.positions_combo.addItem("every second position (hold out the others)", "half")
         self.positions_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
-        self.positions_combo.setMinimumContentsLength(22)
+        self.positions_combo.setMinimumContentsLength(16)
         self.stage_sigma = QDoubleSpinBox()
         self.stage_sigma.setRange(0.0, 100.0)
         self.stage_sigma.setDecimals(2)
         self.stage_sigma.setSingleStep(0.1)
-        self.stage_sigma.setPrefix("stage 1σ ")
         self.stage_sigma.setSuffix(" µm")
         self.stage_sigma.setToolTip("1-sigma error of the stage readings (its specification). It moves every pixel"
                                     " of a position at once, so it enters the predicted σ maps through each"
@@ -259,52 +285,56 @@ class CalibratePage(StudioPage):
         self.footprint.setToolTip("Smooth: move each sample from its pixel's footprint centroid to the pixel's centre"
                                   " ray (size read from the fringe contrast). Off when ambient light or a camera"
                                   " black level lower the contrast.")
-        self.fit_button = QPushButton("Fit LUT")
-        self.fit_button.setObjectName("primary")
         self.refine_stage = QCheckBox("refine stage")
         self.refine_stage.setToolTip("Estimate each position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from"
                                      " the straightness of the rays many pixels see, up to a common offset, scale"
                                      " and linear trend, and correct the samples before fitting (METHOD.md section 8)."
                                      " The estimates and their 1-sigma go into the LUT's /provenance/stage_pose.")
-        # Two rows: the choices, then the fit and its progress (one row is wider than a laptop screen).
-        row1 = QHBoxLayout()
-        for w in (self.model_combo, self.degree, self.positions_combo, self.stage_sigma, self.level_bias,
-                  self.footprint):
-            row1.addWidget(w)
-        row1.addStretch(1)
-        row2 = QHBoxLayout()
-        row2.addWidget(self.fit_button)
-        row2.addWidget(self.refine_stage)
-        row2.addWidget(self.make_job_panel(), 1)
-        cl.addLayout(row1, 0, 0)
-        cl.addLayout(row2, 1, 0)
-        grid.addWidget(ctl, 0, 0, 1, 2)
+        self.fit_button = QPushButton("Fit LUT")
+        self.fit_button.setObjectName("primary")
+        form.addRow("Model", self.model_combo)
+        form.addRow("Degree", self.degree)
+        form.addRow("Fit to", self.positions_combo)
+        form.addRow("Stage 1σ", self.stage_sigma)
+        corrections = QHBoxLayout()
+        for box in (self.level_bias, self.footprint):
+            corrections.addWidget(box)
+        corrections.addStretch(1)
+        form.addRow(corrections)
+        form.addRow(self.refine_stage)
+        form.addRow(self.fit_button)
+        form.addRow(self.make_job_panel())
+        return ctl
 
-        maps_box = QGroupBox("Quality over the sensor")
-        ml = QVBoxLayout(maps_box)
-        bl = QHBoxLayout()
+    def _build_map_choice(self) -> QGroupBox:
+        """The quality map shown (segmented buttons, three a row so the side panel stays narrow)."""
+        box = QGroupBox("Map")
+        grid = QGridLayout(box)
+        grid.setSpacing(3)
         self.map_buttons = QButtonGroup(self)
         self.map_buttons.setExclusive(True)
         self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y", "drift"]
-        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions used", "validity", "σ X", "σ Y", "drift"]
+        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions", "validity", "σ X", "σ Y", "drift"]
         for i, (key, lab) in enumerate(zip(self._map_keys, labels)):
             b = QPushButton(lab)
             b.setCheckable(True)
             b.setObjectName("segment")
             self.map_buttons.addButton(b, i)
-            bl.addWidget(b)
+            grid.addWidget(b, i // 3, i % 3)
+        self.map_buttons.button(self._map_keys.index("n_positions")).setToolTip("Positions used per pixel")
         self.map_buttons.button(0).setChecked(True)
         for key, tip in OPTIONAL_MAPS.items():  # shown when the LUT has them
             self.map_buttons.button(self._map_keys.index(key)).setToolTip(tip)
             self.map_buttons.button(self._map_keys.index(key)).setVisible(False)
-        self.drift = None  # ptpcore.fit.drift.Drift of the LUT the session holds, when fitted here
-        bl.addStretch(1)
-        ml.addLayout(bl)
-        self.heatmap = HeatmapPanel()
-        ml.addWidget(self.heatmap, 1)
+        return box
+
+    def _build_summary(self) -> QGroupBox:
+        """The LUT's statistics line and, for an ``auto`` fit, the table of candidates."""
+        box = QGroupBox("Summary")
+        lay = QVBoxLayout(box)
         self.stats = QLabel()
         self.stats.setWordWrap(True)
-        ml.addWidget(self.stats)
+        lay.addWidget(self.stats)
         self.choice_table = QTableWidget(0, 4)
         self.choice_table.setHorizontalHeaderLabels(["candidate", "held-out RMS (µm)", "model error (µm)", "note"])
         self.choice_table.setEditTriggers(QTableWidget.NoEditTriggers)
@@ -312,11 +342,23 @@ class CalibratePage(StudioPage):
         self.choice_table.horizontalHeader().setStretchLastSection(True)
         self.choice_table.setToolTip("Auto: every candidate fitted without the held-out positions and judged at them;"
                                      " the most accurate is chosen, a simpler one within 5 % of it preferred")
-        self.choice_table.setMaximumHeight(150)
+        self.choice_table.setMinimumHeight(150)
         self.choice_table.setVisible(False)
-        ml.addWidget(self.choice_table)
-        grid.addWidget(maps_box, 1, 0)
+        lay.addWidget(self.choice_table)
+        return box
 
+    def _build_maps_view(self) -> QTabWidget:
+        """The quality heatmap (with its histogram) and the residual arrows, one tab each."""
+        self.view_tabs = QTabWidget()
+        self.heatmap = HeatmapPanel()
+        self.heatmap.title.setWordWrap(True)
+        self.view_tabs.addTab(self.heatmap, "Quality over the sensor")
+        self.residuals = ResidualPanel()
+        self.view_tabs.addTab(self.residuals, "Residual arrows")
+        return self.view_tabs
+
+    def _build_pixel_view(self) -> QGroupBox:
+        """One pixel: its samples and fitted curves X(z), Y(z) and its residual per position."""
         px_box = QGroupBox("Pixel")
         pl = QVBoxLayout(px_box)
         self.pixel_label = QLabel("click a pixel in the heatmap")
@@ -325,30 +367,19 @@ class CalibratePage(StudioPage):
         self.plot_x = self._curve_plot("X", pl)
         self.plot_y = self._curve_plot("Y", pl)
         self.plot_r = pg.PlotWidget()
-        self.plot_r.setTitle("Residual per position (sample − LUT)")
+        # The key in the title, not a legend over the bars.
+        self.plot_r.setTitle("Residual (sample − LUT): <span style='color:#2b6cb0'>■ X</span>"
+                             " <span style='color:#e69f00'>■ Y</span>", size="9pt")
         axis_label(self.plot_r, "left", "residual", "µm")
         axis_label(self.plot_r, "bottom", "z", "mm")
-        self.plot_r.addLegend(offset=(5, 5))
         self.bars_x = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#2b6cb0", name="X")
         self.bars_y = pg.BarGraphItem(x=[], height=[], width=0.4, brush="#e69f00", name="Y")
         self.plot_r.addItem(self.bars_x)
         self.plot_r.addItem(self.bars_y)
         pl.addWidget(self.plot_r, 1)
-        grid.addWidget(px_box, 1, 1)
-        grid.setRowStretch(1, 1)
-        self.residuals = ResidualPanel()
-        grid.addWidget(self.residuals, 2, 0, 1, 2)
-        self.stage_pose = StagePosePanel()  # shown when the LUT carries a refined stage pose
-        grid.addWidget(self.stage_pose, 3, 0, 1, 2)
+        return px_box
 
-        self.maps: dict = {}
-        self.displays: dict = {}  # key -> DisplayMap of self.maps (LutView.displays)
-        self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
-        self.residual_field = None
-        self._view: LutView | None = None  # what the fit job computed for the LUT it hands over
-        self.series = None
-        self.selected: tuple[int, int] | None = None
-        self._outcome = None
+    def _connect(self, model) -> None:
         self.model_combo.currentIndexChanged.connect(self._model_changed)
         self._model_changed()
         self.fit_button.clicked.connect(self.fit)
@@ -365,10 +396,12 @@ class CalibratePage(StudioPage):
 
     def _curve_plot(self, axis: str, layout) -> pg.PlotWidget:
         p = pg.PlotWidget()
-        p.setTitle(f"{axis}(z): samples and fitted LUT")
+        # The key in the title, not a legend over the samples.
+        p.setTitle(f"{axis}(z): <span style='color:#2b6cb0'>— LUT</span>"
+                   " <span style='color:#1b7f4c'>● fitted</span> <span style='color:#c0392b'>○ held out</span>",
+                   size="9pt")
         axis_label(p, "left", axis, "mm")
         axis_label(p, "bottom", "z", "mm")
-        p.addLegend(offset=(5, 5))
         p.curve = p.plot(pen=pg.mkPen("#2b6cb0", width=2), name="LUT")
         p.used = p.plot(pen=None, symbol="o", symbolSize=8, symbolBrush="#1b7f4c", symbolPen="#1b7f4c",
                         name="sample (fitted)")

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
-                               QPushButton, QSpinBox, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
+                               QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QVBoxLayout,
+                               QWidget)
 
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, prepare_display,
                               robust_levels, smooth_degree_for, split_positions)
@@ -76,19 +77,35 @@ class ComparePage(StudioPage):
         self._prepared: dict = {}  # reference -> compare_heatmaps(...)
         self.calibrate_page = None  # set by the wizard: the LUT settings to compare with
         self.settings_note = ""
-        grid = QGridLayout(self.body)
-        grid.setColumnStretch(0, 3)
-        grid.setColumnStretch(1, 7)
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 4, 0)
+        sl.addWidget(self._build_run_controls())
+        self._build_results(sl)
+        sl.addStretch(1)
+        # The maps, the error table (full width: every row name and number whole), the plots.
+        view = QSplitter(Qt.Vertical)
+        view.addWidget(self._build_heatmaps())
+        view.addWidget(self.st_box)
+        view.addWidget(self._build_plots())
+        view.setStretchFactor(0, 3)
+        view.setStretchFactor(1, 0)
+        view.setStretchFactor(2, 3)
+        view.setChildrenCollapsible(False)
+        self.split_body(side, view, controls_width=350)
+        self._connect(model)
 
+    def _build_run_controls(self) -> QGroupBox:
+        """The comparison's settings and Run comparison with the job's progress."""
         ctl = QGroupBox("Run")
-        cl = QVBoxLayout(ctl)
+        form = QFormLayout(ctl)
+        form.setRowWrapPolicy(QFormLayout.WrapLongRows)
         self.split = QComboBox()
         self.split.addItem("every second position held out", "alternate")
         self.split.addItem("leave one position out", "loo")
         self.points = QSpinBox()
         self.points.setRange(20, 1_000_000)
         self.points.setValue(2000)
-        self.points.setPrefix("M = ")
         self.points.setSuffix(" feature points")
         self.rational = QCheckBox("rational k4..k6")
         self.with_smooth = QCheckBox("PTP smooth")
@@ -97,31 +114,54 @@ class ComparePage(StudioPage):
                                     "correction smoothed across pixels")
         self.seed = QSpinBox()
         self.seed.setRange(0, 2 ** 31 - 1)
-        self.seed.setPrefix("seed ")
         self.run_button = QPushButton("Run comparison")
         self.run_button.setObjectName("primary")
-        row1 = QHBoxLayout()
-        for w in (self.split, self.points, self.rational, self.with_smooth, self.seed):
-            row1.addWidget(w)
-        row1.addStretch(1)
-        row2 = QHBoxLayout()
-        row2.addWidget(self.run_button)
-        row2.addWidget(self.make_job_panel(), 1)
-        cl.addLayout(row1)
-        cl.addLayout(row2)
-        grid.addWidget(ctl, 0, 0, 1, 2)
+        form.addRow("Held out", self.split)
+        form.addRow("3DSTC target", self.points)
+        boxes = QHBoxLayout()
+        boxes.addWidget(self.rational)
+        boxes.addWidget(self.with_smooth)
+        boxes.addStretch(1)
+        form.addRow(boxes)
+        form.addRow("Seed", self.seed)
+        form.addRow(self.run_button)
+        form.addRow(self.make_job_panel())
+        return ctl
 
+    def _build_results(self, lay: QVBoxLayout) -> None:
+        """The verdict, the reference it is judged against, the 3DSTC camera and the error table."""
         self.verdict = QLabel()
         self.verdict.setObjectName("verdict")
         self.verdict.setWordWrap(True)
-        grid.addWidget(self.verdict, 1, 0, 1, 2)
-
-        left = QVBoxLayout()
+        lay.addWidget(self.verdict)
         rl = QHBoxLayout()
         rl.addWidget(QLabel("Reference"))
         self.reference = QComboBox()
+        self.reference.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.reference.setMinimumContentsLength(16)
         rl.addWidget(self.reference, 1)
-        left.addLayout(rl)
+        lay.addLayout(rl)
+        self.coverage = QLabel()
+        self.coverage.setWordWrap(True)
+        self.coverage.setObjectName("hint")
+        lay.addWidget(self.coverage)
+        self.st_box = st_box = QGroupBox("Errors at the held-out heights (µm)")
+        sl = QVBoxLayout(st_box)
+        sl.setContentsMargins(4, 4, 4, 4)
+        self.stats = QTableWidget(0, 5)
+        self.stats.setHorizontalHeaderLabels(["error", "RMS", "mean", "p95", "max"])
+        self.stats.horizontalHeaderItem(0).setToolTip("coord.: coordinate error |(dX, dY)|; same z, across z: the"
+                                                      " error of distances between points at one height, across"
+                                                      " heights")
+        self.stats.verticalHeader().hide()
+        self.stats.verticalHeader().setDefaultSectionSize(20)
+        self.stats.setEditTriggers(QTableWidget.NoEditTriggers)
+        # The row names (first column) as wide as they need: the numbers share the rest.
+        self.stats.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
+        self.stats.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeToContents)
+        self.stats.setMinimumHeight(9 * 20 + 32)  # the nine rows (three per method) and the header
+        self.stats.setMaximumHeight(9 * 20 + 32)
+        sl.addWidget(self.stats)
         par_box = QGroupBox("3DSTC camera (pinhole + Brown)")
         pl = QVBoxLayout(par_box)
         self.reproj = QLabel()
@@ -133,31 +173,18 @@ class ComparePage(StudioPage):
         self.params.verticalHeader().setDefaultSectionSize(20)
         self.params.setEditTriggers(QTableWidget.NoEditTriggers)
         self.params.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
+        self.params.setMinimumHeight(15 * 20 + 28)
         pl.addWidget(self.params)
-        left.addWidget(par_box, 3)
-        st_box = QGroupBox("Errors at the held-out heights (µm)")
-        sl = QVBoxLayout(st_box)
-        self.stats = QTableWidget(0, 5)
-        self.stats.setHorizontalHeaderLabels(["", "RMS", "mean", "p95", "max"])
-        self.stats.verticalHeader().hide()
-        self.stats.verticalHeader().setDefaultSectionSize(20)
-        self.stats.setEditTriggers(QTableWidget.NoEditTriggers)
-        self.stats.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
-        self.stats.horizontalHeader().setSectionResizeMode(0, QHeaderView.Stretch)
-        sl.addWidget(self.stats)
-        self.coverage = QLabel()
-        self.coverage.setWordWrap(True)
-        self.coverage.setObjectName("hint")
-        sl.addWidget(self.coverage)
-        left.addWidget(st_box, 2)
-        grid.addLayout(left, 2, 0)
+        lay.addWidget(par_box)
 
-        right = QVBoxLayout()
-        heat_box = QGroupBox("Coordinate error |(dX, dY)| per pixel, RMS over held-out heights — one colour scale")
+    def _build_heatmaps(self) -> QGroupBox:
+        """The three methods' coordinate error maps on one colour scale, their views linked."""
+        heat_box = QGroupBox("Coordinate error per pixel: RMS over the held-out heights, one colour scale")
         hl = QHBoxLayout(heat_box)
         self.heat = {}
         for m in METHODS:
-            v = MapView(colour_bar=False, title=METHOD_LABELS[m])
+            v = MapView(colour_bar=False)
+            v.plot.setTitle(METHOD_LABELS[m], size="9pt")
             self.heat[m] = v
             hl.addWidget(v, 1)
         self.heat_bar = pg.ColorBarItem(values=(0, 1), colorMap=colormap("inferno"), width=16, pen=PEN,
@@ -167,29 +194,40 @@ class ComparePage(StudioPage):
         for m in METHODS[:-1]:
             self.heat[m].plot.setYLink(self.heat[METHODS[-1]].plot)
             self.heat[m].plot.setXLink(self.heat[METHODS[-1]].plot)
-        right.addWidget(heat_box, 3)
+        return heat_box
+
+    def _build_plots(self) -> QWidget:
+        """Distance error against distance, the distance error histogram and the RMS per held-out height,
+        under one colour key (a legend in each plot sat on its data, one under each was cut at 1366x768)."""
+        box = QWidget()
+        lay = QVBoxLayout(box)
+        lay.setContentsMargins(0, 0, 0, 0)
+        self.colour_key = QLabel("  ".join(f"<span style='color:{COLOURS[m]}'>■</span> {METHOD_LABELS[m]}" for m in METHODS)
+                          + "  <span style='color:#666'>— distance error: solid, pairs at one height; dashed,"
+                            " across heights</span>")
+        self.colour_key.setWordWrap(True)
+        lay.addWidget(self.colour_key)
         plots = QHBoxLayout()
-        self.vs_dist = pg.PlotWidget(title="Distance error vs distance<br><span style='font-size:8pt'>"
-                                           "solid: same height, dashed: across heights</span>")
+        self.vs_dist = pg.PlotWidget()
+        self.vs_dist.setTitle("Distance error vs distance", size="9pt")
         axis_label(self.vs_dist, "left", "RMS error", "µm")
         axis_label(self.vs_dist, "bottom", "distance", "mm")
-        self.vs_dist.addLegend(offset=(5, 5))
-        self.hist = pg.PlotWidget(title="Distance errors (all pairs)")
+        self.hist = pg.PlotWidget()
+        self.hist.setTitle("Distance errors (all pairs)", size="9pt")
         self.hist.setLabel("left", "pairs")
         plain_axes(self.hist)
         axis_label(self.hist, "bottom", "error", "µm")
-        self.hist.addLegend(offset=(5, 5))
-        self.per_pos = pg.PlotWidget(title="Coordinate RMS per held-out z")
+        self.per_pos = pg.PlotWidget()
+        self.per_pos.setTitle("Coordinate RMS per held-out z", size="9pt")
         axis_label(self.per_pos, "left", "RMS", "µm")
         axis_label(self.per_pos, "bottom", "z", "mm")
-        self.per_pos.addLegend(offset=(5, 5))
         for p in (self.vs_dist, self.hist, self.per_pos):
-            p.setMinimumHeight(180)
+            p.setMinimumHeight(150)
             plots.addWidget(p, 1)
-        right.addLayout(plots, 2)
-        grid.addLayout(right, 2, 1)
-        grid.setRowStretch(2, 1)
+        lay.addLayout(plots, 1)
+        return box
 
+    def _connect(self, model) -> None:
         self.run_button.clicked.connect(self.run)
         self.reference.currentIndexChanged.connect(lambda _i: self._show())
         model.compareChanged.connect(self._result_changed)
@@ -279,7 +317,7 @@ class ComparePage(StudioPage):
             p.clear()
         for m in METHODS:
             self.heat[m].clear_map()
-            self.heat[m].plot.setTitle(METHOD_LABELS[m])
+            self.heat[m].plot.setTitle(METHOD_LABELS[m], size="9pt")
         self.heat_maps = {}
         self.params.setRowCount(0)
         self.stats.setRowCount(0)
@@ -304,8 +342,10 @@ class ComparePage(StudioPage):
                 item = QTableWidgetItem(text)
                 if c:
                     item.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
-                else:
-                    item.setToolTip(label)  # the first column is narrow
+                else:  # the row's name in full
+                    item.setToolTip(label.replace("coord.", "coordinate error").replace(" same z", " distance error,"
+                                    " pairs at the same height").replace(" across z", " distance error, pairs across"
+                                                                          " heights"))
                 self.stats.setItem(i, c, item)
 
     def _show_saved(self, report: dict) -> None:
@@ -354,10 +394,10 @@ class ComparePage(StudioPage):
                 st = st if isinstance(st, dict) else {}
                 return tuple(math.nan if st.get(k) is None else st.get(k) for k in ("rms_um", "mean_um", "p95_um",
                                                                                       "max_um"))
-            rows.append((f"{lab} coordinate", *vals(mr.get("coordinate"))))
+            rows.append((f"{lab} coord.", *vals(mr.get("coordinate"))))
             dist = mr.get("distance") if isinstance(mr.get("distance"), dict) else {}
             for kind, text in zip(PAIR_KINDS, ("same z", "across z")):
-                rows.append((f"{lab} distance, {text}", *vals((dist.get(kind) or {}).get("stats"))))
+                rows.append((f"{lab} {text}", *vals((dist.get(kind) or {}).get("stats"))))
         self._fill_stats(rows)
         self.coverage.setText("Restored from the session file, which keeps the comparison's report but not its"
                               " arrays: press Run comparison to redraw the plots (the controls hold the saved"
@@ -384,9 +424,9 @@ class ComparePage(StudioPage):
         for m in methods:
             mr = rr.methods[m]
             lab = METHOD_LABELS[m]
-            for label, st in ((f"{lab} coordinate", mr.coordinate),
-                              (f"{lab} distance, same z", mr.distance["same_height"].stats),
-                              (f"{lab} distance, across z", mr.distance["across_heights"].stats)):
+            for label, st in ((f"{lab} coord.", mr.coordinate),
+                              (f"{lab} same z", mr.distance["same_height"].stats),
+                              (f"{lab} across z", mr.distance["across_heights"].stats)):
                 rows.append((label, st.rms_um, st.mean_um, st.p95_um, st.max_um))
         self._fill_stats(rows)
         c = r.coverage
@@ -418,7 +458,8 @@ class ComparePage(StudioPage):
         for m in methods:
             d = displays[m]
             self.heat[m].set_map(d.image, levels=levels, cmap="inferno", step=d.step, extent=d.extent, full=maps[m])
-            self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]}: RMS {_fmt(rr.methods[m].coordinate.rms_um)} µm")
+            # "RMS" is in the box's title: a longer title was cut over a narrow map
+            self.heat[m].plot.setTitle(f"{METHOD_LABELS[m]} {_fmt(rr.methods[m].coordinate.rms_um)} µm", size="9pt")
         self.heat_bar.setLevels(levels)
         self.heat_bar.rounding = max(levels[1] / 1000, 1e-9)
 
@@ -454,6 +495,9 @@ class ComparePage(StudioPage):
             bars = pg.BarGraphItem(x=z + (i - (len(methods) - 1) / 2) * w, height=np.nan_to_num(vals), width=w,
                                    brush=COLOURS[m], name=METHOD_LABELS[m])
             self.per_pos.addItem(bars)
+        if z.size:  # every height's bars whole in view (the auto range cut the last one)
+            half = 0.5 * w * len(methods)
+            self.per_pos.setXRange(float(z.min()) - half, float(z.max()) + half, padding=0.05)
 
     def on_enter(self) -> None:
         s = self.model.session

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Signal
-from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
-                               QPushButton, QVBoxLayout)
+from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
+                               QTabWidget, QVBoxLayout, QWidget)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
 from ptpcore.evaluate.residuals import residual_png
@@ -80,7 +80,6 @@ class ExportPage(StudioPage):
         super().__init__(model, parent)
         self.compare_page = None  # set by the wizard: the plots to save
         self.calibrate_page = None
-        grid = QGridLayout(self.body)
         box = QGroupBox("Output folder")
         bl = QHBoxLayout(box)
         self.folder = QLineEdit(str(Path.cwd() / f"ptp-calibration-{_dt.datetime.now():%Y%m%d-%H%M}"))
@@ -88,32 +87,31 @@ class ExportPage(StudioPage):
         browse.clicked.connect(self._browse)
         bl.addWidget(self.folder, 1)
         bl.addWidget(browse)
-        grid.addWidget(box, 0, 0, 1, 2)
 
         what = QGroupBox("What to write")
         wl = QVBoxLayout(what)
-        self.do_lut = QCheckBox(f"LUT file  {LUT_NAME}  (ptp-lut/1, HDF5)")
+        self.do_lut = QCheckBox(f"LUT file {LUT_NAME}")
+        self.do_lut.setToolTip("ptp-lut/1, HDF5: what a scanner loads")
         self.do_lut.setChecked(True)
         self.do_lut.setEnabled(False)  # the product of the session: always written
-        self.do_report = QCheckBox(f"Comparison report  {REPORT_NAME}  plus PNG plots")
-        self.do_quality = QCheckBox("LUT quality heatmaps  lut_quality_<map>.png  (one per map; residual arrows"
-                                    f" of the {N_RESIDUAL_PNGS} worst positions  residuals_position_K.png)")
+        self.do_report = QCheckBox("Comparison report (JSON, PNG plots)")
+        self.do_report.setToolTip(f"{REPORT_NAME} and the Compare page's plots as PNG")
+        self.do_quality = QCheckBox("LUT quality heatmaps (PNG)")
         self.do_quality.setToolTip("One PNG per map of the Calibrate page, named after it: lut_quality_rms_x.png,"
                                    " lut_quality_loo_x.png, … and lut_quality_sigma_x.png when the LUT has"
-                                   " predicted uncertainty maps.")
-        self.do_session = QCheckBox(f"Session  {SESSION_NAME}  (ptp-session/1)")
+                                   " predicted uncertainty maps; the residual arrows of the"
+                                   f" {N_RESIDUAL_PNGS} worst positions, residuals_position_K.png.")
+        self.do_session = QCheckBox(f"Session {SESSION_NAME}")
+        self.do_session.setToolTip("ptp-session/1: open it on the Rig page to resume")
         self.do_rig = QCheckBox("rig.toml")
         for w in (self.do_report, self.do_quality, self.do_session, self.do_rig):
             w.setChecked(True)
         for w in (self.do_lut, self.do_report, self.do_quality, self.do_session, self.do_rig):
             wl.addWidget(w)
-        row = QHBoxLayout()
         self.export_button = QPushButton("Export")
         self.export_button.setObjectName("primary")
-        row.addWidget(self.export_button)
-        row.addWidget(self.make_job_panel(), 1)
-        wl.addLayout(row)
-        grid.addWidget(what, 1, 0)
+        wl.addWidget(self.export_button)
+        wl.addWidget(self.make_job_panel())
 
         done = QGroupBox("Written")
         dl = QVBoxLayout(done)
@@ -121,20 +119,24 @@ class ExportPage(StudioPage):
         self.written.setWordWrap(True)
         self.written.setObjectName("written")
         dl.addWidget(self.written)
-        dl.addStretch(1)
-        grid.addWidget(done, 1, 1)
         self.summary = QLabel()
         self.summary.setWordWrap(True)
-        grid.addWidget(self.summary, 2, 0, 1, 2)
-        # Using the LUT: a height map (or one height) into a point cloud, shown and saved.
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 4, 0)
+        for w in (box, what, done, self.summary):
+            sl.addWidget(w)
+        sl.addStretch(1)
+        # The views: the LUT in use (a height map, or one height, into a point cloud, shown and saved) and
+        # trusting it (its difference to a reference LUT: a second sweep, last month's).
+        # One tab each: both as tall as the page (one above the other, neither had room for its plot).
+        self.view_tabs = view = QTabWidget()
         self.cloud_panel = PointCloudPanel(lambda: self.model.session.lut,
                                            lambda: Path(self.folder.text().strip() or "."))
-        grid.addWidget(self.cloud_panel, 3, 0, 1, 2)
-        grid.setRowStretch(3, 1)
-        # Trusting the LUT: its difference to a reference LUT (a second sweep, last month's).
         self.diff_panel = LutDiffPanel(lambda: self.model.session.lut)
-        grid.addWidget(self.diff_panel, 4, 0, 1, 2)
-        grid.setRowStretch(4, 1)
+        view.addTab(self.cloud_panel, "Use the LUT: point cloud")
+        view.addTab(self.diff_panel, "Trust the LUT: against a reference LUT")
+        self.split_body(side, view, controls_width=330)
         self.files: list[Path] = []
         self._outcome = None
         self.export_button.clicked.connect(self.export)
@@ -285,8 +287,11 @@ class ExportPage(StudioPage):
         lines = []
         for f in self.files:
             size = f.stat().st_size if f.exists() else 0
-            lines.append(f"✔ {f}  ({size / 1e6:.2f} MB)" if size > 1e5 else f"✔ {f}  ({size / 1e3:.1f} kB)")
+            # The name only (the folder is above): a long path would widen the panel.
+            lines.append(f"✔ {f.name}  ({size / 1e6:.2f} MB)" if size > 1e5 else f"✔ {f.name}  ({size / 1e3:.1f} kB)")
+        where = str(self.files[0].parent) if self.files else ""
         self.written.setText("\n".join(lines))
+        self.written.setToolTip(f"in {where}" if where else "")
         self.update_complete()
         for f in self.files:
             if f.name == SESSION_NAME:

@@ -64,18 +64,29 @@ class FringesPage(StudioPage):
         self._loading = False
         self._stale = False  # a position was decoded while the page was hidden: refresh when shown
         self.report = None
-        grid = QGridLayout(self.body)
-        grid.setColumnStretch(0, 0)
-        grid.setColumnStretch(1, 3)
+        side = QWidget()
+        sl = QVBoxLayout(side)
+        sl.setContentsMargins(0, 0, 4, 0)
+        sl.addWidget(self._build_design_form())
+        sl.addWidget(self._build_design_check())
+        sl.addWidget(self._frames_panel())
+        sl.addStretch(1)
+        self.split_body(side, self._build_preview(), controls_width=300)
+        self._connect(model)
+        self._show_rig()
 
-        # ---- design form
+    def _build_design_form(self) -> QGroupBox:
+        """The fringe design: directions, periods, steps, conventions, levels, carrier, gamma."""
         form_box = QGroupBox("Design")
         form = QFormLayout(form_box)
+        form.setRowWrapPolicy(QFormLayout.WrapLongRows)  # fields under their labels in a narrow panel
         dirs = QWidget()
         dl = QHBoxLayout(dirs)
         dl.setContentsMargins(0, 0, 0, 0)
-        self.dir_x = QCheckBox("x (varies along columns)")
-        self.dir_y = QCheckBox("y (along rows)")
+        self.dir_x = QCheckBox("x (columns)")
+        self.dir_x.setToolTip("Patterns whose phase varies along the LCD's columns u")
+        self.dir_y = QCheckBox("y (rows)")
+        self.dir_y.setToolTip("Patterns whose phase varies along the LCD's rows v")
         dl.addWidget(self.dir_x)
         dl.addWidget(self.dir_y)
         self.periods = QLineEdit()
@@ -131,9 +142,15 @@ class FringesPage(StudioPage):
         self.frames_label = QLabel()
         self.frames_label.setObjectName("hint")
         form.addRow(self.frames_label)
-        grid.addWidget(form_box, 0, 0)
+        # A field never narrower than a few numbers: a row whose label and field do not fit side by side in
+        # the panel puts the field under its label (WrapLongRows) instead of squeezing it.
+        for w in (self.periods, self.steps, self.periods_y, self.steps_y, self.origin_y, self.unwrap, self.sign,
+                  self.sign_y, self.gray_bits, self.gray_bits_y, self.origin):
+            w.setMinimumWidth(150)
+        return form_box
 
-        # ---- design check
+    def _build_design_check(self) -> QGroupBox:
+        """The design check's verdict, its table and the predicted noise floor per position."""
         check_box = QGroupBox("Design check")
         cl = QVBoxLayout(check_box)
         self.verdict = QLabel()
@@ -144,22 +161,27 @@ class FringesPage(StudioPage):
         self.table.setHorizontalHeaderLabels(["", "Check", "Result"])
         self.table.verticalHeader().hide()
         self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeToContents)
-        self.table.horizontalHeader().setSectionResizeMode(1, QHeaderView.ResizeToContents)
+        # The check and its result share the panel's width and wrap (no scrolling across a narrow panel).
+        self.table.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)
         self.table.horizontalHeader().setSectionResizeMode(2, QHeaderView.Stretch)
+        self.table.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
+        self.table.verticalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)  # rows as tall as they wrap
         self.table.setWordWrap(True)
         self.table.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.table.setMinimumHeight(160)
         cl.addWidget(self.table, 2)
         self.floor_plot = pg.PlotWidget()
         self.floor_plot.setMinimumHeight(120)
         axis_label(self.floor_plot, "left", "noise floor", "µm")
         axis_label(self.floor_plot, "bottom", "z", "mm")
-        self.floor_plot.setTitle("Predicted 1σ coordinate noise per position")
+        self.floor_plot.setTitle("Predicted 1σ noise per position", size="9pt")
         self.floor_bars = pg.BarGraphItem(x=[0], height=[0], width=1, brush="#2b6cb0")
         self.floor_plot.addItem(self.floor_bars)
         cl.addWidget(self.floor_plot, 1)
-        grid.addWidget(check_box, 1, 0)
+        return check_box
 
-        # ---- preview
+    def _build_preview(self) -> QGroupBox:
+        """The main view: the LCD pattern at a chosen direction, period, step and position, and its profile."""
         prev_box = QGroupBox("LCD pattern preview")
         pl = QVBoxLayout(prev_box)
         scrub = QGridLayout()
@@ -188,12 +210,12 @@ class FringesPage(StudioPage):
         self.profile.setMinimumHeight(130)
         self.profile.setLabel("left", "displayed level")
         plain_axes(self.profile)
-        self.profile.setTitle("Displayed levels along the pattern axis (first two coarse... fine periods)")
+        self.profile.setTitle("Displayed levels along the pattern axis", size="9pt")
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#2b6cb0", width=1.5), stepMode=None)
         pl.addWidget(self.profile, 1)
-        grid.addWidget(prev_box, 0, 1, 2, 1)
-        grid.addWidget(self._frames_panel(), 2, 0, 1, 2)
+        return prev_box
 
+    def _connect(self, model) -> None:
         for w in (self.dir_x, self.dir_y):
             w.toggled.connect(self._edited)
         for w in (self.periods, self.steps, self.periods_y, self.steps_y, self.origin_y):
@@ -211,7 +233,6 @@ class FringesPage(StudioPage):
         model.sourceChanged.connect(self._show_rig)
         if hasattr(model, "decodedChanged"):
             model.decodedChanged.connect(self._decoded_arrived)
-        self._show_rig()
 
     def _y_convention_widgets(self) -> None:
         """The ``[fringes.y]`` overrides of phase origin, shift sign and Gray bits ("as x" when empty)."""
@@ -426,7 +447,7 @@ class FringesPage(StudioPage):
         span = min(prof.size, max(int(2 * period), 256))
         self.profile_curve.setData(np.arange(span), prof[:span].astype(float))
         axis_label(self.profile, "bottom", "LCD column u" if d == "x" else "LCD row v", "px")
-        self.profile.setTitle(f"Displayed levels along {'u' if d == 'x' else 'v'} (first {span} px)")
+        self.profile.setTitle(f"Displayed levels along {'u' if d == 'x' else 'v'} (first {span} px)", size="9pt")
 
     def scrub(self, direction: str, level: int, step: int, position: int) -> None:
         """Set the preview scrubbers (the tour and tests use it)."""

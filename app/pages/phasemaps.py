@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtWidgets import (QComboBox, QFormLayout, QGridLayout, QGroupBox, QLabel, QVBoxLayout)
+from PySide6.QtWidgets import QComboBox, QFormLayout, QGroupBox, QLabel, QVBoxLayout, QWidget
 
 from ptpcore.decode import REASON_NAMES
 from ptpcore.rig import format_period, position_label
@@ -59,18 +59,18 @@ class PhaseMapsPage(StudioPage):
 
     def __init__(self, model, parent=None):
         super().__init__(model, parent)
-        grid = QGridLayout(self.body)
-        grid.setColumnStretch(0, 0)
-        grid.setColumnStretch(1, 1)
-
         ctl = QGroupBox("Show")
         cf = QFormLayout(ctl)
+        cf.setRowWrapPolicy(QFormLayout.WrapLongRows)
         self.pos_combo = QComboBox()
         self.dir_combo = QComboBox()
         self.kind_combo = QComboBox()
         for k, label in MAP_KINDS.items():
             self.kind_combo.addItem(label, k)
         self.level_combo = QComboBox()
+        for combo in (self.pos_combo, self.dir_combo, self.kind_combo, self.level_combo):
+            combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+            combo.setMinimumContentsLength(14)  # long names show in the open list, not in the panel's width
         cf.addRow("Position", self.pos_combo)
         cf.addRow("Direction", self.dir_combo)
         cf.addRow("Map", self.kind_combo)
@@ -78,7 +78,7 @@ class PhaseMapsPage(StudioPage):
         cf.addRow(self.make_job_panel())
         left = QVBoxLayout()
         left.addWidget(ctl)
-        leg_box = QGroupBox("Validity legend (this position and direction)")
+        leg_box = QGroupBox("Validity (this position, direction)")
         ll = QVBoxLayout(leg_box)
         self.legend = Legend()
         ll.addWidget(self.legend)
@@ -89,12 +89,17 @@ class PhaseMapsPage(StudioPage):
         ll.addWidget(note)
         left.addWidget(leg_box)
         left.addStretch(1)
-        grid.addLayout(left, 0, 0, 2, 1)
+        side = QWidget()
+        side.setLayout(left)
+        left.setContentsMargins(0, 0, 4, 0)
 
+        view = QWidget()
+        right = QVBoxLayout(view)
+        right.setContentsMargins(0, 0, 0, 0)
         self.title = QLabel()
         self.title.setObjectName("panelTitle")
-        grid.addWidget(self.title, 0, 1)
-        right = QVBoxLayout()
+        self.title.setWordWrap(True)  # a long title wraps; it never widens the page
+        right.addWidget(self.title)
         self.view = MapView(colour_bar=True)
         right.addWidget(self.view, 3)
         self.readout = QLabel("move the cursor over the map")
@@ -104,11 +109,10 @@ class PhaseMapsPage(StudioPage):
         self.profile.setMinimumHeight(140)
         axis_label(self.profile, "bottom", "distance along the line", "px")
         plain_axes(self.profile)
-        self.profile.setTitle("Line profile")
+        self.profile.setTitle("Line profile", size="9pt")
         self.profile_curve = self.profile.plot(pen=pg.mkPen("#c0392b", width=1.5))
         right.addWidget(self.profile, 1)
-        grid.addLayout(right, 1, 1)
-        grid.setRowStretch(1, 1)
+        self.split_body(side, view, controls_width=320)
 
         self.roi = pg.LineSegmentROI([[0, 0], [10, 10]], pen=pg.mkPen("#e8333a", width=2))
         self.roi.setZValue(20)

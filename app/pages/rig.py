@@ -87,8 +87,21 @@ class RigPage(StudioPage):
         left, right = QVBoxLayout(), QVBoxLayout()
         cols.addLayout(left, 1)
         cols.addLayout(right, 1)
+        self.v2 = RigV2Form(self)  # ptp-dataset/2: real rigs (bit shift, flatness, display, repeats) and [decode]
+        self.v2.hide()  # its two boxes go into the columns
+        for box in (self._build_source(), self._build_simulator(), self._build_template(), self._build_session_box(),
+                    self.v2.real_box):
+            left.addWidget(box)
+        left.addStretch(1)
+        for box in (self._build_hardware(), self._build_stage(), self.v2.decode_box):
+            right.addWidget(box)
+        right.addStretch(1)
+        self._connect(model)
+        self._show_source()
+        self._show_rig()
 
-        # ---- source of images
+    def _build_source(self) -> QGroupBox:
+        """Where the images come from: the simulator, a dataset folder, or the live devices."""
         src = QGroupBox("Source of images")
         sl = QVBoxLayout(src)
         self.src_sim = QRadioButton("Simulated rig (virtual camera with exact ground truth)")
@@ -108,9 +121,10 @@ class RigPage(StudioPage):
         fl.addWidget(self.folder_edit, 1)
         fl.addWidget(self.browse)
         sl.addLayout(fl)
-        left.addWidget(src)
+        return src
 
-        # ---- simulator
+    def _build_simulator(self) -> QGroupBox:
+        """The simulated rig's preset, seed and view offset."""
         self.sim_box = QGroupBox("Simulator")
         sf = QFormLayout(self.sim_box)
         self.preset = QComboBox()
@@ -135,9 +149,10 @@ class RigPage(StudioPage):
         sf.addRow("Preset", self.preset)
         sf.addRow("Seed", self.seed)
         sf.addRow("View offset", off)
-        left.addWidget(self.sim_box)
+        return self.sim_box
 
-        # ---- rig templates
+    def _build_template(self) -> QGroupBox:
+        """The rig description: a shipped rig, or load / save a rig.toml."""
         tpl = QGroupBox("Rig description (rig.toml)")
         tl = QHBoxLayout(tpl)
         self.template = QComboBox()
@@ -149,9 +164,10 @@ class RigPage(StudioPage):
         tl.addWidget(self.template, 1)
         tl.addWidget(self.load_button)
         tl.addWidget(self.save_button)
-        left.addWidget(tpl)
+        return tpl
 
-        # ---- session file
+    def _build_session_box(self) -> QGroupBox:
+        """Open a saved session (ptp-session/1), with the reading job's progress."""
         ses = QGroupBox("Saved session (ptp-session/1)")
         sv = QVBoxLayout(ses)
         srow = QHBoxLayout()
@@ -161,15 +177,10 @@ class RigPage(StudioPage):
         srow.addWidget(self.open_button)
         srow.addWidget(self.make_job_panel(), 1)
         sv.addLayout(srow)
-        left.addWidget(ses)
+        return ses
 
-        # ---- ptp-dataset/2: real rigs (bit shift, flatness, display, repeats) and [decode]
-        self.v2 = RigV2Form(self)
-        self.v2.hide()  # its two boxes go into the columns
-        left.addWidget(self.v2.real_box)
-        left.addStretch(1)
-
-        # ---- camera and LCD
+    def _build_hardware(self) -> QGroupBox:
+        """The camera and the LCD (sizes, bit depth, pitch, cover glass)."""
         hw = QGroupBox("Camera and LCD")
         hf = QFormLayout(hw)
         self.cam_w = _ispin(1, 100_000, 640, " px")
@@ -187,9 +198,10 @@ class RigPage(StudioPage):
         hf.addRow("LCD pitch x (columns)", self.pitch_x)
         hf.addRow("LCD pitch y (rows)", self.pitch_y)
         self._glass_rows(hf)
-        right.addWidget(hw)
+        return hw
 
-        # ---- stage
+    def _build_stage(self) -> QGroupBox:
+        """The stage positions: regular (start, step, count) or a list of readings, and the travel skew."""
         st = QGroupBox("Stage positions")
         sv = QVBoxLayout(st)
         self.stage_regular = QRadioButton("Regular: start, step, count")
@@ -221,11 +233,9 @@ class RigPage(StudioPage):
         self.stage_summary = QLabel()
         self.stage_summary.setObjectName("hint")
         sv.addWidget(self.stage_summary)
-        right.addWidget(st)
-        right.addWidget(self.v2.decode_box)
-        right.addStretch(1)
+        return st
 
-        # ---- wiring
+    def _connect(self, model) -> None:
         self.src_group.idToggled.connect(self._source_toggled)
         self.folder_edit.editingFinished.connect(self._folder_edited)
         self.browse.clicked.connect(self._browse)
@@ -244,8 +254,6 @@ class RigPage(StudioPage):
         self.stage_group.idToggled.connect(lambda _i, on: on and self._edited())
         model.rigChanged.connect(self._show_rig)
         model.sourceChanged.connect(self._show_source)
-        self._show_source()
-        self._show_rig()
 
     def _glass_rows(self, hf) -> None:
         """Cover glass thickness and index, with the datasheet tooltip and the bare-panel hint."""

@@ -40,6 +40,7 @@ class JobPanel(QWidget):
         lay.addLayout(row)
         self.message = QLabel("", self)
         self.message.setObjectName("jobMessage")
+        self.message.setWordWrap(True)  # a long message wraps; it never widens the page
         lay.addWidget(self.message)
         self.error = QLabel("", self)
         self.error.setObjectName("errorText")

@@ -23,7 +23,7 @@ from scipy import ndimage
 
 from ptpcore.evaluate import views
 
-__all__ = ["MapView", "HeatmapPanel", "axis_label", "colormap", "line_profile", "plain_axes"]
+__all__ = ["MapView", "HeatmapPanel", "axis_label", "colormap", "legend_below", "line_profile", "plain_axes"]
 
 PEN = "#3a3f44"
 
@@ -40,6 +40,8 @@ def plain_axes(item) -> None:
         item = item.getPlotItem()
     axes = [a["item"] for a in item.axes.values()] if isinstance(item, pg.PlotItem) else [item.axis]
     for axis in axes:
+        # pyqtgraph 0.14 still picks a prefix from the current range when disabling: no range allows one.
+        axis.setSIPrefixEnableRanges(())
         axis.enableAutoSIPrefix(False)
 
 
@@ -48,6 +50,18 @@ def axis_label(plot, side: str, text: str, unit: str = "") -> None:
     item = plot.getPlotItem() if isinstance(plot, pg.PlotWidget) else plot
     item.setLabel(side, text, units=unit or None)
     plain_axes(item)
+
+
+def legend_below(plot, columns: int = 3) -> pg.LegendItem:
+    """A legend under the plot's axes, in ``columns`` columns: never over the data, and in the plot's PNG.
+
+    The items named when plotted (``name=``) are added to it as pyqtgraph's own legend would be.
+    """
+    item = plot.getPlotItem() if isinstance(plot, pg.PlotWidget) else plot
+    legend = pg.LegendItem(colCount=columns, labelTextSize="8pt")
+    item.layout.addItem(legend, 4, 1)
+    item.legend = legend  # PlotItem.plot(name=...) and addItem(name=...) add their entries to it
+    return legend
 
 
 def colormap(name: str) -> pg.ColorMap:
@@ -125,6 +139,9 @@ class MapView(pg.GraphicsLayoutWidget):
         self.plot.vb.sigRangeChanged.connect(self._update_detail)
         self._screen_pixels = views.DISPLAY_PIXELS  # the view box's device pixels (GUI thread writes, any reads)
         self.plot.vb.sigResized.connect(self.note_size)
+        self._pad = (0, 0)  # margins (px) left and right, top and bottom, that give the view box the map's aspect
+        self._base_margins = tuple(self.ci.layout.getContentsMargins())  # left, top, right, bottom
+        self.plot.vb.sigResized.connect(self._frame_to_map)
         self.note_size()
         self.scene().sigMouseMoved.connect(self._on_moved)
         self.scene().sigMouseClicked.connect(self._on_clicked)
@@ -136,6 +153,30 @@ class MapView(pg.GraphicsLayoutWidget):
         if rect.width() * rect.height() >= 64 * 64:  # laid out (not a page never shown)
             shown = min(shown, rect.width() * rect.height())
         self._screen_pixels = max(1, int(shown * dpr * dpr))
+
+    def _frame_to_map(self, *_) -> None:
+        """Give the view box the map's aspect (pad the layout's sides), so that with the aspect locked the
+        view range is the map's extent: the map fills the box instead of floating in empty rows or columns.
+
+        The space the box may take (its size plus the current pads) is invariant, so one pass settles it.
+        """
+        if self._shape is None:
+            return
+        rect = self.plot.vb.rect()
+        h, w = self._shape
+        px, py = self._pad
+        avail_w, avail_h = rect.width() + 2 * px, rect.height() + 2 * py
+        if avail_w < 16 or avail_h < 16:
+            return  # not laid out yet
+        if avail_h * w > avail_w * h:  # too tall for the map: pad top and bottom
+            pad = (0, int(round((avail_h - avail_w * h / w) / 2)))
+        else:
+            pad = (int(round((avail_w - avail_h * w / h) / 2)), 0)
+        if pad == self._pad:
+            return
+        self._pad = pad
+        m = self._base_margins
+        self.ci.layout.setContentsMargins(m[0] + pad[0], m[1] + pad[1], m[2] + pad[0], m[3] + pad[1])
 
     def resizeEvent(self, event) -> None:  # noqa: N802 - Qt API
         super().resizeEvent(event)
@@ -222,7 +263,8 @@ class MapView(pg.GraphicsLayoutWidget):
         h, w = extent if extent is not None else shape[:2]
         if self._shape != (h, w) or not keep_view:
             self._shape = (h, w)
-            self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0.02)
+            self._frame_to_map()
+            self.plot.setRange(xRange=(-0.5, w - 0.5), yRange=(-0.5, h - 0.5), padding=0)
         self.image.setRect(self._covered(shape))
 
     def _update_detail(self, *_) -> None:
@@ -437,6 +479,7 @@ class Legend(QWidget):
             sw = QLabel(row)
             sw.setFixedSize(14, 14)
             text = QLabel(row)
+            text.setWordWrap(True)  # a long reason wraps in a narrow side panel
             h.addWidget(sw)
             h.addWidget(text, 1)
             self._lay.addWidget(row)

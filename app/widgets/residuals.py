@@ -154,4 +154,5 @@ class ResidualPanel(QGroupBox):
         self.arrows.setData(x, y, connect="pairs")
         self.bases.setData(x[::2], y[::2])
         merged = f", blocks of {field.block} px" if group > 1 else ""
-        self.plot.setTitle(f"{position_label(self._k, field.z[self._k])}: arrows {scale:.3g} px per µm{merged}")
+        self.plot.setTitle(f"{position_label(self._k, field.z[self._k])}: arrows {scale:.3g} px per µm{merged}",
+                           size="9pt")

@@ -178,7 +178,7 @@ def test_full_walk(wizard, qtbot, tmp_path):
     assert cmp_page.heat["ptp"].levels == cmp_page.heat["smooth"].levels == cmp_page.heat["3dstc"].levels
     assert cmp_page.stats.rowCount() == 3 * len(METHODS)
     assert [cmp_page.stats.item(3 * i, 0).text() for i in range(3)] == \
-           ["PTP coordinate", "PTP smooth coordinate", "3DSTC coordinate"]
+           ["PTP coord.", "PTP smooth coord.", "3DSTC coord."]
     bars = [i for i in cmp_page.per_pos.getPlotItem().items if isinstance(i, pg.BarGraphItem)]
     assert len(bars) == len(METHODS)
     names = {item.name() for item in cmp_page.hist.getPlotItem().listDataItems()}
