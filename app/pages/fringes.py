@@ -113,8 +113,10 @@ class FringesPage(StudioPage):
         self.sign.setToolTip("shift_sign: the direction the phase steps run in (x, and y unless 'Shift sign y' says"
                              " otherwise)")
         self.unwrap = QComboBox()
-        self.unwrap.addItems(["periods", "gray"])
-        self.unwrap.setToolTip("Temporal unwrapping by the period list, or by Gray-code images")
+        self.unwrap.addItems(["periods", "gray", "heterodyne"])
+        self.unwrap.setToolTip("Temporal unwrapping by the period list (coarse to fine), by Gray-code images, or by\n"
+                               "the beats of two or three close periods (heterodyne: any order; the beats must\n"
+                               "cover the LCD plus the carrier, the design check shows them and their noise margin)")
         self.gray_bits = QSpinBox()
         self.gray_bits.setRange(0, 24)
         self.gray_bits.setToolTip("Gray-code bits counting cycles of the coarsest period (x, and y unless"

@@ -94,3 +94,32 @@ def test_design_check_takes_the_measured_harmonics(wizard):
     assert p._basis.startswith("measured at position 3") and f"{measured.harmonic_dn:.2g}" in p._basis
     has_item = any(i.name == "display harmonics" for i in p.report.items)
     assert has_item == (measured.harmonic_dn > measured.noise_dn)
+
+
+def test_a_heterodyne_design_is_chosen_and_checked_with_keys(wizard, qtbot):
+    """Issue 32: the page designs heterodyne sets (periods typed, the unwrapping picked with the keyboard),
+    the rig gets ``unwrap = "heterodyne"`` and the design check shows the beats."""
+    from PySide6.QtCore import Qt
+
+    wizard.go_to("fringes")
+    p = wizard.page_by_key["fringes"]
+    s = wizard.model.session
+    width = max(s.rig.lcd.width, s.rig.lcd.height)
+    # Three close periods whose absolute beat covers the LCD (and the carrier) with room to spare.
+    base = max(40.0, round(width / 60.0))
+    periods = (base, base + 2, base + 5)
+    qtbot.mouseClick(p.periods, Qt.LeftButton)
+    p.periods.selectAll()
+    qtbot.keyClicks(p.periods, ", ".join(f"{t:g}" for t in periods))
+    qtbot.keyClick(p.periods, Qt.Key_Tab)
+    qtbot.mouseClick(p.steps, Qt.LeftButton)
+    p.steps.selectAll()
+    qtbot.keyClicks(p.steps, "8, 8, 8")
+    qtbot.keyClick(p.steps, Qt.Key_Tab)
+    p.unwrap.setFocus()
+    qtbot.keyClick(p.unwrap, Qt.Key_End)  # the last item: heterodyne
+    qtbot.waitUntil(lambda: s.rig.fringes.unwrap == "heterodyne", timeout=5000)
+    assert sorted(s.rig.fringes.periods_px) == sorted(periods)
+    assert "heterodyne" in rig_to_toml(s.rig)
+    qtbot.waitUntil(lambda: p.report is not None and any("T123" in str(i) or "beat" in str(i).lower()
+                                                         for i in p.report.items), timeout=10000)
