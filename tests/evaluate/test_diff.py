@@ -23,8 +23,8 @@ def two_sweeps(tmp_path_factory):
     z = np.asarray(rig.stage.z_mm)
     zb = np.concatenate([[z[0]], z[:-1] + (z[1] - z[0]) / 2, [z[-1]]])
     rig_b = replace(rig, stage=replace(rig.stage, z_mm=tuple(float(v) for v in zb)))
-    va, vb = VirtualRig(rig, s, 1), VirtualRig(rig_b, s, 1)
-    vb.seed = 101  # same lens and modes (drawn at construction), another noise stream
+    # Same lens and modes (drawn from the seed), another noise stream.
+    va, vb = VirtualRig(rig, s, 1), VirtualRig(rig_b, s, 1, noise_seed=101)
     luts = [fit_model(collect_samples(SimulatedSource(v)), v.rig, "poly", 3) for v in (va, vb)]
     d = tmp_path_factory.mktemp("diff")
     paths = [d / "a.lut.h5", d / "b.lut.h5"]
@@ -84,8 +84,7 @@ def test_two_sweeps_of_one_rig_with_default_luts_are_consistent(tmp_path):
     z = np.asarray(rig.stage.z_mm)
     zb = np.concatenate([[z[0]], z[:-1] + (z[1] - z[0]) / 2, [z[-1]]])
     rig_b = replace(rig, stage=replace(rig.stage, z_mm=tuple(float(v) for v in zb)))
-    va, vb = VirtualRig(rig, s, 1), VirtualRig(rig_b, s, 1)
-    vb.seed = 101
+    va, vb = VirtualRig(rig, s, 1), VirtualRig(rig_b, s, 1, noise_seed=101)
     paths = []
     for name, v in (("a", va), ("b", vb)):
         lut = fit_model(collect_samples(SimulatedSource(v)), v.rig, "auto", stage_sigma_mm=s.stage_error_um * 1e-3)

@@ -25,8 +25,7 @@ def _repeat(rig, settings, shift_mm=0.0):
     z = rig.stage.z_mm
     rig_b = replace(rig, stage=replace(rig.stage, z_mm=(z[0], z[-1])))  # same z range: same pose
     moved = replace(settings, offset_mm=(settings.offset_mm[0] + shift_mm, settings.offset_mm[1]))
-    vb = VirtualRig(rig_b, moved, 1)
-    vb.seed = 101  # another noise stream
+    vb = VirtualRig(rig_b, moved, 1, noise_seed=101)  # another noise stream
     return collect_samples(SimulatedSource(vb), positions=[0]).subset([0])
 
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from ptpcore.decode.harmonics import measured_harmonics
-from ptpcore.rig import FrameEntry, load_rig, rig_to_toml, save_rig
+from ptpcore.rig import FrameEntry, load_rig, position_label, rig_to_toml, save_rig
 from ptpcore.run import decode_position
 from ptpcore.simulate import scaled_preset, simulate_dataset
 
@@ -91,7 +91,7 @@ def test_design_check_takes_the_measured_harmonics(wizard):
     # ...and catches up when shown.
     wizard.go_to("fringes")
     assert p.measured_harmonics()[0] == 2
-    assert p._basis.startswith("measured at position 3") and f"{measured.harmonic_dn:.2g}" in p._basis
+    assert p._basis.startswith(f"measured at {position_label(2, s.rig.stage.z_mm[2])}") and f"{measured.harmonic_dn:.2g}" in p._basis
     has_item = any(i.name == "display harmonics" for i in p.report.items)
     assert has_item == (measured.harmonic_dn > measured.noise_dn)
 

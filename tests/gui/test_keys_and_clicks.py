@@ -31,6 +31,11 @@ def _click(qtbot, button):
 def test_compare_keeps_the_reference_path_typed_or_browsed(wizard, qtbot, tmp_path, monkeypatch):
     export = _finished(wizard, qtbot)
     panel = export.diff_panel
+    # The panel is the second tab of the Export page's view: click its tab as a person would.
+    tabs = export.view_tabs
+    bar = tabs.tabBar()
+    qtbot.mouseClick(bar, Qt.LeftButton, pos=bar.tabRect(tabs.indexOf(panel)).center())
+    assert tabs.currentWidget() is panel
     reference = tmp_path / "reference.lut.h5"
     save_lut(wizard.model.session.lut, reference)
 
