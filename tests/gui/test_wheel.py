@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from PySide6.QtCore import QPoint, QPointF, Qt
 from PySide6.QtTest import QTest
-from PySide6.QtWidgets import QAbstractSlider, QAbstractSpinBox, QComboBox, QScrollBar, QSpinBox, QWidget
+from PySide6.QtWidgets import (QAbstractSlider, QAbstractSpinBox, QComboBox, QScrollArea, QScrollBar, QSpinBox,
+                               QWidget)
 
 NOTCH = 120  # one click of a mouse wheel (QWheelEvent.angleDelta, eighths of a degree)
 
@@ -30,17 +31,28 @@ def _small(wizard, qtbot):
     qtbot.wait(20)
 
 
+def _scroller(page, field) -> QScrollArea:
+    """The scroll area that holds ``field``: the page's own, or the side panel of a page with a view
+    (its controls scroll on their own beside the view)."""
+    w = field.parentWidget()
+    while w is not None and not isinstance(w, QScrollArea):
+        w = w.parentWidget()
+    assert w is not None and (w is page.scroll or page.isAncestorOf(w)), f"{page.key}: no scroll area"
+    return w
+
+
 def _scroll_to(page, field):
-    """Show ``field`` inside the page's viewport with room to scroll the page down (or up, at the end):
+    """Show ``field`` inside its scroll area's viewport with room to scroll down (or up, at the end):
     the direction to turn the wheel, -1 or +1."""
-    page.scroll.ensureWidgetVisible(field, 0, 0)
-    bar = page.scroll.verticalScrollBar()
+    area = _scroller(page, field)
+    area.ensureWidgetVisible(field, 0, 40)  # well inside: nothing at the viewport's edge covers it
+    bar = area.verticalScrollBar()
     assert bar.maximum() > 0, f"{page.key}: the page does not scroll at this size"
     return -1 if bar.value() < bar.maximum() else 1
 
 
 def _check_wheel_scrolls_not_edits(qtbot, page, field, read):
-    bar = page.scroll.verticalScrollBar()
+    bar = _scroller(page, field).verticalScrollBar()
     direction = _scroll_to(page, field)
     before, scrolled = read(), bar.value()
     assert not field.hasFocus()
@@ -63,10 +75,11 @@ def test_wheel_over_fringes_amplitude_scrolls_the_page(wizard, qtbot):
     qtbot.mouseClick(page.amplitude.lineEdit(), Qt.LeftButton)
     assert page.amplitude.hasFocus()
     value = page.amplitude.value()
-    bar_value = page.scroll.verticalScrollBar().value()
+    bar = _scroller(page, page.amplitude).verticalScrollBar()
+    bar_value = bar.value()
     wheel(qtbot, page.amplitude, 1)
     assert page.amplitude.value() == value + page.amplitude.singleStep()
-    assert page.scroll.verticalScrollBar().value() == bar_value  # the page stays while the field turns
+    assert bar.value() == bar_value  # the page stays while the field turns
     assert wizard.model.session.rig.fringes.amplitude == page.amplitude.value()
 
 
