@@ -14,7 +14,10 @@ command's exit code, which is also this tool's. ``--trace`` writes every sample 
 VmRSS MiB, VmHWM MiB) to see where in the run the memory went.
 
 The peak counts the measured process only (the commands of ``ptp`` run in one process; their
-threads are counted). Linux only (``/proc``).
+threads are counted). Linux only (``/proc``). Run the watcher as a process of its own, as above:
+the kernel carries the forking process's resident size into the child's ``ru_maxrss`` (fork and
+vfork share or copy its pages until the exec), so a watcher called inside a big process (a test
+runner holding 700 MB) would report that size for any small command.
 """
 
 from __future__ import annotations
