@@ -137,6 +137,7 @@ def _dust_setup(n_spots=24, seed=7):
     return rig, settings, k, dust
 
 
+@pytest.mark.slow  # three 640 px renderings: the longest default test (about 100-300 s); CI's slow tier runs it
 def test_dust_spots_are_flagged_as_departing_from_their_neighbourhood():
     rig, settings, k, dust = _dust_setup()
     dusty = replace(settings, dust=dust)
