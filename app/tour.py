@@ -87,6 +87,44 @@ def tour_size() -> QSize:
     return screen.availableGeometry().size()
 
 
+def _tour_phase_maps(wiz, shot) -> None:
+    """The Phase maps page: validity with a profile line, the coordinate and the finest wrapped phase."""
+    ph = wiz.page_by_key["phase"]
+    ph.select(position=0, direction="x", kind="validity")
+    if ph.jobs.busy:
+        wait_job(ph.jobs.job)
+    h, w = wiz.model.session.rig.camera.shape
+    ph.set_line((0.05 * w, 0.15 * h), (0.95 * w, 0.85 * h))
+    shot("phase-validity")
+    ph.select(kind="coord")
+    shot("phase-coordinate")
+    ph.select(kind="wrapped", level=len(wiz.model.session.rig.fringes.periods_px) - 1)
+    shot("phase-wrapped")
+
+
+def _tour_calibrate(wiz, drv, press, shot, smooth: bool) -> None:
+    """The Calibrate page: a poly fit (RMS and LOO maps, a pixel selected), then the smooth one."""
+    cal = wiz.page_by_key["calibrate"]
+    drv.choose(cal.model_combo, cal.model_combo.findData("poly"))
+    wait_job(press(cal.fit_button))
+    rows, cols = (wiz.model.session.lut.valid).nonzero()
+    i = rows.size // 3
+    if rows.size:
+        cal.select_pixel(int(rows[i]), int(cols[i]))
+    drv.click(cal.map_buttons.button(cal._map_keys.index("rms_x")))
+    shot("calibrate")
+    drv.click(cal.map_buttons.button(cal._map_keys.index("loo_y")))
+    shot("calibrate-loo")
+    if smooth:  # the smooth LUT, with its predicted uncertainty map
+        drv.choose(cal.model_combo, cal.model_combo.findData("smooth"))
+        cal.degree.setValue(2)
+        wait_job(press(cal.fit_button))
+        if rows.size:
+            cal.select_pixel(int(rows[i]), int(cols[i]))
+        drv.click(cal.map_buttons.button(cal._map_keys.index("sigma_x")))
+        shot("calibrate-smooth-sigma")
+
+
 def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, log=print, driver=None,
              size: QSize | None = None, on_page=None, smooth: bool = True) -> list[Path]:
     """Walk every page with clicks and keys; returns the PNGs written.
@@ -161,38 +199,9 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     shot("acquire")
     next_page()
 
-    ph = p["phase"]
-    ph.select(position=0, direction="x", kind="validity")
-    if ph.jobs.busy:
-        wait_job(ph.jobs.job)
-    h, w = wiz.model.session.rig.camera.shape
-    ph.set_line((0.05 * w, 0.15 * h), (0.95 * w, 0.85 * h))
-    shot("phase-validity")
-    ph.select(kind="coord")
-    shot("phase-coordinate")
-    ph.select(kind="wrapped", level=len(wiz.model.session.rig.fringes.periods_px) - 1)
-    shot("phase-wrapped")
+    _tour_phase_maps(wiz, shot)
     next_page()
-
-    cal = p["calibrate"]
-    drv.choose(cal.model_combo, cal.model_combo.findData("poly"))
-    wait_job(press(cal.fit_button))
-    rows, cols = (wiz.model.session.lut.valid).nonzero()
-    if rows.size:
-        i = rows.size // 3
-        cal.select_pixel(int(rows[i]), int(cols[i]))
-    drv.click(cal.map_buttons.button(cal._map_keys.index("rms_x")))
-    shot("calibrate")
-    drv.click(cal.map_buttons.button(cal._map_keys.index("loo_y")))
-    shot("calibrate-loo")
-    if smooth:  # the smooth LUT, with its predicted uncertainty map
-        drv.choose(cal.model_combo, cal.model_combo.findData("smooth"))
-        cal.degree.setValue(2)
-        wait_job(press(cal.fit_button))
-        if rows.size:
-            cal.select_pixel(int(rows[i]), int(cols[i]))
-        drv.click(cal.map_buttons.button(cal._map_keys.index("sigma_x")))
-        shot("calibrate-smooth-sigma")
+    _tour_calibrate(wiz, drv, press, shot, smooth)
     next_page()
 
     wait_job(press(p["compare"].run_button))
