@@ -3,20 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
-from gui_helpers import run_job
+from gui_helpers import lut_on_export, run_job
 
 from ptp_studio.widgets.pointcloud import top_view
 
 
 def _lut_on_export(wizard, qtbot):
-    wizard.go_to("acquire")
-    assert run_job(qtbot, wizard.page_by_key["acquire"].start()) == "finished"
-    wizard.go_to("calibrate")
-    cal = wizard.page_by_key["calibrate"]
-    cal.configure("poly", 2, "half")
-    assert run_job(qtbot, cal.fit()) == "finished"
-    wizard.go_to("export")
-    return wizard.page_by_key["export"], wizard.model.session.lut
+    return lut_on_export(wizard, qtbot), wizard.model.session.lut
 
 
 def test_apply_show_and_save_a_point_cloud(wizard, qtbot, tmp_path):

@@ -3,7 +3,7 @@ never closes the wizard, on any page, in any field."""
 
 from __future__ import annotations
 
-from gui_helpers import run_job
+from gui_helpers import lut_on_export, run_job
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QAbstractSpinBox, QComboBox, QFileDialog, QLineEdit, QPushButton, QWidget, QWizard
 
@@ -12,15 +12,9 @@ from ptpcore.io import save_lut
 
 def _finished(wizard, qtbot):
     """Acquire and fit a LUT (poly 2 on half the positions: quick); the wizard on the Export page."""
-    wizard.go_to("acquire")
-    assert run_job(qtbot, wizard.page_by_key["acquire"].start()) == "finished"
-    wizard.go_to("calibrate")
-    cal = wizard.page_by_key["calibrate"]
-    cal.configure("poly", 2, "half")
-    assert run_job(qtbot, cal.fit()) == "finished"
-    wizard.go_to("export")
-    assert wizard.currentPage() is wizard.page_by_key["export"]
-    return wizard.page_by_key["export"]
+    export = lut_on_export(wizard, qtbot)
+    assert wizard.currentPage() is export
+    return export
 
 
 def _click(qtbot, button):

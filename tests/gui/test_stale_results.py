@@ -4,7 +4,7 @@ as they were, not stale."""
 
 from __future__ import annotations
 
-from gui_helpers import run_job
+from gui_helpers import lut_on_export, run_job
 from PySide6.QtCore import Qt
 
 from ptp_studio.widgets.stale import StaleBanner
@@ -12,14 +12,7 @@ from ptp_studio.widgets.stale import StaleBanner
 
 def _reopened_finished_session(wizard, qtbot, tmp_path):
     """Acquire, fit, export the session file, open it again (the wizard goes on at Compare)."""
-    wizard.go_to("acquire")
-    assert run_job(qtbot, wizard.page_by_key["acquire"].start()) == "finished"
-    wizard.go_to("calibrate")
-    cal = wizard.page_by_key["calibrate"]
-    cal.configure("poly", 2, "half")
-    assert run_job(qtbot, cal.fit()) == "finished"
-    wizard.go_to("export")
-    export = wizard.page_by_key["export"]
+    export = lut_on_export(wizard, qtbot)
     export.set_folder(tmp_path / "out")
     assert run_job(qtbot, export.export()) == "finished"
     assert run_job(qtbot, wizard.open_session(tmp_path / "out" / "session.ptps.h5")) == "finished"
