@@ -93,6 +93,25 @@ def test_the_app_imports_nothing_the_bundle_leaves_out():
     assert not found, "remove them from EXCLUDE_GROUPS in packaging/ptp-studio.spec:\n" + "\n".join(found)
 
 
+def test_every_package_folder_is_in_the_wheel():
+    """pyproject.toml lists the packages by name: a new subpackage missing from the list is left out
+    of the wheel (and the wheel's ``ptp`` then fails to import it), while the editable install the
+    other tests use still finds it."""
+    import tomllib
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    listed = set(setup["packages"])
+    source = {name: ROOT / folder for name, folder in setup["package-dir"].items()}
+    source.setdefault("ptpcore", ROOT / "ptpcore")
+    missing = []
+    for top in ("ptpcore", "ptp_studio"):
+        for init in sorted(source[top].rglob("__init__.py")):
+            rel = init.parent.relative_to(source[top])
+            name = ".".join((top, *rel.parts))
+            if "__pycache__" not in rel.parts and name not in listed:
+                missing.append(name)
+    assert not missing, f"pyproject.toml [tool.setuptools] packages lacks {missing}"
+
+
 # ---------------------------------------------------------------------------
 # Helpers of the slow tests
 
