@@ -99,8 +99,11 @@ def main(argv=None) -> int:
             return 1
         return 0
 
+    from ptpcore.store import remove_orphaned_spill_files
+
     from .session import Session
 
+    remove_orphaned_spill_files()  # what killed runs left (only where spill files have names)
     session = Session.from_preset(args.preset, tuple(args.camera) if args.camera else None)
     session.reset_positions()
     wiz = StudioWizard(session)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import tempfile
 import threading
@@ -71,6 +72,101 @@ def remove_temporaries() -> list[Path]:
         with contextlib.suppress(OSError):
             p.unlink()
             removed.append(p)
+    return removed
+
+
+# ---------------------------------------------------------------------------
+# Temporary files of processes that were killed (SIGKILL, a power cut): a name says whose it is.
+# On POSIX the spill files are unlinked at creation and need none of this; the atomic writes'
+# ``.part`` files (h5py writes by path) and every temporary file on Windows carry their owner's
+# process id and start time, and the next run that writes there removes those whose owner is gone.
+
+def _start_token(pid: int) -> str | None:
+    """When process ``pid`` started, as a short token, or None where this cannot be read.
+
+    Linux: field 22 of ``/proc/PID/stat`` (clock ticks since boot), so that a process id reused by a
+    later process is not taken for the owner. Elsewhere None: the owner is judged by its id alone.
+    """
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return None
+    # The command name (field 2) may hold spaces and parentheses: count fields after its last ')'.
+    fields = stat[stat.rindex(b")") + 2:].split()
+    return fields[19].decode() if len(fields) > 19 else None
+
+
+def _pid_alive(pid: int) -> bool:
+    if os.name == "nt":  # pragma: no cover - Windows: os.kill(pid, 0) would terminate the process
+        import ctypes
+
+        handle = ctypes.windll.kernel32.OpenProcess(0x1000, False, pid)  # QUERY_LIMITED_INFORMATION
+        if not handle:
+            return False
+        code = ctypes.c_ulong()
+        ctypes.windll.kernel32.GetExitCodeProcess(handle, ctypes.byref(code))
+        ctypes.windll.kernel32.CloseHandle(handle)
+        return code.value == 259  # STILL_ACTIVE
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
+
+
+_OWNER = f"{os.getpid()}-{_start_token(os.getpid()) or 0}"
+
+
+def owner_tag() -> str:
+    """``PID-START`` of this process, put into the names of its temporary files."""
+    if not _OWNER.startswith(f"{os.getpid()}-"):  # a forked child: its own tag
+        globals()["_OWNER"] = f"{os.getpid()}-{_start_token(os.getpid()) or 0}"
+    return _OWNER
+
+
+def _owner_gone(tag: str) -> bool:
+    pid_text, _, start = tag.partition("-")
+    if not pid_text.isdigit() or not start.isdigit():
+        return False  # not a name of ours: never touched
+    pid = int(pid_text)
+    if pid != os.getpid() and not _pid_alive(pid):
+        return True
+    now = _start_token(pid)
+    return start != "0" and now is not None and now != start  # the id was reused by a later process
+
+
+# ``PID-START-`` and mkstemp's 8 random characters, at the end of the name (before the suffix).
+_OWNED = re.compile(r"(?:^|\.)(\d+-\d+)-[a-z0-9_]{8}$")
+
+
+def sweep_orphans(folder: str | os.PathLike, prefix: str, suffix: str = "") -> list[Path]:
+    """Remove this user's temporary files ``{prefix}...PID-START-XXXXXXXX{suffix}`` in ``folder``
+    whose process is gone; return those removed. Files of running processes, of other users and
+    of other names are left alone."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    uid = os.getuid() if hasattr(os, "getuid") else None
+    for entry in entries:
+        name = entry.name
+        if not (name.startswith(prefix) and name.endswith(suffix)):
+            continue
+        tag = _OWNED.search(name[len(prefix):len(name) - len(suffix)])
+        if tag is None:
+            continue
+        try:
+            mine = uid is None or entry.stat(follow_symlinks=False).st_uid == uid
+        except OSError:
+            continue
+        if mine and entry.is_file(follow_symlinks=False) and _owner_gone(tag.group(1)):
+            with contextlib.suppress(OSError):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
     return removed
 
 
@@ -136,7 +232,8 @@ def atomic_path(target: str | os.PathLike, need_bytes: int | None = None) -> Ite
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    sweep_orphans(target.parent, ".", ".part")  # left in this folder by killed runs
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.{owner_tag()}-", suffix=".part", dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     register_temporary(tmp_path)

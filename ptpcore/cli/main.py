@@ -707,6 +707,9 @@ def main(argv=None) -> int:
         return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
     warnings.simplefilter("default")
     warnings.showwarning = _show_warning
+    from ptpcore.store import remove_orphaned_spill_files
+
+    remove_orphaned_spill_files()  # what killed runs left (only where spill files have names)
     with signals_as_interrupts():
         try:
             code = _run(args)

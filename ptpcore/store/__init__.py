@@ -17,13 +17,15 @@ Files go to ``PTP_SPILL_DIR`` (default the system's temporary folder). May impor
 """
 
 from .release import release_free_memory, on_release
-from .positions import SpillStore, MemoryPositions, position_store, read_block, release_mapped_pages
+from .positions import (SpillStore, MemoryPositions, position_store, read_block, release_mapped_pages,
+                        remove_orphaned_spill_files)
 from .rows import SPILL_PIXELS, FileRows, MemoryRows, PlaneRows, row_store, park, load, spills
 
 __all__ = [
     "release_free_memory",
     "on_release",
     "SpillStore",
+    "remove_orphaned_spill_files",
     "MemoryPositions",
     "position_store",
     "read_block",

@@ -1,8 +1,9 @@
 """Per-position arrays ``(K, H, W)`` on disk: the decoder's sample stack, the comparison's blocks,
 the model choice's held-out predictions and the leave-one-out's noise estimates.
 
-:class:`SpillStore` writes one temporary file (in ``PTP_SPILL_DIR``, registered for removal on
-SIGTERM, its blocks reserved up front with ``posix_fallocate`` so a full disk is one clear error),
+:class:`SpillStore` writes one temporary file (in ``PTP_SPILL_DIR``; on POSIX unlinked at creation,
+so that nothing is left even by SIGKILL; its blocks reserved up front with ``posix_fallocate`` so a
+full disk is one clear error),
 a position's rows at a time from several threads; :func:`read_block` reads pixel ranges back with
 file reads, and :meth:`SpillStore.arrays` exposes the fields as ``numpy.memmap`` for everything
 else. :class:`MemoryPositions` is the same interface in memory (:func:`position_store` picks).
@@ -21,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ptpcore.atomic import disk_full_error, forget_temporary, is_disk_full, register_temporary
+from ptpcore.atomic import (disk_full_error, forget_temporary, is_disk_full, owner_tag, register_temporary,
+                            sweep_orphans)
 from ptpcore.store.release import on_release
 
-__all__ = ["SpillStore", "MemoryPositions", "position_store", "read_block", "release_mapped_pages"]
+__all__ = ["SpillStore", "MemoryPositions", "position_store", "read_block", "release_mapped_pages",
+           "remove_orphaned_spill_files"]
 
 _PREADV = hasattr(os, "preadv")
 _PWRITE = hasattr(os, "pwrite")
@@ -49,6 +52,34 @@ def _reserve(fh, nbytes: int) -> None:
     fh.truncate(nbytes)  # pragma: no cover - no fallocate (Windows allocates on truncate)
 
 
+_UNLINK_OPEN_FILES = os.name == "posix"
+
+
+def _spill_file(directory) -> tuple:
+    """``(file, path, named)``: a new temporary file of the spill folder, opened unbuffered.
+
+    On POSIX its name is removed at once (``named`` False): the open file is all the store needs,
+    so a process killed with SIGKILL leaves nothing behind. Elsewhere (Windows cannot remove an
+    open file) the name carries the owner's process id and start time, and files of owners that
+    are gone are removed first (:func:`ptpcore.atomic.sweep_orphans`).
+    """
+    folder = directory or tempfile.gettempdir()
+    if not _UNLINK_OPEN_FILES:  # pragma: no cover - Windows
+        sweep_orphans(folder, "ptp-samples-", ".tmp")
+    fd, name = tempfile.mkstemp(prefix=f"ptp-samples-{owner_tag()}-", suffix=".tmp", dir=directory)
+    if _UNLINK_OPEN_FILES:
+        os.unlink(name)
+    return os.fdopen(fd, "r+b", buffering=0), Path(name), not _UNLINK_OPEN_FILES
+
+
+def remove_orphaned_spill_files(directory=None) -> list[Path]:
+    """Remove the spill files that killed runs of this user left in the spill folder (``directory``,
+    else ``PTP_SPILL_DIR``, else the system's temporary folder); return them. Only where spill files
+    have names (not POSIX, where they are unlinked at creation); called when a program starts."""
+    folder = directory or os.environ.get("PTP_SPILL_DIR") or tempfile.gettempdir()
+    return sweep_orphans(folder, "ptp-samples-", ".tmp")
+
+
 class SpillStore:
     """``(K, H, W)`` arrays in one temporary file, written a position at a time.
 
@@ -63,8 +94,10 @@ class SpillStore:
         Value of positions never written (e.g. NaN, 0xFF).
     directory : path, optional
         Where the file goes (default: the system's temporary folder, or
-        ``PTP_SPILL_DIR``). The file is removed when the store and every array
-        from :meth:`arrays` are gone (at the latest when Python exits).
+        ``PTP_SPILL_DIR``). On POSIX the file has no name from the start (``path``
+        is the name it was created under, for messages); elsewhere it is removed
+        when the store and every array from :meth:`arrays` are gone (at the
+        latest when Python exits).
     """
 
     def __init__(self, k: int, shape, fields: dict, fill: dict, directory=None):
@@ -72,9 +105,7 @@ class SpillStore:
         self.shape = tuple(int(s) for s in shape)
         self.pixels = int(np.prod(self.shape))
         directory = directory or os.environ.get("PTP_SPILL_DIR") or None
-        fd, name = tempfile.mkstemp(prefix="ptp-samples-", suffix=".tmp", dir=directory)
-        self.path = Path(name)
-        self._fh = os.fdopen(fd, "r+b", buffering=0)
+        self._fh, self.path, named = _spill_file(directory)
         self._lock = threading.Lock()
         self.layout: dict[str, tuple[np.dtype, int]] = {}
         offset = 0
@@ -85,8 +116,9 @@ class SpillStore:
         self.nbytes = offset
         self._written = set()
         self._fill = dict(fill)
-        self._finalizer = weakref.finalize(self, SpillStore._remove, self._fh, self.path)
-        register_temporary(self.path)
+        self._finalizer = weakref.finalize(self, SpillStore._remove, self._fh, self.path if named else None)
+        if named:
+            register_temporary(self.path)
         try:
             _reserve(self._fh, offset)
         except OSError as exc:
@@ -97,10 +129,12 @@ class SpillStore:
             raise
 
     @staticmethod
-    def _remove(fh, path: Path) -> None:
+    def _remove(fh, path: Path | None) -> None:
         try:
             fh.close()
         finally:
+            if path is None:  # unlinked at creation: closing freed it
+                return
             forget_temporary(path)
             try:
                 path.unlink()
@@ -189,7 +223,7 @@ class SpillStore:
         """Every field as a writable ``(K, H, W)`` ``numpy.memmap`` of the file."""
         out = {}
         for name, (dt, base) in self.layout.items():
-            mm = np.memmap(self.path, dtype=dt, mode="r+", offset=base, shape=(self.k, *self.shape))
+            mm = np.memmap(self._fh, dtype=dt, mode="r+", offset=base, shape=(self.k, *self.shape))
             mm._ptp_store = self  # the store (and so its file) lives as long as any of its maps
             _SPILLED[id(mm)] = (weakref.ref(mm), self, name)
             weakref.finalize(mm, _SPILLED.pop, id(mm), None)

@@ -9,6 +9,8 @@ wide enough (4096 px: 8 rows per tile) that every path crosses tile borders.
 
 
 import cv2
+import os
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -275,7 +277,7 @@ def test_spill_store_blocks_and_cleanup(tmp_path):
     np.testing.assert_array_equal(read_block(arrays["x"], 3, 7), arrays["x"].reshape(3, -1)[:, 3:7])
     np.testing.assert_array_equal(read_block(arrays["x"], 3, 7, [1]), [[3, 4, 5, 6]])
     assert (arrays["r"] == 0xFF).all()
-    assert path.exists()
+    assert path.exists() == (os.name != "posix")  # POSIX: unlinked at creation, the maps keep the file
     del arrays
     import gc
 
