@@ -156,7 +156,7 @@ class Session:
     sim_settings : SimSettings
     seed : int
     dataset_folder : Path or None
-        The ``ptp-dataset/1`` folder to import (``source_kind == "folder"``).
+        The ``ptp-dataset`` folder (``/1`` or ``/2``) to import (``source_kind == "folder"``).
     samples : SampleStack or None
     positions : list of PositionStatus
     decoded : dict int -> DecodedPosition
@@ -571,7 +571,7 @@ class SessionModel(QObject):
         self.sourceChanged.emit()
 
     def import_dataset(self, folder: Path, rig: Rig) -> None:
-        """Take the ``ptp-dataset/1`` folder ``folder`` (whose rig.toml says ``rig``) as the source.
+        """Take the ``ptp-dataset`` folder ``folder`` (whose rig.toml says ``rig``) as the source.
 
         Always a new dataset, even at the same path (its images may have been rewritten):
         every result is dropped.

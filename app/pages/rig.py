@@ -105,10 +105,10 @@ class RigPage(StudioPage):
         src = QGroupBox("Source of images")
         sl = QVBoxLayout(src)
         self.src_sim = QRadioButton("Simulated rig (virtual camera with exact ground truth)")
-        self.src_folder = QRadioButton("Import a ptp-dataset/1 folder")
+        self.src_folder = QRadioButton("Import a ptp-dataset folder")
         self.src_live = QRadioButton("Live capture: LCD, camera and stage")
         self.src_live.setToolTip("Show the patterns on the LCD, move the stage, photograph every pattern and write"
-                                 " a ptp-dataset/1 folder; the devices are chosen on the Acquire page, and"
+                                 " a ptp-dataset folder (/1 or /2); the devices are chosen on the Acquire page, and"
                                  " simulated devices need no hardware.")
         self.src_group = QButtonGroup(self)
         for i, b in enumerate((self.src_sim, self.src_folder, self.src_live)):

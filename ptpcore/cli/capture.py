@@ -127,8 +127,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     from ptpcore.simulate.virtual_rig import PRESETS
 
     p = sub.add_parser(
-        "capture", help="capture a ptp-dataset/1 folder with (simulated) devices, resumable",
-        description="Show every pattern, at every stage position, photograph it and write a ptp-dataset/1"
+        "capture", help="capture a ptp-dataset folder (/1, or /2 when the design needs it) with (simulated) devices, resumable",
+        description="Show every pattern, at every stage position, photograph it and write a ptp-dataset/1 (or /2)"
                     " folder as it goes (a crash loses at most one position; --resume continues). An exposure"
                     " check at the first position stops a bad exposure before the long run. The command line"
                     " uses the simulated display and camera (the real LCD window is the GUI's); the stage may be"

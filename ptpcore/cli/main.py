@@ -522,8 +522,8 @@ def build_parser() -> OneLineParser:
 def _add_simulate(sub) -> None:
     from ptpcore.simulate.virtual_rig import PRESETS
 
-    s = sub.add_parser("simulate", help="render a ptp-dataset/1 folder with the virtual rig",
-                       description="Render a ptp-dataset/1 folder (rig.toml, images, truth.h5) with the virtual rig.")
+    s = sub.add_parser("simulate", help="render a ptp-dataset folder (/1, or /2 when the design needs it) with the virtual rig",
+                       description="Render a ptp-dataset/1 or /2 folder (rig.toml, images, truth.h5) with the virtual rig.")
     s.add_argument("out_dir", metavar="OUT_DIR")
     s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
     s.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
@@ -568,7 +568,7 @@ def _add_calibrate(sub) -> None:
     from ptpcore.fit.models import LUT_MODELS
 
     c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
-                       description="Decode a ptp-dataset/1 folder and write a ptp-lut/1 file.")
+                       description="Decode a ptp-dataset/1 or /2 folder and write a ptp-lut/1 file.")
     c.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
     c.add_argument("--out", required=True, metavar="FILE.lut.h5")
     c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
@@ -644,7 +644,7 @@ def _add_compare(sub) -> None:
     from ptpcore.io.lutfile import MODELS
 
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
-                        description="Calibrate a ptp-dataset/1 folder three ways (per-pixel LUT, smooth LUT and"
+                        description="Calibrate a ptp-dataset/1 or /2 folder three ways (per-pixel LUT, smooth LUT and"
                                     " pinhole + Brown from feature points) on some positions, judge them at the others"
                                     " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
                                     " folder (simulated data) adds errors against the exact truth.")
