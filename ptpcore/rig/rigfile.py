@@ -760,7 +760,7 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
         if gray_t is None:
             raise ConfigError(f"{source}: key 'images.gray_template' is needed with fringes.unwrap = \"gray\""
                               " (or name the frames in [[images.frames]])")
-        needed = _needed_fields(("dir", "bit") + (("inverse",) if fringes.gray_inverse else ()), fringes, stage)
+        needed = _needed_fields(("pos", "dir", "bit") + (("inverse",) if fringes.gray_inverse else ()), fringes, stage)
         validate_template(gray_t, source, key="images.gray_template", fields=GRAY_TEMPLATE_FIELDS, needed=needed)
     elif gray_t is not None:
         raise ConfigError(f"{source}: key 'images.gray_template' is given but fringes.unwrap is not \"gray\"")
@@ -768,7 +768,8 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
         raise ConfigError(f"{source}: keys 'images.white_template' and 'images.black_template' go together")
     for key, t in (("images.white_template", white_t), ("images.black_template", black_t)):
         if t is not None:
-            validate_template(t, source, key=key, fields=REFERENCE_TEMPLATE_FIELDS, needed=())
+            validate_template(t, source, key=key, fields=REFERENCE_TEMPLATE_FIELDS,
+                              needed=_needed_fields(("pos",), fringes, stage))
     return rig
 
 

@@ -182,6 +182,9 @@ file = "b.png"
     ('gray_template = "z{pos:03d}/{dir}_G{bit:02d}_{inverse}.png"', 'gray_template = "z{pos:03d}/{dir}_G{bit:02d}.png"',
      "images.gray_template"),
     ('white_template = "z{pos:03d}/white.png"\n', "", "images.black_template"),
+    # Several positions: a Gray-code or reference template without {pos} would name one file for all.
+    ('gray_template = "z{pos:03d}/{dir}_G', 'gray_template = "g/{dir}_G', "images.gray_template"),
+    ('white_template = "z{pos:03d}/white.png"', 'white_template = "white.png"', "images.white_template"),
     ("{period}_n", "{period:04d}_n", "images.template"),
 ])
 def test_v2_errors_name_the_key(old, new, culprit):
