@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from gui_helpers import run_job
-from PySide6.QtCore import Qt
+from PySide6.QtCore import QPointF, Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QWizard
 
@@ -136,17 +136,24 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
     assert not cut_headers(cmp_page)
     col = cmp_page.stats.columnWidth(0)
     fm = cmp_page.stats.fontMetrics()
-    assert all(fm.horizontalAdvance(n) + 6 <= col for n in names), (names, col)  # no "PTP ..." in the cells
+    cut = [n for n in names if fm.horizontalAdvance(n) + 6 > col]
+    assert not cut, f"row names wider than their {col} px column (drawn 'PTP ...'): {cut}"
     for c in range(1, cmp_page.stats.columnCount()):  # nor "1..." for a number
         width = cmp_page.stats.columnWidth(c)
         texts = [cmp_page.stats.item(i, c).text() for i in range(cmp_page.stats.rowCount())]
-        assert all(fm.horizontalAdvance(t) + 6 <= width for t in texts), (c, texts, width)
+        cut = [t for t in texts if fm.horizontalAdvance(t) + 6 > width]
+        assert not cut, f"numbers wider than column {c}'s {width} px: {cut}"
     r = wiz.model.session.compare
     bars = [i for i in cmp_page.per_pos.getPlotItem().items if isinstance(i, pg.BarGraphItem)]
     left = min(float(np.min(b.opts["x"] - b.opts["width"] / 2)) for b in bars)
     right = max(float(np.max(b.opts["x"] + b.opts["width"] / 2)) for b in bars)
-    x0, x1 = cmp_page.per_pos.getPlotItem().vb.viewRange()[0]
-    assert x0 <= left and right <= x1, ((x0, x1), (left, right), r.z_held)  # the last height's bars in view
+    vb = cmp_page.per_pos.getPlotItem().vb
+    x0, x1 = vb.viewRange()[0]
+    assert x0 <= left and right <= x1, ((x0, x1), (left, right), r.z_held)  # the last height's bars in range
+    # and drawn: inside the widget (a plot item wider than its widget was cut at the widget's right edge)
+    shown = [cmp_page.per_pos.mapFromScene(vb.mapViewToScene(QPointF(x, 0))).x() for x in (left, right)]
+    room = cmp_page.per_pos.viewport().width()
+    assert 0 <= shown[0] and shown[1] <= room, (f"bars drawn at x {shown} px of a {room} px widget", r.z_held)
     _next(qtbot, wiz)
     _laid_out(qtbot, wiz)  # Export
     wiz.closing = True
