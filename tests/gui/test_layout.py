@@ -61,6 +61,15 @@ def _click(qtbot, widget) -> None:
     qtbot.wait(50)
 
 
+def _click_tab(qtbot, tabs, text: str) -> None:
+    """A mouse click on the tab named ``text``."""
+    bar = tabs.tabBar()
+    index = next(i for i in range(bar.count()) if bar.tabText(i) == text)
+    QTest.mouseClick(bar, Qt.LeftButton, pos=bar.tabRect(index).center())
+    qtbot.wait(100)
+    assert tabs.currentIndex() == index, text
+
+
 def _next(qtbot, wiz) -> None:
     assert wiz.next_blocker() is None, wiz.next_blocker()
     _click(qtbot, wiz.button(QWizard.NextButton))
@@ -130,6 +139,18 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
     cmp_page = p["compare"]
     _click(qtbot, cmp_page.run_button)
     assert run_job(qtbot, cmp_page.jobs.job, timeout=300000) == "finished"
+    _laid_out(qtbot, wiz)  # the maps over the plots' tab
+    view = cmp_page.main_view.size()
+    boxes = [cmp_page.heat[m].plot.vb.sceneBoundingRect() for m in ("ptp", "smooth", "3dstc")]
+    # each map a fair share of the view: they were ~110x90 px under a table that took the height, the last
+    # one smaller still (the colour bar inside its plot)
+    assert all(b.width() >= 0.2 * view.width() and b.height() >= 0.15 * view.height() for b in boxes), \
+        ([(b.width(), b.height()) for b in boxes], view)
+    h, w = wiz.model.session.rig.camera.shape
+    for m in ("ptp", "smooth", "3dstc"):  # framed to the camera (linked views had shown rows -15..86 of 72)
+        _extent_ok(cmp_page.heat[m], h, w)
+    tabs = cmp_page.result_tabs
+    _click_tab(qtbot, tabs, "Error table")
     _laid_out(qtbot, wiz)
     names = [cmp_page.stats.item(i, 0).text() for i in range(cmp_page.stats.rowCount())]
     assert len(set(names)) == len(names) == cmp_page.stats.rowCount() > 0, names
@@ -143,6 +164,7 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
         texts = [cmp_page.stats.item(i, c).text() for i in range(cmp_page.stats.rowCount())]
         cut = [t for t in texts if fm.horizontalAdvance(t) + 6 > width]
         assert not cut, f"numbers wider than column {c}'s {width} px: {cut}"
+    _click_tab(qtbot, tabs, "Error plots")
     r = wiz.model.session.compare
     bars = [i for i in cmp_page.per_pos.getPlotItem().items if isinstance(i, pg.BarGraphItem)]
     left = min(float(np.min(b.opts["x"] - b.opts["width"] / 2)) for b in bars)
