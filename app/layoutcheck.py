@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 import pyqtgraph as pg
 from PySide6.QtCore import QRect, Qt
 from PySide6.QtGui import QFontMetrics, QTextDocument
-from PySide6.QtWidgets import QAbstractScrollArea, QHeaderView, QLabel, QTableWidget, QWidget
+from PySide6.QtWidgets import (QAbstractScrollArea, QComboBox, QHeaderView, QLabel, QStyle, QStyleOptionComboBox,
+                               QTableWidget, QWidget)
 
-__all__ = ["PageLayout", "check_page", "cut_cells", "cut_labels", "cut_headers", "cut_plot_titles", "cut_plots",
+__all__ = ["PageLayout", "check_page", "cut_cells", "cut_combos", "cut_labels", "cut_headers", "cut_plot_titles", "cut_plots",
            "horizontal_bars", "view_share"]
 
 MIN_VIEW_SHARE = 0.5
@@ -151,6 +152,21 @@ def cut_cells(page) -> list[str]:
     return out
 
 
+def cut_combos(page) -> list[str]:
+    """Combo boxes whose current text is wider than the box's text field (drawn cut at its edge)."""
+    out = []
+    for combo in page.findChildren(QComboBox):
+        if not _shown(combo, page) or not combo.currentText():
+            continue
+        opt = QStyleOptionComboBox()
+        combo.initStyleOption(opt)
+        room = combo.style().subControlRect(QStyle.CC_ComboBox, opt, QStyle.SC_ComboBoxEditField, combo).width()
+        need = QFontMetrics(combo.font()).horizontalAdvance(combo.currentText())
+        if need > room + 1:
+            out.append(f"combo box '{combo.currentText()[:40]}' needs {need} px, has {room}")
+    return out
+
+
 def cut_plot_titles(page) -> list[str]:
     """pyqtgraph plot titles wider than their plot."""
     out = []
@@ -195,5 +211,5 @@ def check_page(page, window: QWidget) -> PageLayout:
     """Every check on the page shown now in ``window``."""
     share, inside = view_share(page, window)
     return PageLayout(page.key, share, inside, horizontal_bars(page),
-                      cut_labels(page) + cut_headers(page) + cut_cells(page) + cut_plot_titles(page)
+                      cut_labels(page) + cut_headers(page) + cut_cells(page) + cut_combos(page) + cut_plot_titles(page)
                       + cut_plots(page))
