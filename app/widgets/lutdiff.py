@@ -76,7 +76,7 @@ class LutDiffPanel(QGroupBox):
             row.addWidget(w, 1 if w is self.reference else 0)
         row.addWidget(self.jobs, 1)
         grid.addLayout(row, 0, 0, 1, 2)
-        self.verdict = QLabel("Pick a reference LUT of the same camera and press Compare.")
+        self.verdict = QLabel()  # the verdict once compared; until then the placeholder below says what to do
         self.verdict.setWordWrap(True)
         grid.addWidget(self.verdict, 1, 0, 1, 2)
         self.heatmap = HeatmapPanel(histogram=False)
@@ -120,7 +120,7 @@ class LutDiffPanel(QGroupBox):
         self.bars.setOpts(x=[], height=[], width=1.0)
         self.tol_line.setVisible(False)
         self.stack.setCurrentWidget(self.placeholder)
-        self.verdict.setText("Pick a reference LUT of the same camera and press Compare.")
+        self.verdict.setText("")
         self.diffChanged.emit(None)
 
     def compare(self, reference=None) -> Job | None:
