@@ -11,6 +11,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
+
 from PySide6.QtCore import QEventLoop, QPoint, QPointF, QSize, Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QWizard
@@ -171,7 +173,8 @@ def _tour_calibrate(wiz, drv, press, shot, smooth: bool) -> None:
     drv.choose(cal.model_combo, cal.model_combo.findData("poly"))
     wait_job(press(cal.fit_button))
     rows, cols = (wiz.model.session.lut.valid).nonzero()
-    i = rows.size // 3
+    h, w = wiz.model.session.lut.valid.shape  # a valid pixel inside the map (an edge one was half drawn)
+    i = int(np.argmin((rows - 0.4 * h) ** 2 + (cols - 0.4 * w) ** 2)) if rows.size else 0
     drv.click(cal.map_buttons.button(cal._map_keys.index("rms_x")))
     if rows.size:
         _click_pixel(drv, cal, int(rows[i]), int(cols[i]))

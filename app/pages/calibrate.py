@@ -87,7 +87,8 @@ def robust_text(lut) -> str:
         d = json.loads(text)
     except ValueError:
         return ""
-    out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
+    n = int(d.get('n_rejected', 0))
+    out = f" Robust fit: {n} sample{'' if n == 1 else 's'} left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
     z = lut_stage_z(lut)
     for k in d.get("suspect_positions", []):
         name = position_label(k, z[k] if k < len(z) else None)
