@@ -127,6 +127,8 @@ class PointCloudPanel(QGroupBox):
         self.plot = pg.PlotWidget(background="w")
         self.plot.setMinimumHeight(220)
         pi = self.plot.getPlotItem()
+        # a title says what is drawn (and leaves room above the colour bar's top value, which was cut)
+        pi.setTitle("Top view: X right, Y up, coloured by Z", size="9pt")
         axis_label(pi, "bottom", "X", "mm")
         axis_label(pi, "left", "Y", "mm")
         pi.setAspectLocked(True)
