@@ -23,8 +23,14 @@ from .base import StudioPage
 __all__ = ["ComparePage", "saved_verdict"]
 
 COLOURS = {"ptp": "#1b7f4c", "smooth": "#2b6cb0", "3dstc": "#c0392b"}
-MAP_SHARE = 0.42
-"""The error maps' share of the view's height when the page is first shown (the splitter moves it)."""
+MAP_SHARE = (0.3, 0.55)
+"""The least and the most of the view's height the error maps get when the page is first shown (the
+splitter moves it): between them, as much as three maps side by side need at the camera's aspect."""
+COLOUR_BAR_WIDTH = 66
+"""The maps' shared colour bar column (px)."""
+MAP_CHROME = (60, 140)
+"""Pixels around each map's image across (row axis and its label) and down (title, column axis and its
+label, the box's title and margins)."""
 REF_LABELS = {"truth": "the simulator's exact truth", "measured": "the measured held-out samples"}
 
 
@@ -86,7 +92,7 @@ class ComparePage(StudioPage):
         self._build_results(sl)
         sl.addStretch(1)
         # The maps over the plots and the error table (tabs, full width: every row name and number whole);
-        # the maps get the larger share (the table under them left each map ~110x90 px at 1366x768).
+        # the maps get what they need at the camera's aspect (the table under them left each map ~110x90 px).
         self.view_split = view = QSplitter(Qt.Vertical)
         view.setObjectName("compareViewSplitter")
         view.addWidget(self._build_heatmaps())
@@ -98,17 +104,20 @@ class ComparePage(StudioPage):
         view.setStretchFactor(0, 1)
         view.setStretchFactor(1, 1)
         view.setChildrenCollapsible(False)
-        self._view_shares = MAP_SHARE  # the maps' share of the view's height when first shown
+        self._view_shares = True  # set the maps' share of the view's height when first shown
         self.split_body(side, view, controls_width=350)
         self._connect(model)
 
     def showEvent(self, event) -> None:  # noqa: N802 - Qt API
         super().showEvent(event)
-        height = self.view_split.height()
-        if self._view_shares is not None and height > 0:  # first shown: the maps their share, the tabs the rest
-            maps = int(self._view_shares * (height - self.view_split.handleWidth()))
+        height = self.view_split.height() - self.view_split.handleWidth()
+        if self._view_shares is not None and height > 0:  # first shown: the maps what they need, the tabs the rest
             self._view_shares = None
-            self.view_split.setSizes([maps, height - self.view_split.handleWidth() - maps])
+            h, w = self.model.session.rig.camera.shape
+            across = (self.view_split.width() - COLOUR_BAR_WIDTH - 20) / 3 - MAP_CHROME[0]  # one map's image, at most
+            need = across * h / max(w, 1) + MAP_CHROME[1]
+            maps = int(min(max(need, MAP_SHARE[0] * height), MAP_SHARE[1] * height))
+            self.view_split.setSizes([maps, height - maps])
 
     def _build_run_controls(self) -> QGroupBox:
         """The comparison's settings and Run comparison with the job's progress."""
@@ -210,7 +219,7 @@ class ComparePage(StudioPage):
         bar_view = pg.GraphicsLayoutWidget()
         bar_view.setObjectName("compareColourBar")
         bar_view.addItem(self.heat_bar)
-        bar_view.setFixedWidth(66)
+        bar_view.setFixedWidth(COLOUR_BAR_WIDTH)
         hl.addWidget(bar_view)
         # Zoom and pan one map, the others follow. Not pyqtgraph's setXLink/setYLink: it lines linked views up
         # on the screen (side by side, at their boxes' heights), which unframed the maps (rows -15..86 of 72).
