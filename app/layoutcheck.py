@@ -1,5 +1,5 @@
 """What a program can tell about a page's layout: the main view's share of the window and whether it is
-whole in view, horizontal scroll bars, and text cut at its widget's edge.
+whole in view, horizontal scroll bars, and text or plots cut at their widget's edge.
 
 Used by the tests (offscreen) and by ``python -m benchmarks.gui_walk`` (the real wizard under Xvfb).
 """
@@ -11,10 +11,11 @@ from dataclasses import dataclass, field
 import pyqtgraph as pg
 from PySide6.QtCore import QRect, Qt
 from PySide6.QtGui import QFontMetrics, QTextDocument
-from PySide6.QtWidgets import QAbstractScrollArea, QHeaderView, QLabel, QWidget
+from PySide6.QtWidgets import (QAbstractScrollArea, QComboBox, QHeaderView, QLabel, QStyle, QStyleOptionComboBox,
+                               QTableWidget, QWidget)
 
-__all__ = ["PageLayout", "check_page", "cut_labels", "cut_headers", "cut_plot_titles", "horizontal_bars",
-           "view_share"]
+__all__ = ["PageLayout", "check_page", "cut_cells", "cut_combos", "cut_labels", "cut_headers", "cut_plot_titles", "cut_plots",
+           "horizontal_bars", "view_share"]
 
 MIN_VIEW_SHARE = 0.5
 """The main view's least share of the window's area (issue 31: at least half)."""
@@ -125,6 +126,47 @@ def cut_headers(page) -> list[str]:
     return out
 
 
+def cut_cells(page) -> list[str]:
+    """Table cells whose text is wider than their column (Qt elides it: the Compare table's rows read
+    "PTP ..." and its numbers "1..." in a narrow column)."""
+    out = []
+    for table in page.findChildren(QTableWidget):
+        if not _shown(table, page):
+            continue
+        fm = QFontMetrics(table.font())
+        for c in range(table.columnCount()):
+            if table.isColumnHidden(c):
+                continue
+            room = table.columnWidth(c) - 6  # the cell's margins
+            for r in range(table.rowCount()):
+                item = table.item(r, c)
+                if item is None or not item.text():
+                    continue
+                if table.wordWrap():  # whole when its lines, wrapped at words, fit the row's height
+                    need = fm.boundingRect(QRect(0, 0, max(room, 1), 100_000), Qt.TextWordWrap, item.text())
+                    if need.width() > room or need.height() > table.rowHeight(r):
+                        out.append(f"cell '{item.text()[:40]}' needs {need.width()}x{need.height()} px, has "
+                                   f"{room}x{table.rowHeight(r)}")
+                elif fm.horizontalAdvance(item.text()) > room:
+                    out.append(f"cell '{item.text()[:40]}' needs {fm.horizontalAdvance(item.text())} px, has {room}")
+    return out
+
+
+def cut_combos(page) -> list[str]:
+    """Combo boxes whose current text is wider than the box's text field (drawn cut at its edge)."""
+    out = []
+    for combo in page.findChildren(QComboBox):
+        if not _shown(combo, page) or not combo.currentText():
+            continue
+        opt = QStyleOptionComboBox()
+        combo.initStyleOption(opt)
+        room = combo.style().subControlRect(QStyle.CC_ComboBox, opt, QStyle.SC_ComboBoxEditField, combo).width()
+        need = QFontMetrics(combo.font()).horizontalAdvance(combo.currentText())
+        if need > room + 1:
+            out.append(f"combo box '{combo.currentText()[:40]}' needs {need} px, has {room}")
+    return out
+
+
 def cut_plot_titles(page) -> list[str]:
     """pyqtgraph plot titles wider than their plot."""
     out = []
@@ -141,8 +183,33 @@ def cut_plot_titles(page) -> list[str]:
     return out
 
 
+def cut_plots(page) -> list[str]:
+    """pyqtgraph plots whose data area (view box) reaches past their widget's edge.
+
+    A plot item wider than its widget (a title or a legend asking for more room than the widget has) is
+    drawn from the widget's left edge and cut at its right one: the last heights' bars of the Compare page's
+    chart were not drawn at all, though the view's range held them (issue 31).
+    """
+    out = []
+    for widget in page.findChildren(pg.GraphicsView):
+        if not _shown(widget, page):
+            continue
+        port = widget.viewport().rect()
+        for item in widget.scene().items():
+            if not isinstance(item, pg.PlotItem) or not item.isVisible():
+                continue
+            box = widget.mapFromScene(item.vb.sceneBoundingRect()).boundingRect()
+            if box.right() > port.right() + 1 or box.bottom() > port.bottom() + 1 or box.left() < -1 \
+                    or box.top() < -1:
+                title = item.titleLabel.item.toPlainText()[:40] or type(widget).__name__
+                out.append(f"plot '{title}': its data area spans x {box.left()}..{box.right()}, y {box.top()}.."
+                           f"{box.bottom()} in a {port.width()}x{port.height()} px widget")
+    return out
+
+
 def check_page(page, window: QWidget) -> PageLayout:
     """Every check on the page shown now in ``window``."""
     share, inside = view_share(page, window)
     return PageLayout(page.key, share, inside, horizontal_bars(page),
-                      cut_labels(page) + cut_headers(page) + cut_plot_titles(page))
+                      cut_labels(page) + cut_headers(page) + cut_cells(page) + cut_combos(page) + cut_plot_titles(page)
+                      + cut_plots(page))

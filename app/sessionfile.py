@@ -166,18 +166,37 @@ class Autosave(QObject):
         self.path: Path | None = None
         self.job: Job | None = None
         self._again = False
+        # (the stale results, the file they belong to): the file to take up again if they come back
+        self._parked: tuple | None = None
         model.samplesChanged.connect(lambda: self._completed(model.session.samples))
         model.lutChanged.connect(lambda: self._completed(model.session.lut))
         model.compareChanged.connect(lambda: self._completed(model.session.compare))
         model.datasetReplaced.connect(self._dataset_replaced)
+        model.staleChanged.connect(self._stale_changed)
 
     def _dataset_replaced(self) -> None:
-        """Another dataset: its results are a new session, never written over the chosen file."""
+        """Another dataset: its results are a new session, never written over the chosen file. When
+        the results were set aside as stale (an edit of the inputs), the file is kept for their return."""
         if self.path is not None:
             name = self.path.name
+            if self.model.stale is not None:
+                self._parked = (self.model.stale, self.path)
             self.path = None
             self.status.emit(f"session file {name} left as it was: the dataset changed"
                              " (choose a session file at Export to save this one)")
+
+    def _stale_changed(self) -> None:
+        """Stale results came back (the inputs were set back): autosave to their file again; dropped (a
+        new run): forget it."""
+        if self._parked is None or self.model.stale is self._parked[0]:
+            return
+        stale, path = self._parked
+        self._parked = None
+        back = self.model.stale is None and self.model.session.samples is stale.values["samples"]
+        if back and self.path is None:
+            self.set_path(path)
+            if self.model.unsaved_work:  # changed since the file was written: bring it up to date
+                self.save()
 
     def set_path(self, path, just_saved: bool = False) -> None:
         """Autosave to ``path`` from now on (None: stop)."""

@@ -11,7 +11,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from PySide6.QtCore import QEventLoop, QSize, Qt
+import numpy as np
+
+from PySide6.QtCore import QEventLoop, QPoint, QPointF, QSize, Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QWizard
 
@@ -19,7 +21,7 @@ from .session import tour_session
 from .wizard import StudioWizard
 from .worker import Job
 
-__all__ = ["QtDriver", "run_tour", "tour_size", "wait_job", "settle"]
+__all__ = ["QtDriver", "run_tour", "settle", "tour_size", "view_point", "wait_job"]
 
 
 def settle(ms: int = 50) -> None:
@@ -69,12 +71,41 @@ class QtDriver:
         settle(50)
 
     def type_text(self, line_edit, text: str) -> None:
-        """Replace a line edit's text by typing (select all, type, Return)."""
-        line_edit.setFocus(Qt.OtherFocusReason)
+        """Replace a line edit's (or spin box's) text: a click into it, select all, type, Tab."""
+        self.click(line_edit)
         QTest.keyClick(line_edit, Qt.Key_A, Qt.ControlModifier)
         QTest.keyClicks(line_edit, text)
         QTest.keyClick(line_edit, Qt.Key_Tab)  # leave the field: editingFinished, never Return (the default button)
         settle(50)
+
+    def set_slider(self, slider, value: int) -> None:
+        """A click on the slider (it takes the focus), then Home and Right ``value`` times."""
+        self.click(slider)
+        QTest.keyClick(slider, Qt.Key_Home)
+        for _ in range(value):
+            QTest.keyClick(slider, Qt.Key_Right)
+        settle(50)
+
+    def click_at(self, widget, point: QPoint) -> None:
+        """A left click at ``point`` (widget coordinates; a graphics view's viewport for a plot)."""
+        QTest.mouseClick(widget, Qt.LeftButton, pos=point)
+        settle(50)
+
+    def drag(self, widget, start: QPoint, end: QPoint, steps: int = 8) -> None:
+        """Press at ``start``, move to ``end`` in ``steps`` moves, release (widget coordinates)."""
+        QTest.mousePress(widget, Qt.LeftButton, pos=start)
+        for i in range(1, steps + 1):
+            QTest.mouseMove(widget, start + (end - start) * (i / steps))
+            settle(10)
+        QTest.mouseRelease(widget, Qt.LeftButton, pos=end)
+        settle(50)
+
+
+def view_point(view, x: float, y: float) -> QPoint:
+    """Where the data point (x, y) of a pyqtgraph plot ``view`` (a GraphicsView with a ``plot`` or a PlotWidget)
+    is drawn, in its viewport's coordinates: where to click or drag."""
+    plot = view.plot if hasattr(view, "plot") else view.getPlotItem()
+    return view.mapFromScene(plot.vb.mapViewToScene(QPointF(x, y)))
 
 
 def tour_size() -> QSize:
@@ -87,19 +118,53 @@ def tour_size() -> QSize:
     return screen.availableGeometry().size()
 
 
-def _tour_phase_maps(wiz, shot) -> None:
-    """The Phase maps page: validity with a profile line, the coordinate and the finest wrapped phase."""
+def _choose(drv, combo, data=None, index: int | None = None) -> None:
+    """Pick a combo box's item (by its data or index) with the driver's clicks and keys; check it took."""
+    index = combo.findData(data) if index is None else index
+    if combo.currentIndex() != index:
+        drv.choose(combo, index)
+    if combo.currentIndex() != index:
+        raise RuntimeError(f"choosing item {index} of a combo box left it at {combo.currentIndex()} (a missed key?)")
+
+
+def _tour_phase_maps(wiz, drv, shot) -> None:
+    """The Phase maps page: validity with a profile line dragged across, the coordinate and the finest
+    wrapped phase; every choice made with the driver's clicks and keys."""
     ph = wiz.page_by_key["phase"]
-    ph.select(position=0, direction="x", kind="validity")
     if ph.jobs.busy:
         wait_job(ph.jobs.job)
+    for combo, data in ((ph.pos_combo, 0), (ph.dir_combo, "x"), (ph.kind_combo, "validity")):
+        _choose(drv, combo, data)
+        if ph.jobs.busy:
+            wait_job(ph.jobs.job)
     h, w = wiz.model.session.rig.camera.shape
-    ph.set_line((0.05 * w, 0.15 * h), (0.95 * w, 0.85 * h))
+    view = ph.view
+    port = view.viewport()
+    for handle, target in zip(ph.roi.getHandles(), ((0.05 * w, 0.15 * h), (0.95 * w, 0.85 * h))):
+        start = view.mapFromScene(handle.mapToScene(handle.boundingRect().center()))
+        drv.drag(port, start, view_point(view, *target))
     shot("phase-validity")
-    ph.select(kind="coord")
+    _choose(drv, ph.kind_combo, "coord")
     shot("phase-coordinate")
-    ph.select(kind="wrapped", level=len(wiz.model.session.rig.fringes.periods_px) - 1)
+    _choose(drv, ph.kind_combo, "wrapped")
+    _choose(drv, ph.level_combo, index=len(wiz.model.session.rig.fringes.periods_px) - 1)
     shot("phase-wrapped")
+
+
+def _click_tab(drv, tabs, index: int) -> None:
+    """A click on a tab widget's tab ``index``."""
+    bar = tabs.tabBar()
+    drv.click_at(bar, bar.tabRect(index).center())
+    if tabs.currentIndex() != index:
+        raise RuntimeError(f"a click on tab '{bar.tabText(index)}' left '{bar.tabText(tabs.currentIndex())}' shown")
+
+
+def _click_pixel(drv, cal, row: int, col: int) -> None:
+    """Select a pixel as a person does: a click on it in the heatmap."""
+    view = cal.heatmap.view
+    drv.click_at(view.viewport(), view_point(view, col, row))
+    if cal.selected is None:
+        raise RuntimeError(f"a click on pixel (row {row}, column {col}) selected none")
 
 
 def _tour_calibrate(wiz, drv, press, shot, smooth: bool) -> None:
@@ -108,20 +173,23 @@ def _tour_calibrate(wiz, drv, press, shot, smooth: bool) -> None:
     drv.choose(cal.model_combo, cal.model_combo.findData("poly"))
     wait_job(press(cal.fit_button))
     rows, cols = (wiz.model.session.lut.valid).nonzero()
-    i = rows.size // 3
-    if rows.size:
-        cal.select_pixel(int(rows[i]), int(cols[i]))
+    h, w = wiz.model.session.lut.valid.shape  # a valid pixel inside the map (an edge one was half drawn)
+    i = int(np.argmin((rows - 0.4 * h) ** 2 + (cols - 0.4 * w) ** 2)) if rows.size else 0
     drv.click(cal.map_buttons.button(cal._map_keys.index("rms_x")))
+    if rows.size:
+        _click_pixel(drv, cal, int(rows[i]), int(cols[i]))
     shot("calibrate")
     drv.click(cal.map_buttons.button(cal._map_keys.index("loo_y")))
     shot("calibrate-loo")
     if smooth:  # the smooth LUT, with its predicted uncertainty map
-        drv.choose(cal.model_combo, cal.model_combo.findData("smooth"))
-        cal.degree.setValue(2)
+        _choose(drv, cal.model_combo, "smooth")
+        drv.type_text(cal.degree, "2")
+        if cal.degree.value() != 2:
+            raise RuntimeError(f"typing 2 into the degree left it at {cal.degree.value()}")
         wait_job(press(cal.fit_button))
-        if rows.size:
-            cal.select_pixel(int(rows[i]), int(cols[i]))
         drv.click(cal.map_buttons.button(cal._map_keys.index("sigma_x")))
+        if rows.size:
+            _click_pixel(drv, cal, int(rows[i]), int(cols[i]))
         shot("calibrate-smooth-sigma")
 
 
@@ -190,7 +258,12 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     shot("rig")
     next_page()
 
-    p["fringes"].scrub("x", 1, 1, positions // 2)
+    fr = p["fringes"]  # the preview at period 1, step 1, the middle position, with clicks and keys
+    _choose(drv, fr.s_dir, index=fr.s_dir.findText("x"))
+    for slider, value in ((fr.s_level, 1), (fr.s_step, 1), (fr.s_pos, positions // 2)):
+        drv.set_slider(slider, value)
+        if slider.value() != value:
+            raise RuntimeError(f"the slider went to {slider.value()}, not {value} (a missed key?)")
     shot("fringes")
     next_page()
 
@@ -199,19 +272,29 @@ def run_tour(outdir, width: int = 320, height: int = 240, positions: int = 11, l
     shot("acquire")
     next_page()
 
-    _tour_phase_maps(wiz, shot)
+    _tour_phase_maps(wiz, drv, shot)
     next_page()
     _tour_calibrate(wiz, drv, press, shot, smooth)
     next_page()
 
-    wait_job(press(p["compare"].run_button))
+    cmp_page = p["compare"]
+    wait_job(press(cmp_page.run_button))
     shot("compare")
+    _click_tab(drv, cmp_page.result_tabs, 1)
+    shot("compare-table")
+    _click_tab(drv, cmp_page.result_tabs, 0)
     next_page()
 
     ex = p["export"]
     drv.type_text(ex.folder, str(out / "export"))
     wait_job(press(ex.export_button))
     shot("export")
+    panel = ex.cloud_panel  # the LUT applied at its default height (the middle of its range)
+    drv.click(panel.apply_button)
+    wait_job(panel.jobs.job)
+    shot("export-cloud")
+    _click_tab(drv, ex.view_tabs, 1)
+    shot("export-trust")
     if wiz.next_blocker():
         raise RuntimeError(f"Finish is disabled: {wiz.next_blocker()}")
     log(f"done in {time.monotonic() - t0:.1f} s: {len(shots)} screenshots, exported files in {out / 'export'}")

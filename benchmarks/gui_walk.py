@@ -55,6 +55,36 @@ class XDriver:
         self._xdo("key", "Home", *(["Down"] * index), "Return")
         settle(150)
 
+    def click_at(self, widget, point) -> None:
+        """A left click at ``point`` in ``widget``'s coordinates."""
+        from ptp_studio.tour import settle
+
+        p = widget.mapToGlobal(point)
+        self._xdo("mousemove", "--sync", str(p.x()), str(p.y()), "click", "1")
+        settle(150)
+
+    def drag(self, widget, start, end, steps: int = 8) -> None:
+        """Button 1 down at ``start``, moved to ``end`` in ``steps`` moves, released (widget coordinates)."""
+        from ptp_studio.tour import settle
+
+        a, b = widget.mapToGlobal(start), widget.mapToGlobal(end)
+        self._xdo("mousemove", "--sync", str(a.x()), str(a.y()), "mousedown", "1")
+        settle(100)
+        for i in range(1, steps + 1):
+            x, y = a.x() + (b.x() - a.x()) * i // steps, a.y() + (b.y() - a.y()) * i // steps
+            self._xdo("mousemove", "--sync", str(x), str(y))
+            settle(30)
+        self._xdo("mouseup", "1")
+        settle(150)
+
+    def set_slider(self, slider, value: int) -> None:
+        """A click on the slider (it takes the focus), then the keys Home and Right ``value`` times."""
+        from ptp_studio.tour import settle
+
+        self.click(slider)
+        self._xdo("key", "Home", *(["Right"] * value))
+        settle(150)
+
     def type_text(self, line_edit, text: str) -> None:
         from ptp_studio.tour import settle
 

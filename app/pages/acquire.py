@@ -131,6 +131,8 @@ class AcquirePage(StudioPage):
         for c in range(4):
             hh.setSectionResizeMode(c, QHeaderView.ResizeToContents)
         hh.setSectionResizeMode(4, QHeaderView.Stretch)
+        # the rejection's words wrap in its narrow column: rows fit them again when the column's width changes
+        hh.sectionResized.connect(lambda col, _old, _new: col == 4 and self.table.resizeRowsToContents())
         self.table.setMinimumHeight(12 * 30)
         pl.addWidget(self.table)
         self.summary = QLabel()
@@ -345,6 +347,11 @@ class AcquirePage(StudioPage):
             self.table.setItem(row, col, item)
         elif item.text() != text:
             item.setText(text)
+        else:
+            text = None  # unchanged
+        if text is not None and col == 4:  # the rejection's words wrap: its row grows to them (not every row
+            item.setToolTip(text)  # on every update: issue 15)
+            self.table.resizeRowToContents(row)
         brush = QBrush(QColor(colour)) if colour else QBrush()  # QBrush(): the table's own text colour
         if item.foreground() != brush:
             item.setForeground(brush)

@@ -29,10 +29,13 @@ from .base import StudioPage
 
 __all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map"]
 
-MODELS = {"auto": "Auto: best at held-out positions",
-          "poly": "Polynomial (least squares)", "pchip": "PCHIP interpolation of the table",
-          "linear": "Linear interpolation of the table",
-          "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
+MODELS = {"auto": "Auto (best held out)", "poly": "Polynomial", "pchip": "PCHIP (table)",
+          "linear": "Linear (table)", "smooth": "Smooth (across pixels)"}
+"""Short names: the box in the side panel shows them whole (the long ones were cut); MODEL_NOTES says more."""
+MODEL_NOTES = {"auto": "Auto: the model best at held-out positions",
+               "poly": "Polynomial in z per pixel (least squares)", "pchip": "PCHIP interpolation of the table",
+               "linear": "Linear interpolation of the table",
+               "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
 DEGREE_MODELS = ("poly", "smooth")
 SIGMA_TIP = "Predicted 1σ uncertainty of the LUT (noise, global model, model error the leave-one-out resolves)"
 OPTIONAL_MAPS = {"sigma_x": SIGMA_TIP, "sigma_y": SIGMA_TIP,
@@ -84,7 +87,8 @@ def robust_text(lut) -> str:
         d = json.loads(text)
     except ValueError:
         return ""
-    out = f" Robust fit: {d.get('n_rejected', 0)} samples left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
+    n = int(d.get('n_rejected', 0))
+    out = f" Robust fit: {n} sample{'' if n == 1 else 's'} left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
     z = lut_stage_z(lut)
     for k in d.get("suspect_positions", []):
         name = position_label(k, z[k] if k < len(z) else None)
@@ -256,8 +260,9 @@ class CalibratePage(StudioPage):
         self.model_combo = QComboBox()
         self.model_combo.setToolTip("Auto: polynomial degrees 1-3 and smooth, each fitted without some positions and"
                                     " judged at them; the most accurate is chosen (a simpler one within 5 %)")
-        for k, label in MODELS.items():
+        for i, (k, label) in enumerate(MODELS.items()):
             self.model_combo.addItem(label, k)
+            self.model_combo.setItemData(i, MODEL_NOTES[k], Qt.ToolTipRole)
         self.model_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
         self.model_combo.setMinimumContentsLength(16)
         self.degree = QSpinBox()
@@ -265,7 +270,8 @@ class CalibratePage(StudioPage):
         self.degree.setValue(3)
         self.positions_combo = QComboBox()
         self.positions_combo.addItem("all positions", "all")
-        self.positions_combo.addItem("every second position (hold out the others)", "half")
+        self.positions_combo.addItem("every second position", "half")
+        self.positions_combo.setItemData(1, "Fit to every second position, holding out the others", Qt.ToolTipRole)
         self.positions_combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
         self.positions_combo.setMinimumContentsLength(16)
         self.stage_sigma = QDoubleSpinBox()

@@ -8,8 +8,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
-                               QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QVBoxLayout,
-                               QWidget)
+                               QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
+                               QVBoxLayout, QWidget)
 
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, prepare_display,
                               robust_levels, smooth_degree_for, split_positions)
@@ -23,6 +23,14 @@ from .base import StudioPage
 __all__ = ["ComparePage", "saved_verdict"]
 
 COLOURS = {"ptp": "#1b7f4c", "smooth": "#2b6cb0", "3dstc": "#c0392b"}
+MAP_SHARE = (0.3, 0.55)
+"""The least and the most of the view's height the error maps get when the page is first shown (the
+splitter moves it): between them, as much as three maps side by side need at the camera's aspect."""
+COLOUR_BAR_WIDTH = 66
+"""The maps' shared colour bar column (px)."""
+MAP_CHROME = (60, 140)
+"""Pixels around each map's image across (row axis and its label) and down (title, column axis and its
+label, the box's title and margins)."""
 REF_LABELS = {"truth": "the simulator's exact truth", "measured": "the measured held-out samples"}
 
 
@@ -83,17 +91,33 @@ class ComparePage(StudioPage):
         sl.addWidget(self._build_run_controls())
         self._build_results(sl)
         sl.addStretch(1)
-        # The maps, the error table (full width: every row name and number whole), the plots.
-        view = QSplitter(Qt.Vertical)
+        # The maps over the plots and the error table (tabs, full width: every row name and number whole);
+        # the maps get what they need at the camera's aspect (the table under them left each map ~110x90 px).
+        self.view_split = view = QSplitter(Qt.Vertical)
+        view.setObjectName("compareViewSplitter")
         view.addWidget(self._build_heatmaps())
-        view.addWidget(self.st_box)
-        view.addWidget(self._build_plots())
-        view.setStretchFactor(0, 3)
-        view.setStretchFactor(1, 0)
-        view.setStretchFactor(2, 3)
+        self.result_tabs = QTabWidget()
+        self.result_tabs.setObjectName("compareResultTabs")
+        self.result_tabs.addTab(self._build_plots(), "Error plots")
+        self.result_tabs.addTab(self.st_box, "Error table")
+        view.addWidget(self.result_tabs)
+        view.setStretchFactor(0, 1)
+        view.setStretchFactor(1, 1)
         view.setChildrenCollapsible(False)
+        self._view_shares = True  # set the maps' share of the view's height when first shown
         self.split_body(side, view, controls_width=350)
         self._connect(model)
+
+    def showEvent(self, event) -> None:  # noqa: N802 - Qt API
+        super().showEvent(event)
+        height = self.view_split.height() - self.view_split.handleWidth()
+        if self._view_shares is not None and height > 0:  # first shown: the maps what they need, the tabs the rest
+            self._view_shares = None
+            h, w = self.model.session.rig.camera.shape
+            across = (self.view_split.width() - COLOUR_BAR_WIDTH - 20) / 3 - MAP_CHROME[0]  # one map's image, at most
+            need = across * h / max(w, 1) + MAP_CHROME[1]
+            maps = int(min(max(need, MAP_SHARE[0] * height), MAP_SHARE[1] * height))
+            self.view_split.setSizes([maps, height - maps])
 
     def _build_run_controls(self) -> QGroupBox:
         """The comparison's settings and Run comparison with the job's progress."""
@@ -160,7 +184,6 @@ class ComparePage(StudioPage):
         self.stats.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
         self.stats.horizontalHeader().setSectionResizeMode(0, QHeaderView.ResizeToContents)
         self.stats.setMinimumHeight(9 * 20 + 32)  # the nine rows (three per method) and the header
-        self.stats.setMaximumHeight(9 * 20 + 32)
         sl.addWidget(self.stats)
         par_box = QGroupBox("3DSTC camera (pinhole + Brown)")
         pl = QVBoxLayout(par_box)
@@ -178,7 +201,7 @@ class ComparePage(StudioPage):
         lay.addWidget(par_box)
 
     def _build_heatmaps(self) -> QGroupBox:
-        """The three methods' coordinate error maps on one colour scale, their views linked."""
+        """The three methods' coordinate error maps on one colour scale; zooming one zooms all."""
         heat_box = QGroupBox("Coordinate error per pixel: RMS over the held-out heights, one colour scale")
         hl = QHBoxLayout(heat_box)
         self.heat = {}
@@ -187,14 +210,29 @@ class ComparePage(StudioPage):
             v.plot.setTitle(METHOD_LABELS[m], size="9pt")
             self.heat[m] = v
             hl.addWidget(v, 1)
+        # the shared colour bar in its own narrow column: inside the last map's plot it made that map the
+        # smallest of the three
         self.heat_bar = pg.ColorBarItem(values=(0, 1), colorMap=colormap("inferno"), width=16, pen=PEN,
                                         interactive=True, colorMapMenu=False, label="µm")
-        self.heat_bar.setImageItem([self.heat[m].image for m in METHODS], insert_in=self.heat[METHODS[-1]].plot)
+        self.heat_bar.setImageItem([self.heat[m].image for m in METHODS])
         plain_axes(self.heat_bar)
-        for m in METHODS[:-1]:
-            self.heat[m].plot.setYLink(self.heat[METHODS[-1]].plot)
-            self.heat[m].plot.setXLink(self.heat[METHODS[-1]].plot)
+        bar_view = pg.GraphicsLayoutWidget()
+        bar_view.setObjectName("compareColourBar")
+        bar_view.addItem(self.heat_bar)
+        bar_view.setFixedWidth(COLOUR_BAR_WIDTH)
+        hl.addWidget(bar_view)
+        # Zoom and pan one map, the others follow. Not pyqtgraph's setXLink/setYLink: it lines linked views up
+        # on the screen (side by side, at their boxes' heights), which unframed the maps (rows -15..86 of 72).
+        for m in METHODS:
+            self.heat[m].plot.vb.sigRangeChangedManually.connect(lambda _mask, m=m: self._follow_map(m))
         return heat_box
+
+    def _follow_map(self, source: str) -> None:
+        """Show the part of the camera that the map ``source`` was zoomed or panned to on the other maps."""
+        x_range, y_range = self.heat[source].plot.vb.viewRange()
+        for m, view in self.heat.items():
+            if m != source:
+                view.plot.vb.setRange(xRange=x_range, yRange=y_range, padding=0)
 
     def _build_plots(self) -> QWidget:
         """Distance error against distance, the distance error histogram and the RMS per held-out height,

@@ -24,7 +24,7 @@ MAP_KINDS = {
     "coord": "Unwrapped LCD coordinate",
     "modulation": "Modulation",
     "background": "Background",
-    "validity": "Validity mask (rejection reasons)",
+    "validity": "Validity mask",  # coloured by rejection reason (the key beside the map says which)
 }
 _PER_LEVEL = ("wrapped", "modulation", "background")
 
@@ -338,10 +338,15 @@ class PhaseMapsPage(StudioPage):
         p0, p1 = self.line_endpoints()
         if self.current and self.current[2] == "validity":
             dist, vals = line_profile((self.shown != 0).astype(float), p0, p1)
-            self.profile.setLabel("left", "rejected (1) / valid (0)")
+            # 0 or 1 only: those two ticks, named (a label "rejected (1) / valid (0)" was longer than the axis)
+            self.profile.setLabel("left", "")
+            self.profile.getAxis("left").setTicks([[(0.0, "valid"), (1.0, "rejected")]])
+            self.profile.setYRange(-0.1, 1.1, padding=0)
         else:
             dist, vals = line_profile(self.shown, p0, p1)
+            self.profile.getAxis("left").setTicks(None)
             self.profile.setLabel("left", self.unit)
+            self.profile.enableAutoRange(axis="y")
         self.profile_x, self.profile_y = dist, vals
         self.profile_curve.setData(dist, vals, connect="finite")
 

@@ -129,11 +129,15 @@ class RigPage(StudioPage):
         sf = QFormLayout(self.sim_box)
         self.preset = QComboBox()
         for i, name in enumerate(PRESETS):
-            self.preset.addItem(f"{name} — {PRESET_NOTES.get(name, '')}", name)
+            self.preset.addItem(name, name)
             self.preset.setItemData(i, PRESET_NOTES.get(name, ""), Qt.ToolTipRole)
-        # The long notes show in the open list; the closed box does not widen the page for them.
-        self.preset.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
-        self.preset.setMinimumContentsLength(24)
+        # The preset's note on its own line under the box (in the box, "realistic — strong distortion, …" was cut)
+        self.preset_note = QLabel()
+        self.preset_note.setObjectName("hint")
+        self.preset_note.setWordWrap(True)
+        self.preset.currentIndexChanged.connect(
+            lambda _i: self.preset_note.setText(PRESET_NOTES.get(self.preset.currentData(), "")))
+        self.preset_note.setText(PRESET_NOTES.get(self.preset.currentData(), ""))
         self.seed = _ispin(0, 2 ** 31 - 1, 0)
         off = QWidget()
         ol = QHBoxLayout(off)
@@ -147,6 +151,7 @@ class RigPage(StudioPage):
         self.off_x.setToolTip("Shift the camera's view across the LCD (e.g. to see its corner and bezel)")
         self.off_y.setToolTip(self.off_x.toolTip())
         sf.addRow("Preset", self.preset)
+        sf.addRow("", self.preset_note)
         sf.addRow("Seed", self.seed)
         sf.addRow("View offset", off)
         return self.sim_box

@@ -12,8 +12,9 @@ from typing import Callable
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import Signal
-from PySide6.QtWidgets import QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
+                               QStackedWidget, QWidget)
 
 from ptpcore.evaluate.diff import LutDiff, diff_luts
 from ptpcore.io.lutfile import load_lut
@@ -75,11 +76,10 @@ class LutDiffPanel(QGroupBox):
             row.addWidget(w, 1 if w is self.reference else 0)
         row.addWidget(self.jobs, 1)
         grid.addLayout(row, 0, 0, 1, 2)
-        self.verdict = QLabel("Pick a reference LUT of the same camera and press Compare.")
+        self.verdict = QLabel()  # the verdict once compared; until then the placeholder below says what to do
         self.verdict.setWordWrap(True)
         grid.addWidget(self.verdict, 1, 0, 1, 2)
         self.heatmap = HeatmapPanel(histogram=False)
-        grid.addWidget(self.heatmap, 2, 0)
         self.hist = pg.PlotWidget()
         self.hist.setTitle("Per-pixel difference (RMS over heights, X and Y)")
         axis_label(self.hist, "bottom", "difference", "µm")
@@ -89,7 +89,23 @@ class LutDiffPanel(QGroupBox):
         self.tol_line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#c0392b", width=2, style=pg.QtCore.Qt.DashLine))
         self.tol_line.setVisible(False)
         self.hist.addItem(self.tol_line)
-        grid.addWidget(self.hist, 2, 1)
+        # Until a comparison is made, the views' place says what they will show (empty axes said nothing).
+        self.views = QWidget()
+        vl = QHBoxLayout(self.views)
+        vl.setContentsMargins(0, 0, 0, 0)
+        vl.addWidget(self.heatmap, 1)
+        vl.addWidget(self.hist, 1)
+        self.placeholder = QLabel(
+            "No comparison yet.\n\nPick a reference LUT of the same camera (a second sweep of the stage, last "
+            "month's calibration) and press Compare: here the per-pixel difference between the two LUTs is mapped "
+            "over the sensor, beside its histogram and the difference their sigma maps predict (the dashed line).")
+        self.placeholder.setObjectName("hint")
+        self.placeholder.setWordWrap(True)
+        self.placeholder.setAlignment(Qt.AlignCenter)
+        self.stack = QStackedWidget()
+        self.stack.addWidget(self.placeholder)
+        self.stack.addWidget(self.views)
+        grid.addWidget(self.stack, 2, 0, 1, 2)
         grid.setRowStretch(2, 1)
 
     def _browse(self) -> None:
@@ -103,7 +119,8 @@ class LutDiffPanel(QGroupBox):
         self.result = None
         self.bars.setOpts(x=[], height=[], width=1.0)
         self.tol_line.setVisible(False)
-        self.verdict.setText("Pick a reference LUT of the same camera and press Compare.")
+        self.stack.setCurrentWidget(self.placeholder)
+        self.verdict.setText("")
         self.diffChanged.emit(None)
 
     def compare(self, reference=None) -> Job | None:
@@ -125,6 +142,7 @@ class LutDiffPanel(QGroupBox):
         """Draw the heatmap and the histogram of ``r`` and say the verdict."""
         self.result = r
         self.verdict.setText(verdict_text(r, reference))
+        self.stack.setCurrentWidget(self.views)
         d_um = np.where(r.common, r.diff * 1e3, np.nan).astype(np.float32)
         self.heatmap.set_map(d_um, title="|difference| per pixel (RMS over heights, X and Y)", unit="µm",
                              cmap="inferno")

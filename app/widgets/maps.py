@@ -38,6 +38,9 @@ def plain_axes(item) -> None:
     """
     if isinstance(item, pg.PlotWidget):
         item = item.getPlotItem()
+    if isinstance(item, pg.ColorBarItem):
+        # its axis is 45 px wide: "4000" and a label ("grey level") overlapped; as wide as its ticks and label
+        item.axis.setWidth(None)
     axes = [a["item"] for a in item.axes.values()] if isinstance(item, pg.PlotItem) else [item.axis]
     for axis in axes:
         # pyqtgraph 0.14 still picks a prefix from the current range when disabling: no range allows one.

@@ -13,9 +13,9 @@ from typing import Callable
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QRectF, Signal
+from PySide6.QtCore import QRectF, Qt, Signal
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QDoubleSpinBox, QFileDialog, QGridLayout, QGroupBox,
-                               QHBoxLayout, QLabel, QLineEdit, QPushButton, QRadioButton)
+                               QHBoxLayout, QLabel, QLineEdit, QPushButton, QRadioButton, QStackedWidget)
 
 from ptpcore.io.pointcloud import PointCloud, read_height_map, write_point_cloud
 
@@ -127,6 +127,8 @@ class PointCloudPanel(QGroupBox):
         self.plot = pg.PlotWidget(background="w")
         self.plot.setMinimumHeight(220)
         pi = self.plot.getPlotItem()
+        # a title says what is drawn (and leaves room above the colour bar's top value, which was cut)
+        pi.setTitle("Top view: X right, Y up, coloured by Z", size="9pt")
         axis_label(pi, "bottom", "X", "mm")
         axis_label(pi, "left", "Y", "mm")
         pi.setAspectLocked(True)
@@ -139,8 +141,30 @@ class PointCloudPanel(QGroupBox):
                                         interactive=False)
         self.colorbar.setImageItem(self.image, insert_in=pi)
         plain_axes(self.colorbar)
-        grid.addWidget(self.plot, 5, 0, 1, 2)
+        # Until a cloud is made, the view's place says what will be drawn there (an empty plot said nothing).
+        self.placeholder = QLabel()
+        self.placeholder.setObjectName("hint")
+        self.placeholder.setWordWrap(True)
+        self.placeholder.setAlignment(Qt.AlignCenter)
+        self.placeholder.setMinimumHeight(220)
+        self.view = QStackedWidget()
+        self.view.addWidget(self.placeholder)
+        self.view.addWidget(self.plot)
+        grid.addWidget(self.view, 5, 0, 1, 2)
         grid.setRowStretch(5, 1)
+        self._show_placeholder()
+
+    def _show_placeholder(self) -> None:
+        """No cloud: say what the view will show and how to make it (with the LUT's z range when there is one)."""
+        lut = self._lut()
+        heights = (f"one height in the LUT's range, z = {lut.z_min:g} … {lut.z_max:g} mm," if lut is not None
+                   else "one height")
+        self.placeholder.setText(
+            "No point cloud yet.\n\nChoose " + heights + " or a height-map file and press Apply the LUT: the "
+            "points are drawn here seen from above (X right, Y up, in mm), coloured by their height Z. "
+            "Save point cloud… then writes them as PLY, NumPy or HDF5." + ("" if lut is not None else
+                                                                          "\n\nFit a LUT on the Calibrate page first."))
+        self.view.setCurrentWidget(self.placeholder)
 
     # ---- inputs ----------------------------------------------------------------------------
     def _browse_height(self) -> None:
@@ -168,6 +192,7 @@ class PointCloudPanel(QGroupBox):
         lut = self._lut()
         if lut is not None:
             self.height.setValue(0.5 * (lut.z_min + lut.z_max))
+        self._show_placeholder()
         self.cloudChanged.emit(None)
 
     # ---- jobs ------------------------------------------------------------------------------
@@ -214,6 +239,7 @@ class PointCloudPanel(QGroupBox):
         self.image.setImage(image, levels=(lo, hi))
         self.image.setRect(rect)
         self.colorbar.setLevels((lo, hi))
+        self.view.setCurrentWidget(self.plot)
         self.plot.getPlotItem().autoRange()
         self.summary.setText(cloud.summary())
         self.save_button.setEnabled(True)

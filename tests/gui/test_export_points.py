@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 from gui_helpers import lut_on_export, run_job
+from PySide6.QtCore import Qt
+from PySide6.QtTest import QTest
 
 from ptp_studio.widgets.pointcloud import top_view
 
@@ -19,9 +21,17 @@ def test_apply_show_and_save_a_point_cloud(wizard, qtbot, tmp_path):
     # The height defaults to the middle of the calibrated range.
     assert abs(panel.height.value() - 0.5 * (lut.z_min + lut.z_max)) < 1e-3
 
+    # Before Apply the view's place says what it will show, with the LUT's range (it was an empty plot).
+    assert panel.view.currentWidget() is panel.placeholder and panel.placeholder.isVisible()
+    assert not panel.plot.isVisible()
+    assert "No point cloud yet" in panel.placeholder.text() and "Apply the LUT" in panel.placeholder.text()
+    assert f"z = {lut.z_min:g} … {lut.z_max:g} mm" in panel.placeholder.text()
+
     z = round(0.5 * (lut.z_min + lut.z_max) + 0.37, 4)
     panel.set_constant(z)
-    assert run_job(qtbot, panel.apply()) == "finished"
+    QTest.mouseClick(panel.apply_button, Qt.LeftButton, pos=panel.apply_button.rect().center())
+    assert run_job(qtbot, panel.jobs.job) == "finished"
+    assert panel.view.currentWidget() is panel.plot and panel.plot.isVisible()
     want = lut.points(z)
     assert panel.cloud.n_points == want.n_points > 0
     np.testing.assert_array_equal(panel.cloud.x, want.x)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from gui_helpers import run_job
-from PySide6.QtCore import Qt
+from PySide6.QtCore import QPointF, Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QWizard
 
@@ -59,6 +59,15 @@ def _wizard(qtbot):
 def _click(qtbot, widget) -> None:
     QTest.mouseClick(widget, Qt.LeftButton, pos=widget.rect().center())
     qtbot.wait(50)
+
+
+def _click_tab(qtbot, tabs, text: str) -> None:
+    """A mouse click on the tab named ``text``."""
+    bar = tabs.tabBar()
+    index = next(i for i in range(bar.count()) if bar.tabText(i) == text)
+    QTest.mouseClick(bar, Qt.LeftButton, pos=bar.tabRect(index).center())
+    qtbot.wait(100)
+    assert tabs.currentIndex() == index, text
 
 
 def _next(qtbot, wiz) -> None:
@@ -130,23 +139,43 @@ def test_every_page_fits_1366x768_with_its_view_whole_and_framed(qtbot):
     cmp_page = p["compare"]
     _click(qtbot, cmp_page.run_button)
     assert run_job(qtbot, cmp_page.jobs.job, timeout=300000) == "finished"
+    _laid_out(qtbot, wiz)  # the maps over the plots' tab
+    view = cmp_page.main_view.size()
+    boxes = [cmp_page.heat[m].plot.vb.sceneBoundingRect() for m in ("ptp", "smooth", "3dstc")]
+    # each map a fair share of the view: they were ~110x90 px under a table that took the height, the last
+    # one smaller still (the colour bar inside its plot)
+    assert all(b.width() >= 0.2 * view.width() and b.height() >= 0.15 * view.height() for b in boxes), \
+        ([(b.width(), b.height()) for b in boxes], view)
+    h, w = wiz.model.session.rig.camera.shape
+    for m in ("ptp", "smooth", "3dstc"):  # framed to the camera (linked views had shown rows -15..86 of 72)
+        _extent_ok(cmp_page.heat[m], h, w)
+    tabs = cmp_page.result_tabs
+    _click_tab(qtbot, tabs, "Error table")
     _laid_out(qtbot, wiz)
     names = [cmp_page.stats.item(i, 0).text() for i in range(cmp_page.stats.rowCount())]
     assert len(set(names)) == len(names) == cmp_page.stats.rowCount() > 0, names
     assert not cut_headers(cmp_page)
     col = cmp_page.stats.columnWidth(0)
     fm = cmp_page.stats.fontMetrics()
-    assert all(fm.horizontalAdvance(n) + 6 <= col for n in names), (names, col)  # no "PTP ..." in the cells
+    cut = [n for n in names if fm.horizontalAdvance(n) + 6 > col]
+    assert not cut, f"row names wider than their {col} px column (drawn 'PTP ...'): {cut}"
     for c in range(1, cmp_page.stats.columnCount()):  # nor "1..." for a number
         width = cmp_page.stats.columnWidth(c)
         texts = [cmp_page.stats.item(i, c).text() for i in range(cmp_page.stats.rowCount())]
-        assert all(fm.horizontalAdvance(t) + 6 <= width for t in texts), (c, texts, width)
+        cut = [t for t in texts if fm.horizontalAdvance(t) + 6 > width]
+        assert not cut, f"numbers wider than column {c}'s {width} px: {cut}"
+    _click_tab(qtbot, tabs, "Error plots")
     r = wiz.model.session.compare
     bars = [i for i in cmp_page.per_pos.getPlotItem().items if isinstance(i, pg.BarGraphItem)]
     left = min(float(np.min(b.opts["x"] - b.opts["width"] / 2)) for b in bars)
     right = max(float(np.max(b.opts["x"] + b.opts["width"] / 2)) for b in bars)
-    x0, x1 = cmp_page.per_pos.getPlotItem().vb.viewRange()[0]
-    assert x0 <= left and right <= x1, ((x0, x1), (left, right), r.z_held)  # the last height's bars in view
+    vb = cmp_page.per_pos.getPlotItem().vb
+    x0, x1 = vb.viewRange()[0]
+    assert x0 <= left and right <= x1, ((x0, x1), (left, right), r.z_held)  # the last height's bars in range
+    # and drawn: inside the widget (a plot item wider than its widget was cut at the widget's right edge)
+    shown = [cmp_page.per_pos.mapFromScene(vb.mapViewToScene(QPointF(x, 0))).x() for x in (left, right)]
+    room = cmp_page.per_pos.viewport().width()
+    assert 0 <= shown[0] and shown[1] <= room, (f"bars drawn at x {shown} px of a {room} px widget", r.z_held)
     _next(qtbot, wiz)
     _laid_out(qtbot, wiz)  # Export
     wiz.closing = True

@@ -66,12 +66,21 @@ def test_an_edit_sets_results_aside_and_setting_back_restores_them(wizard, qtbot
     assert wizard.reachable_steps() == [0, 1, 2]  # nothing to show beyond Acquire: the rig is another
     assert model.unsaved_work is False  # the stale results are in the session file as they are
 
+    session_file = tmp_path / "out" / "session.ptps.h5"
+    assert wizard.autosave.path is None  # set aside: the file is left as it was (another rig now)
     qtbot.keyClick(count, Qt.Key_Up)  # back to 9: the same objects, not stale
     assert s.samples is samples and s.lut is lut and model.stale is None
     assert not banner.isVisible() and not model.unsaved_work
+    assert wizard.autosave.path == session_file  # their file is autosaved again
     _click_step(qtbot, wizard, 4)  # Calibrate shows the LUT again
     cal = wizard.page_by_key["calibrate"]
     assert wizard.currentPage() is cal and cal.maps and wizard.next_blocker() is None
+    # the next completed stage is written to it
+    before = session_file.stat().st_mtime_ns
+    with qtbot.waitSignal(wizard.autosave.saved, timeout=60000) as saved:
+        assert run_job(qtbot, cal.fit()) == "finished"
+    assert saved.args == [session_file] and session_file.stat().st_mtime_ns != before
+    assert not model.unsaved_work
 
 
 def test_the_banner_sets_the_values_back_and_a_new_run_drops_the_stale_results(wizard, qtbot, tmp_path):
@@ -98,4 +107,5 @@ def test_the_banner_sets_the_values_back_and_a_new_run_drops_the_stale_results(w
     wizard.go_to("acquire")
     assert run_job(qtbot, wizard.page_by_key["acquire"].start()) == "finished"
     assert model.stale is None and s.samples is not samples and s.samples.x.shape[0] == 8
+    assert wizard.autosave.path is None  # new results of another rig: never written over the old file
     assert not _banner(rig).isVisibleTo(rig)

@@ -49,6 +49,8 @@ def test_export_page_diffs_against_a_reference_lut(wizard, qtbot, tmp_path):
     wizard.go_to("export")
     panel = wizard.page_by_key["export"].diff_panel
     assert panel.result is None
+    # no comparison yet: the views' place says what will be drawn there (empty axes before)
+    assert panel.stack.currentWidget() is panel.placeholder and "No comparison yet" in panel.placeholder.text()
     assert panel.compare(tmp_path / "missing.lut.h5") is None and "no such LUT file" in panel.jobs.error.text()
 
     # Itself: no difference, consistent.
@@ -56,6 +58,7 @@ def test_export_page_diffs_against_a_reference_lut(wizard, qtbot, tmp_path):
     save_lut(lut, same)
     assert run_job(qtbot, panel.compare(same)) == "finished"
     assert panel.result.consistent and panel.result.max_um < 1e-6
+    assert panel.stack.currentWidget() is panel.views
     assert "consistent" in panel.verdict.text()
 
     # Moved by 10 predicted sigmas in X (5 of the difference RMS): it differs; the heatmap shows the shift,
@@ -77,7 +80,7 @@ def test_export_page_diffs_against_a_reference_lut(wizard, qtbot, tmp_path):
 
     # A new LUT forgets the comparison.
     wizard.model.set_lut(lut, wizard.model.session.lut_positions)
-    assert panel.result is None
+    assert panel.result is None and panel.stack.currentWidget() is panel.placeholder
 
 
 def test_calibrate_shows_residual_arrows_and_export_writes_them(wizard, qtbot, tmp_path):
