@@ -350,7 +350,7 @@ def cmd_diff(args) -> int:
     print(f"{args.lut_a} vs {args.lut_b}: {r.n_pixels} common pixels, z {r.z[0]:g} .. {r.z[-1]:g} mm"
           f" ({r.z.size} heights)")
     print(f"  models              {r.models[0]} | {r.models[1]}"
-          + ("" if r.like_with_like else "  (UNLIKE: they differ by the model alone)"))
+          + ("" if r.like_with_like else "  (UNLIKE: part of any difference is the models')"))
     print(f"  difference          RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm")
     if np.isfinite(r.predicted_rms_um):
         print(f"  predicted (sigma)   RMS {r.predicted_rms_um:.3f} µm; observed / predicted {r.ratio:.2f}")

@@ -30,7 +30,8 @@ sees (a stage error repeated in neither sweep, the global model's noise) is outs
 error: the statistic answers "did the image move against its own pixel-to-pixel noise?".
 
 Compare like with like: two LUTs fitted with different models or smoothing scales differ by that
-alone (the smoothing removes different parts of the noise and of the shape). The result says so
+alone (the smoothing removes different parts of the noise and of the shape), even when the rig
+did not change. The result says so
 (``like_with_like`` False, a note in the verdict); the numbers are still computed.
 
 Two sweeps of one rig at interleaved heights answer "is my model right?" (a model
@@ -266,8 +267,8 @@ class LutDiff:
         why = [w for w, on in (("per pixel", not self.pixels_consistent), ("common mode", self.common_flagged)) if on]
         text = "consistent" if self.consistent else f"DIFFER ({', '.join(why)})"
         if not self.like_with_like:
-            text += (f"; unlike models ({self.models[0]} vs {self.models[1]}): they differ by that alone,"
-                     " compare LUTs fitted alike")
+            text += (f"; unlike models ({self.models[0]} vs {self.models[1]}): part of any difference is the"
+                     " models', compare LUTs fitted alike")
         return text
 
     def summary(self) -> dict:
