@@ -152,6 +152,33 @@ def _sweep_drift(session):
                         stage_sigma_mm=session.stage_sigma_um * 1e-3)
 
 
+def _sigma_lines(lut, v) -> list[str]:
+    """``ptp inspect``'s sigma lines: the total, and its two parts (noise, model) when the LUT has them."""
+    def stats(arr):
+        arr = arr[v][np.isfinite(arr[v])] if arr is not None else np.zeros(0)
+        return (f"median {1e3 * np.median(arr):.2f} µm, 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
+                if arr.size else "")
+
+    lines = []
+    for a in "xy":
+        sig, model = getattr(lut, f"sigma_{a}"), getattr(lut, f"sigma_model_{a}")
+        total = stats(sig)
+        if not total:
+            continue
+        if model is None:
+            lines.append(f"  {'predicted sigma ' + a.upper():<20}{total}"
+                         " (phase noise; stage pose and glass tolerances when given)")
+            continue
+        with np.errstate(invalid="ignore"):
+            noise = np.sqrt(np.maximum(sig.astype(np.float64) ** 2 - model.astype(np.float64) ** 2, 0.0))
+        lines += [f"  {'predicted sigma ' + a.upper():<20}{total} (noise and model in quadrature)",
+                  f"  {'  noise part ' + a.upper():<20}{stats(noise)}"
+                  " (phase noise; stage pose and glass tolerances when given)",
+                  f"  {'  model part ' + a.upper():<20}{stats(model)} (the model's own error, estimated from"
+                  " held-out positions: /provenance model_error)"]
+    return lines
+
+
 def _lut_summary(lut, path) -> str:
     import json
 
@@ -175,13 +202,7 @@ def _lut_summary(lut, path) -> str:
                     label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
                     lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
                                  f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
-        for a in "xy":
-            sig = getattr(lut, f"sigma_{a}")
-            arr = sig[v][np.isfinite(sig[v])] if sig is not None else np.zeros(0)
-            if arr.size:
-                lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
-                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
-                             " (phase noise; stage pose and glass tolerances when given)")
+        lines += _sigma_lines(lut, v)
     try:
         corrections = json.loads(lut.provenance.get("corrections", "{}"))
     except ValueError:

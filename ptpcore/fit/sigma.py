@@ -14,7 +14,8 @@ from ptpcore.io.lutfile import _group_by_pattern
 from ptpcore.io.samples import SampleStack
 
 __all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat", "stage_pose_sample_sigma",
-           "stage_pose_sigma_maps", "add_stage_pose_sigma"]
+           "stage_pose_sigma_maps", "add_stage_pose_sigma", "MODEL_MAP_SCALES_PX", "correlation_length_px",
+           "model_variance_map"]
 
 
 def sample_sigma(samples: SampleStack, noise_dn, n_steps: int, period_px: int, pitch_mm: float,
@@ -210,3 +211,112 @@ def add_stage_pose_sigma(lut, samples: SampleStack, rig, pose_sigma: np.ndarray,
     mx, my = stage_pose_sigma_maps(samples, rig, lut, pose_sigma, slopes, positions)
     lut.sigma_x = np.hypot(lut.sigma_x, np.nan_to_num(mx)).astype(np.float32)
     lut.sigma_y = np.hypot(lut.sigma_y, np.nan_to_num(my)).astype(np.float32)
+
+
+# ---- the model's own error, mapped over the image --------------------------------------------
+
+MODEL_MAP_SCALES_PX = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
+"""Candidate Gaussian scales (px) of the model-error map; cross-validation picks one per axis."""
+
+DECORRELATION_LENGTHS = 3
+"""Pixels nearer than this many correlation lengths are left out of a pixel's cross-validated
+prediction: a Gaussian correlation is below 1.1 % beyond 3 lengths."""
+
+
+def correlation_length_px(smoothing_scale_px: float) -> float:
+    """Correlation length (px) of a LUT's noise: ``sqrt(2) * s`` for a Gaussian smoothing of scale ``s``
+    (the autocorrelation of Gaussian-smoothed white noise) plus about 1 px of camera blur."""
+    return float(np.sqrt(2.0) * max(float(smoothing_scale_px), 0.0) + 1.0)
+
+
+def _gauss(a: np.ndarray, scale: float) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(a, (0, 0), scale, borderType=cv2.BORDER_CONSTANT)
+
+
+def _hole_kernel_sum(a: np.ndarray, scale: float, radius: int) -> np.ndarray:
+    """``a`` convolved with the Gaussian of ``scale`` restricted to ``|d| <= radius`` (unnormalised
+    like :func:`_gauss`: the same weights), for taking a pixel's neighbourhood out of its prediction."""
+    import cv2
+
+    r = int(radius)
+    d = np.arange(-r, r + 1, dtype=float)
+    g1 = np.exp(-0.5 * (d / scale) ** 2)
+    k = max(int(2 * np.ceil(4 * scale) + 1), 2 * r + 1)  # cv2's kernel for float64: 8 sigma + 1 wide
+    full = np.exp(-0.5 * (np.arange(-(k // 2), k // 2 + 1) / scale) ** 2)
+    g1 = g1 / full.sum()
+    disc = (d[:, None] ** 2 + d[None, :] ** 2) <= r * r
+    kernel = np.outer(g1, g1) * disc
+    return cv2.filter2D(a, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+
+
+def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scale_px: float = 0.0,
+                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, float, dict]:
+    """The model's own error variance per pixel, from held-out residuals' excess over their noise.
+
+    Per pixel ``p`` the held-out samples give ``x = r^2 - E[noise part of r^2]`` (summed:
+    ``excess_sum``, their number ``count``), whose mean is the model error ``b^2`` there plus zero-mean
+    noise. ``b^2`` is mapped by Gaussian kernel regression ``G * excess_sum / G * count`` at a scale
+    chosen by cross-validation: each pixel's ``x`` is predicted from the pixels farther than
+    :data:`DECORRELATION_LENGTHS` correlation lengths (:func:`correlation_length_px`), so that the
+    pixel's own noise and its correlated neighbours' do not predict it, and the scale with the
+    smallest count-weighted squared prediction error wins. The map is floored at 0 (a variance), and
+    then scaled so that its count-weighted mean is the image-wide mean of ``x`` (unbiased, where the
+    floor alone would bias a noisy map up): the data set the level, the map only shares it out. With
+    ``excess_sq_sum`` the image-wide mean must exceed 2 of its standard errors (the data resolve a
+    model error at all), else the map is 0.
+
+    Parameters
+    ----------
+    excess_sum : (H, W) float64, mm^2
+    count : (H, W) int
+    smoothing_scale_px : float
+        The LUT's smoothing scale (its noise's correlation), 0 for a per-pixel model.
+    scales_px : sequence of float
+    excess_sq_sum : (H, W) float64, mm^4, optional
+        Per pixel the sum of ``x^2``, for the standard error of the image-wide mean.
+
+    Returns
+    -------
+    var : (H, W) float64, mm^2 (>= 0; 0 without any held-out sample or when not resolved)
+    scale_px : float
+        The chosen scale (NaN without samples).
+    info : dict
+        ``cv`` : {scale: prediction error}, ``radius_px`` : the left-out radius, ``mean`` : the
+        image-wide mean of ``x`` (mm^2), ``limit`` : 2 standard errors of it (NaN without
+        ``excess_sq_sum``), ``resolved`` : bool.
+    """
+    e = np.nan_to_num(np.asarray(excess_sum, dtype=np.float64))
+    n = np.asarray(count, dtype=np.float64)
+    have = n > 0
+    if not have.any():
+        return np.zeros(e.shape), float("nan"), {"cv": {}, "radius_px": 0}
+    radius = int(np.ceil(DECORRELATION_LENGTHS * correlation_length_px(smoothing_scale_px)))
+    mean_x = np.where(have, e / np.maximum(n, 1), 0.0)
+    cv = {}
+    for s in scales_px:
+        num = _gauss(e, s) - _hole_kernel_sum(e, s, radius)
+        den = _gauss(n, s) - _hole_kernel_sum(n, s, radius)
+        ok = have & (den > 1e-6 * n.sum() / n.size)  # a prediction that rests on some held-out data
+        if ok.sum() < 0.5 * have.sum():
+            continue
+        pred = num[ok] / den[ok]
+        cv[float(s)] = float(np.sum(n[ok] * (mean_x[ok] - pred) ** 2) / n[ok].sum())
+    scale = min(cv, key=cv.get) if cv else float(max(scales_px))
+    total = float(n.sum())
+    level = float(e.sum()) / total
+    limit = float("nan")
+    if excess_sq_sum is not None and total > 1:
+        spread = max(float(np.nansum(excess_sq_sum)) / total - level * level, 0.0)
+        limit = 2.0 * np.sqrt(spread / (total - 1))
+    resolved = level > 0 and not limit >= level
+    info = {"cv": cv, "radius_px": radius, "mean": level, "limit": limit, "resolved": bool(resolved)}
+    if not resolved:
+        return np.zeros(e.shape), float(scale), info
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = _gauss(n, scale)
+        var = np.maximum(np.nan_to_num(np.where(den > 0, _gauss(e, scale) / den, 0.0)), 0.0)
+    mean_map = float(np.sum(var * n)) / total
+    return (var * (level / mean_map) if mean_map > 0 else np.full(e.shape, level)), float(scale), info

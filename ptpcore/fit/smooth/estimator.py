@@ -151,6 +151,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     fits.load("fit")
     coef = {"x": fits.fit[0], "y": fits.fit[1]}
     lut = _assemble_lut(degree, z_norm, z, coef, valid, fits, q, loo, sig, rig_toml, scale)
+    if uncertainty and merr.sigma is not None:
+        _add_model_part(lut, merr, valid)
     report(1.0, "smooth LUT fitted")
     return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
                            float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
@@ -212,6 +214,22 @@ def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float) 
     noise = smooth_sigma_maps(fits, *z_norm, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
     return noise
+
+
+def _add_model_part(lut: Lut, merr, valid) -> None:
+    """The model's part of the sigma maps into ``lut`` (``sigma_model_x``, ``_y``) and how it was
+    estimated into ``/provenance`` ``model_error``."""
+    import json
+
+    lut.sigma_model_x, lut.sigma_model_y = (np.where(valid, merr.sigma[a], np.float32(np.nan)) for a in "xy")
+    lut.provenance["model_error"] = json.dumps({
+        "method": "smooth leave-one-position-out: per interior held-out sample, residual^2 minus its noise"
+                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted noise; mapped by Gaussian kernel"
+                  " regression at a scale chosen by cross-validation (pixels within 3 correlation lengths left"
+                  " out), floored at 0, scaled to the image-wide mean excess (0 unless beyond 2 standard errors);"
+                  " added to the noise in quadrature",
+        "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
+        "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6)})
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,
