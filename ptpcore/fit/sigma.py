@@ -251,9 +251,27 @@ def _hole_kernel_sum(a: np.ndarray, scale: float, radius: int) -> np.ndarray:
     return cv2.filter2D(a, -1, kernel, borderType=cv2.BORDER_CONSTANT)
 
 
+def _shrink_to_level(local: np.ndarray, den: np.ndarray, n: np.ndarray, scale: float, level: float,
+                     spread: float, have: np.ndarray) -> np.ndarray:
+    """Empirical-Bayes shrinkage of the kernel map toward the image-wide level.
+
+    The kernel estimate at ``p`` has sampling variance ``se2 = v sum_q G(p-q)^2 n_q / (sum_q G n)^2``
+    (``v`` the per-sample variance of ``x``, ``G^2`` a Gaussian of scale ``s / sqrt(2)`` over
+    ``4 pi s^2``); the true map's spread over the image is ``tau2 = var(local) - mean(se2)``. Each
+    pixel keeps ``tau2 / (tau2 + se2)`` of its departure from the level (James-Stein): where the
+    data resolve the map it stays, where they do not it falls back to the level, not to a noisy 0.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se2 = spread * _gauss(n, scale / np.sqrt(2.0)) / (4.0 * np.pi * scale * scale) / (den * den)
+    w = n[have]
+    tau2 = max(float(np.sum(w * (local[have] - level) ** 2) / w.sum()) - float(np.sum(w * se2[have]) / w.sum()), 0.0)
+    keep = np.where(np.isfinite(se2), tau2 / (tau2 + se2), 0.0) if tau2 > 0 else 0.0
+    return level + keep * (local - level)
+
+
 def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scale_px: float = 0.0,
-                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, float, dict]:
+                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None,
+                       shrink: bool = True) -> tuple[np.ndarray, float, dict]:
     """The model's own error variance per pixel, from held-out residuals' excess over their noise.
 
     Per pixel ``p`` the held-out samples give ``x = r^2 - E[noise part of r^2]`` (summed:
@@ -307,7 +325,7 @@ def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scal
     scale = min(cv, key=cv.get) if cv else float(max(scales_px))
     total = float(n.sum())
     level = float(e.sum()) / total
-    limit = float("nan")
+    limit, spread = float("nan"), 0.0
     if excess_sq_sum is not None and total > 1:
         spread = max(float(np.nansum(excess_sq_sum)) / total - level * level, 0.0)
         limit = 2.0 * np.sqrt(spread / (total - 1))
@@ -317,6 +335,9 @@ def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scal
         return np.zeros(e.shape), float(scale), info
     with np.errstate(invalid="ignore", divide="ignore"):
         den = _gauss(n, scale)
-        var = np.maximum(np.nan_to_num(np.where(den > 0, _gauss(e, scale) / den, 0.0)), 0.0)
+        var = np.nan_to_num(np.where(den > 0, _gauss(e, scale) / den, 0.0))
+        if shrink and excess_sq_sum is not None:
+            var = _shrink_to_level(var, den, n, scale, level, spread, have)
+    var = np.maximum(var, 0.0)
     mean_map = float(np.sum(var * n)) / total
     return (var * (level / mean_map) if mean_map > 0 else np.full(e.shape, level)), float(scale), info

@@ -86,3 +86,19 @@ def test_lut_carries_its_model_part_and_says_how(realistic_96, model, degree, tm
     assert main(["inspect", str(p)]) == 0
     out = capsys.readouterr().out
     assert "noise part X" in out and "model part Y" in out
+
+
+def test_an_unresolved_map_falls_back_to_the_level_not_to_zero():
+    """A uniform model variance (0.05 of the noise variance): the kernel map's pixel-to-pixel spread is
+    sampling noise, so the shrinkage (tau^2 = spread beyond the standard errors, about 0) puts every
+    pixel at the image-wide level, where flooring the raw map would leave some near 0. The level is
+    within 3 standard errors of 0.05."""
+    rng = np.random.default_rng(7)
+    h, w, n = 120, 160, 9
+    e, e2 = _excess(rng, np.full((h, w), 0.05), n, squares=True)
+    count = np.full((h, w), n)
+    raw, _, _ = model_variance_map(e, count, excess_sq_sum=e2, shrink=False, scales_px=(4.0,))
+    shrunk, _, info = model_variance_map(e, count, excess_sq_sum=e2, scales_px=(4.0,))
+    assert raw.min() < 0.5 * info["mean"]  # the raw map at 4 px is noisy
+    assert shrunk.max() - shrunk.min() < 0.2 * info["mean"], (shrunk.min(), shrunk.max())
+    assert abs(info["mean"] - 0.05) < 1.5 * info["limit"]
