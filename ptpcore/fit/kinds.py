@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Callable
 
 from ptpcore.fit.perpixel import fit_lut
+from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
 from ptpcore.fit.smooth import fit_smooth_lut, poly_model_variance, poly_sigma_maps, sigma_scale
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
@@ -72,10 +73,8 @@ def _add_poly_model_part(lut: Lut, samples: SampleStack, rig: Rig, positions, st
     rms = float(np.sqrt(np.mean([np.nanmean(var[a][valid]) for a in "xy"]))) if valid.any() else 0.0
     lut.provenance["model_error"] = json.dumps({
         "method": "poly leave-one-position-out (r_k / (1 - h_kk), closed form): per interior sample, its square"
-                  " minus its predicted noise variance (sum_j (I - H)_kj^2 sigma_j^2 / (1 - h_kk)^2); mapped by"
-                  " Gaussian kernel regression at a scale chosen by cross-validation (pixels within 3 correlation"
-                  " lengths left out), floored at 0, scaled to the image-wide mean excess (0 unless beyond 2"
-                  " standard errors); added to the noise in quadrature",
+                  " minus its predicted noise variance (sum_j (I - H)_kj^2 sigma_j^2 / (1 - h_kk)^2); "
+                  + MODEL_MAP_WORDS + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in info["scale_px"].items()}, "rms_um": round(1e3 * rms, 6),
         "resolved_limit_um": {a: round(1e3 * v, 6) for a, v in info["resolved_limit_mm"].items()},
-        "n_samples": info["n_samples"]})
+        "n_samples": info["n_samples"], "spatial": MODEL_MAP_SPATIAL})

@@ -27,21 +27,21 @@ def test_model_variance_map_follows_a_smooth_field_and_is_zero_without_one():
     count = np.full((h, w), n)
     count[:10, :10] = 0  # a corner without held-out samples
     sums = np.where(count > 0, _excess(rng, b2, n), 0.0)
-    var, scale, info = model_variance_map(sums, count)
+    var, scale, info = model_variance_map(sums, count, spatial=True)
     assert np.all(var >= 0) and scale in info["cv"] and info["radius_px"] == 3
     err = np.sqrt(np.mean((var - b2)[count > 0] ** 2))
     assert err < 0.15, (err, scale, info)
-    flat, _, _ = model_variance_map(np.where(count > 0, _excess(rng, 0 * b2, n), 0.0), count)
+    flat, _, _ = model_variance_map(np.where(count > 0, _excess(rng, 0 * b2, n), 0.0), count, spatial=True)
     assert abs(flat[count > 0].mean()) < 0.05, flat.mean()
     # The map's mean is the data's mean excess (the floor at 0 does not lift it).
     np.testing.assert_allclose(np.sum(var * count) / count.sum(), sums.sum() / count.sum(), rtol=1e-9)
     # With the squares the data's resolution is judged: nothing to resolve, the map is 0; a small
     # uniform model error (0.05 of the noise variance, 20 standard errors here) is kept.
     e, e2 = _excess(rng, 0 * b2, n, squares=True)
-    none, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2)
+    none, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2, spatial=True)
     assert (not info["resolved"]) == (info["mean"] <= info["limit"]) and (info["resolved"] or not none.any())
     e, e2 = _excess(rng, 0 * b2 + 0.05, n, squares=True)
-    small, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2)
+    small, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2, spatial=True)
     assert info["resolved"] and abs(small.mean() - 0.05) < 3 * info["limit"] / 2
 
 
@@ -49,7 +49,7 @@ def test_correlated_neighbours_are_left_out_of_the_cross_validation():
     """The radius left out grows with the LUT's smoothing scale: 3 correlation lengths (sqrt(2) s + 1)."""
     count = np.ones((40, 40))
     for s, want in ((0.0, 3), (2.0, 12), (16.0, 71)):
-        assert model_variance_map(np.zeros((40, 40)), count, s, scales_px=(4.0,))[2]["radius_px"] == want
+        assert model_variance_map(np.zeros((40, 40)), count, s, scales_px=(4.0,), spatial=True)[2]["radius_px"] == want
 
 
 @pytest.fixture(scope="module")
@@ -97,8 +97,19 @@ def test_an_unresolved_map_falls_back_to_the_level_not_to_zero():
     h, w, n = 120, 160, 9
     e, e2 = _excess(rng, np.full((h, w), 0.05), n, squares=True)
     count = np.full((h, w), n)
-    raw, _, _ = model_variance_map(e, count, excess_sq_sum=e2, shrink=False, scales_px=(4.0,))
-    shrunk, _, info = model_variance_map(e, count, excess_sq_sum=e2, scales_px=(4.0,))
+    raw, _, _ = model_variance_map(e, count, excess_sq_sum=e2, shrink=False, scales_px=(4.0,), spatial=True)
+    shrunk, _, info = model_variance_map(e, count, excess_sq_sum=e2, scales_px=(4.0,), spatial=True)
     assert raw.min() < 0.5 * info["mean"]  # the raw map at 4 px is noisy
     assert shrunk.max() - shrunk.min() < 0.2 * info["mean"], (shrunk.min(), shrunk.max())
     assert abs(info["mean"] - 0.05) < 1.5 * info["limit"]
+
+
+def test_the_default_map_is_the_uniform_level():
+    """MODEL_MAP_SPATIAL off (the harness's verdict, issue 30): the level everywhere when resolved."""
+    from ptpcore.fit.sigma import MODEL_MAP_SPATIAL
+
+    rng = np.random.default_rng(3)
+    e, e2 = _excess(rng, np.tile(np.linspace(0.0, 2.0, 50), (40, 1)), 9, squares=True)
+    var, scale, info = model_variance_map(e, np.full((40, 50), 9), excess_sq_sum=e2)
+    assert not MODEL_MAP_SPATIAL and info["resolved"] and np.isnan(scale)
+    np.testing.assert_array_equal(var, np.full((40, 50), e.sum() / (9 * 2000)))

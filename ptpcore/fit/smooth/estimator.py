@@ -8,6 +8,7 @@ from typing import Callable
 import numpy as np
 
 from ptpcore.fit.perpixel import _z_normalisation, fit_lut
+from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
 from ptpcore.fit.smooth.global_model import GlobalRays, global_pinhole
 from ptpcore.fit.smooth.leave_one_out import LooSetup
 from ptpcore.fit.smooth.noise import check_noise, sigma_scale_from
@@ -224,12 +225,11 @@ def _add_model_part(lut: Lut, merr, valid) -> None:
     lut.sigma_model_x, lut.sigma_model_y = (np.where(valid, merr.sigma[a], np.float32(np.nan)) for a in "xy")
     lut.provenance["model_error"] = json.dumps({
         "method": "smooth leave-one-position-out: per interior held-out sample, residual^2 minus its noise"
-                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted noise; mapped by Gaussian kernel"
-                  " regression at a scale chosen by cross-validation (pixels within 3 correlation lengths left"
-                  " out), floored at 0, scaled to the image-wide mean excess (0 unless beyond 2 standard errors);"
-                  " added to the noise in quadrature",
+                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted noise; " + MODEL_MAP_WORDS
+                  + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
-        "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6)})
+        "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6),
+        "spatial": MODEL_MAP_SPATIAL})
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,
