@@ -27,15 +27,21 @@ __all__ = ["LutDiffPanel", "verdict_text"]
 
 
 def verdict_text(r: LutDiff, reference: str) -> str:
-    """The numbers of a :class:`LutDiff` in words (one paragraph, rich text)."""
-    word = "consistent" if r.consistent else "DIFFER"
-    text = (f"<b>{word}</b> with {reference}: {r.n_pixels} common pixels, z {r.z[0]:g} … {r.z[-1]:g} mm."
+    """The numbers of a :class:`LutDiff` in words (rich text: a paragraph, then the common mode's line)."""
+    text = (f"<b>{r.verdict_words()}</b> with {reference}: {r.n_pixels} common pixels, z {r.z[0]:g} … {r.z[-1]:g} mm."
             f" Difference RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm.")
     if np.isfinite(r.predicted_rms_um):
         text += f" Predicted by the sigma maps {r.predicted_rms_um:.3f} µm (observed / predicted {r.ratio:.2f})."
     text += (f" {100 * r.fraction_beyond:.2f} % of the pixels beyond {r.tolerance_sigma:g} σ"
              + (f" (at least {r.tolerance_um:g} µm)" if r.tolerance_um else "")
-             + f"; the LUTs differ above {100 * r.max_fraction:g} %.")
+             + f" (per-pixel false-alarm rate at most {100 * r.pixel_false_alarm:.2g} %);"
+             f" the LUTs differ above {100 * r.max_fraction:g} %.")
+    if r.common_x is not None and r.common_y is not None:
+        cx, cy = r.common_x, r.common_y
+        word = "FLAGGED" if r.common_flagged else "no shift"
+        text += (f"<br>Common mode (mean shift of the image, false-alarm rate {100 * r.common_false_alarm:g} %):"
+                 f" <b>{word}</b>; X {cx.shift_um:+.3f} ± {cx.se_um:.3f} µm (t = {cx.t:+.1f}),"
+                 f" Y {cy.shift_um:+.3f} ± {cy.se_um:.3f} µm (t = {cy.t:+.1f}), limit |t| {cx.critical:.2f}.")
     return text
 
 

@@ -152,6 +152,33 @@ def _sweep_drift(session):
                         stage_sigma_mm=session.stage_sigma_um * 1e-3)
 
 
+def _sigma_lines(lut, v) -> list[str]:
+    """``ptp inspect``'s sigma lines: the total, and its two parts (noise, model) when the LUT has them."""
+    def stats(arr):
+        arr = arr[v][np.isfinite(arr[v])] if arr is not None else np.zeros(0)
+        return (f"median {1e3 * np.median(arr):.2f} µm, 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
+                if arr.size else "")
+
+    lines = []
+    for a in "xy":
+        sig, model = getattr(lut, f"sigma_{a}"), getattr(lut, f"sigma_model_{a}")
+        total = stats(sig)
+        if not total:
+            continue
+        if model is None:
+            lines.append(f"  {'predicted sigma ' + a.upper():<20}{total}"
+                         " (phase noise; stage pose and glass tolerances when given)")
+            continue
+        with np.errstate(invalid="ignore"):
+            noise = np.sqrt(np.maximum(sig.astype(np.float64) ** 2 - model.astype(np.float64) ** 2, 0.0))
+        lines += [f"  {'predicted sigma ' + a.upper():<20}{total} (noise and model in quadrature)",
+                  f"  {'  noise part ' + a.upper():<20}{stats(noise)}"
+                  " (phase noise; stage pose and glass tolerances when given)",
+                  f"  {'  model part ' + a.upper():<20}{stats(model)} (the model's own error, estimated from"
+                  " held-out positions: /provenance model_error)"]
+    return lines
+
+
 def _lut_summary(lut, path) -> str:
     import json
 
@@ -175,13 +202,7 @@ def _lut_summary(lut, path) -> str:
                     label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
                     lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
                                  f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
-        for a in "xy":
-            sig = getattr(lut, f"sigma_{a}")
-            arr = sig[v][np.isfinite(sig[v])] if sig is not None else np.zeros(0)
-            if arr.size:
-                lines.append(f"  {'predicted sigma ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
-                             f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
-                             " (phase noise; stage pose and glass tolerances when given)")
+        lines += _sigma_lines(lut, v)
     try:
         corrections = json.loads(lut.provenance.get("corrections", "{}"))
     except ValueError:
@@ -346,16 +367,22 @@ def cmd_diff(args) -> int:
 
     a, b = load_lut(args.lut_a), load_lut(args.lut_b)
     r = diff_luts(a, b, tolerance_sigma=args.tolerance_sigma, tolerance_um=args.tolerance_um,
-                  max_fraction=args.max_fraction)
+                  max_fraction=args.max_fraction, common_false_alarm=args.common_false_alarm)
     print(f"{args.lut_a} vs {args.lut_b}: {r.n_pixels} common pixels, z {r.z[0]:g} .. {r.z[-1]:g} mm"
           f" ({r.z.size} heights)")
+    print(f"  models              {r.models[0]} | {r.models[1]}"
+          + ("" if r.like_with_like else "  (UNLIKE: part of any difference is the models')"))
     print(f"  difference          RMS {r.rms_um:.3f} µm, 95th percentile {r.p95_um:.3f} µm, max {r.max_um:.3f} µm")
     if np.isfinite(r.predicted_rms_um):
         print(f"  predicted (sigma)   RMS {r.predicted_rms_um:.3f} µm; observed / predicted {r.ratio:.2f}")
     tol = f"{r.tolerance_sigma:g} sigma" + (f", at least {r.tolerance_um:g} µm" if r.tolerance_um else "")
-    print(f"  beyond tolerance    {100 * r.fraction_beyond:.2f} % of the pixels ({tol}; limit"
-          f" {100 * r.max_fraction:g} %)")
-    print(f"  verdict             {'consistent' if r.consistent else 'DIFFER'}")
+    print(f"  beyond tolerance    {100 * r.fraction_beyond:.2f} % of the pixels ({tol}: per-pixel false-alarm"
+          f" rate at most {100 * r.pixel_false_alarm:.2g} %; limit {100 * r.max_fraction:g} %)")
+    for axis, c in (("x", r.common_x), ("y", r.common_y)):
+        print(f"  common mode {axis}       mean shift {c.shift_um:+.3f} µm, standard error {c.se_um:.3f} µm"
+              f" ({c.n_blocks} blocks of {c.block_px} px): t = {c.t:+.2f}, limit {c.critical:.2f}"
+              + (" FLAGGED" if c.flagged else ""))
+    print(f"  verdict             {r.verdict_words()} (common-mode false-alarm rate {100 * r.common_false_alarm:g} %)")
     if args.json:
         with atomic_path(args.json) as tmp:
             Path(tmp).write_text(json.dumps({"a": str(args.lut_a), "b": str(args.lut_b), **r.summary()}, indent=1))
@@ -483,7 +510,8 @@ def _add_diff_parser(sub) -> None:
     """The ``ptp diff`` subcommand."""
     df = sub.add_parser("diff", help="are two LUTs of one camera consistent within their predicted noise?",
                         description="Per-pixel difference of two ptp-lut/1 files over the pixels and heights"
-                                    " both cover, against the difference their sigma maps predict. Exit 0:"
+                                    " both cover, against the difference their sigma maps predict, and the"
+                                    " mean shift of the image against its standard error. Exit 0:"
                                     " consistent; 1: they differ; 2: bad input.")
     df.add_argument("lut_a", metavar="A.lut.h5")
     df.add_argument("lut_b", metavar="B.lut.h5")
@@ -495,6 +523,9 @@ def _add_diff_parser(sub) -> None:
                     help="absolute floor of the tolerance in µm (needed for LUTs without sigma maps)")
     df.add_argument("--max-fraction", type=float, default=0.01, metavar="F",
                     help="the LUTs differ when more than this fraction of the pixels is beyond (default 0.01)")
+    df.add_argument("--common-false-alarm", type=float, default=0.01, metavar="P",
+                    help="false-alarm rate of the common-mode test (the mean shift of the image against its"
+                         " standard error from block means, x and y together; default 0.01)")
     df.set_defaults(func=cmd_diff)
 
 

@@ -9,7 +9,30 @@ as its RMS over its z range, FORMATS.md; the two calibrations' noise is
 independent). A pixel is beyond the tolerance when
 ``d > max(tolerance_sigma * s, tolerance_um)``; the LUTs differ when more than
 ``max_fraction`` of the common pixels are. The overall ratio ``RMS(d) / RMS(s)``
-is about 1 for two sweeps of one rig whose models follow it.
+is about 1 for two sweeps of one rig whose models follow it. When nothing changed and the sigma
+maps are right, a pixel's difference is Gaussian with at least one degree of freedom, so a pixel
+is beyond ``k`` sigmas with probability at most ``2 (1 - Phi(k))`` (0.27 % at 3 sigma): the
+per-pixel false-alarm rate, which the output states.
+
+A small rigid move (a camera knocked by 0.5 µm) is far below one pixel's noise but not below the
+image's: beside the per-pixel test, the **common-mode** statistic is, per axis, the mean over the
+common pixels of the signed difference (``signed_x``, ``signed_y``: mean over the heights) against
+its standard error. Neighbouring pixels' differences are correlated (camera blur, and a smooth
+LUT's smoothing at its scale ``s``), so the standard error is not that of independent pixels: the
+image is cut into square blocks of side :func:`block_side` (at least 8 correlation lengths), the
+mean is the pixel-weighted mean of the block means and its variance the cluster-robust (CR1)
+variance of the block means plus the covariance of side-adjacent blocks (the part of the
+correlation that crosses a block border), never less than the independent-blocks value. Under
+no change ``t = mean / SE`` follows Student's t with ``J - 1`` degrees of freedom (``J`` blocks);
+an axis is flagged beyond the two-sided ``common_false_alarm / 2`` quantile (the two axes share
+the false-alarm rate, Bonferroni). A shift common to every pixel of both LUTs that no block mean
+sees (a stage error repeated in neither sweep, the global model's noise) is outside this standard
+error: the statistic answers "did the image move against its own pixel-to-pixel noise?".
+
+Compare like with like: two LUTs fitted with different models or smoothing scales differ by that
+alone (the smoothing removes different parts of the noise and of the shape), even when the rig
+did not change. The result says so
+(``like_with_like`` False, a note in the verdict); the numbers are still computed.
 
 Two sweeps of one rig at interleaved heights answer "is my model right?" (a model
 error that depends on where the calibrated heights are does not cancel); today's
@@ -20,18 +43,139 @@ line, the GUI draws its own.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
 
+from ptpcore.fit.models import describe_model
 from ptpcore.io.lutfile import Lut
 
 from .pngtext import put_text, text_width, write_png
 
-__all__ = ["N_HEIGHTS", "LutDiff", "diff_luts", "diff_png"]
+__all__ = ["N_HEIGHTS", "COMMON_FALSE_ALARM", "CommonMode", "LutDiff", "block_side", "common_mode_shift",
+           "pixel_false_alarm_rate", "diff_luts", "diff_png"]
 
 N_HEIGHTS = 9
 """Heights the two LUTs are compared at, evenly over the common z range."""
+
+COMMON_FALSE_ALARM = 0.01
+"""Default false-alarm rate of the common-mode test (both axes together, two-sided): 1 %, a
+conventional level (not fitted), so that of 100 checks of an unchanged rig about one is flagged."""
+
+MIN_BLOCK_PX = 16
+"""Smallest block side (px): a few camera-blur and footprint widths (about 1-2 px each)."""
+
+BLOCK_CORRELATION_LENGTHS = 8
+"""Block side in correlation lengths of the difference: the correlation of side-adjacent block
+means through their shared border is about ``c / (sqrt(2 pi) L)`` for a Gaussian correlation of
+length ``c`` (0.05 at ``L = 8 c``); what is left of it is estimated from the adjacent blocks."""
+
+
+@dataclass
+class CommonMode:
+    """The mean shift of one axis over the image against its standard error (module docstring).
+
+    Attributes
+    ----------
+    shift_um : float
+        Pixel-weighted mean of the signed difference A - B (µm).
+    se_um : float
+        Its standard error (µm), from block means (NaN with fewer than 2 blocks).
+    t : float
+        ``shift_um / se_um``.
+    critical : float
+        The two-sided Student-t critical value of the axis's false-alarm rate.
+    n_blocks : int
+    block_px : int
+        Side of the square blocks.
+    flagged : bool
+        ``|t| > critical``.
+    """
+
+    shift_um: float
+    se_um: float
+    t: float
+    critical: float
+    n_blocks: int
+    block_px: int
+    flagged: bool
+
+    def summary(self) -> dict:
+        def num(v):
+            return None if not np.isfinite(v) else round(float(v), 6)
+        return {"shift_um": num(self.shift_um), "se_um": num(self.se_um), "t": num(self.t),
+                "critical": num(self.critical), "n_blocks": self.n_blocks, "block_px": self.block_px,
+                "flagged": bool(self.flagged)}
+
+
+def pixel_false_alarm_rate(tolerance_sigma: float) -> float:
+    """Chance that one pixel of an unchanged rig is beyond ``tolerance_sigma`` predicted sigmas.
+
+    The pixel's difference is Gaussian with at least one degree of freedom when the sigma maps are
+    right; with one (the worst case) the chance is ``2 (1 - Phi(k))``, with more it is smaller.
+    """
+    return float(2.0 * stats.norm.sf(tolerance_sigma))
+
+
+def block_side(scale_px: float, shape) -> int:
+    """Side (px) of the blocks of the common-mode standard error.
+
+    Parameters
+    ----------
+    scale_px : float
+        The larger smoothing scale (Gaussian sigma, px) of the two LUTs; 0 for per-pixel models.
+        The difference of two independently smoothed noise fields is correlated with length
+        ``c = sqrt(2) * scale`` (the autocorrelation of Gaussian-smoothed white noise), plus the
+        camera's blur (about 1 px).
+    shape : (int, int)
+        The image's (H, W): at most a quarter of its smaller side, so there are at least 4 x 4 blocks.
+    """
+    c = np.sqrt(2.0) * max(float(scale_px), 0.0) + 1.0
+    side = max(MIN_BLOCK_PX, int(np.ceil(BLOCK_CORRELATION_LENGTHS * c)))
+    return int(max(1, min(side, min(shape) // 4)))
+
+
+def common_mode_shift(signed: np.ndarray, common: np.ndarray, block_px: int, false_alarm: float) -> CommonMode:
+    """The mean of ``signed`` over ``common`` against its block-mean standard error.
+
+    Parameters
+    ----------
+    signed : (H, W) float64, mm
+        Per-pixel signed difference (mean over the heights).
+    common : (H, W) bool
+    block_px : int
+        Side of the square blocks (:func:`block_side`).
+    false_alarm : float
+        Two-sided false-alarm rate of this axis.
+
+    Returns
+    -------
+    CommonMode
+    """
+    h, w = signed.shape
+    rows, cols = -(-h // block_px), -(-w // block_px)
+    pad = np.zeros((rows * block_px, cols * block_px))
+    cnt = np.zeros_like(pad)
+    pad[:h, :w] = np.where(common, signed, 0.0)
+    cnt[:h, :w] = common
+    sums = pad.reshape(rows, block_px, cols, block_px).sum(axis=(1, 3))
+    n = cnt.reshape(rows, block_px, cols, block_px).sum(axis=(1, 3))
+    total = n.sum()
+    mean = sums.sum() / total
+    # Block j's share of the mean's deviation: (n_j / N) (b_j - M) = (sum_j - n_j M) / N.
+    e = (sums - n * mean) / total
+    used = n > 0
+    j = int(used.sum())
+    if j < 2:
+        return CommonMode(mean * 1e3, np.nan, np.nan, np.nan, j, block_px, False)
+    independent = float(np.sum(e * e))
+    adjacent = float(np.sum(e[:, 1:] * e[:, :-1]) + np.sum(e[1:, :] * e[:-1, :]))
+    var = j / (j - 1) * max(independent, independent + 2.0 * adjacent)
+    se = np.sqrt(var)
+    t = mean / se if se > 0 else (0.0 if mean == 0 else float(np.copysign(np.inf, mean)))  # identical LUTs: 0
+    critical = float(stats.t.isf(false_alarm / 2.0, j - 1))
+    return CommonMode(mean * 1e3, se * 1e3, float(t), critical, j, block_px, bool(abs(t) > critical))
 
 
 @dataclass
@@ -63,6 +207,14 @@ class LutDiff:
     fraction_beyond : float
     tolerance_sigma, tolerance_um, max_fraction : float
     consistent : bool
+        Neither the per-pixel test (fraction beyond at most ``max_fraction``) nor the common-mode
+        test of either axis flags a difference.
+    common_x, common_y : CommonMode or None
+        The common-mode statistic per axis (None when not computed).
+    common_false_alarm : float
+        False-alarm rate of the common-mode test, both axes together.
+    models : tuple of str
+        The two LUTs' models (:func:`ptpcore.fit.models.describe_model`).
     """
 
     z: np.ndarray
@@ -85,6 +237,39 @@ class LutDiff:
     tolerance_um: float
     max_fraction: float
     consistent: bool
+    common_x: CommonMode | None = None
+    common_y: CommonMode | None = None
+    common_false_alarm: float = COMMON_FALSE_ALARM
+    models: tuple = ("", "")
+
+    @property
+    def pixels_consistent(self) -> bool:
+        """The per-pixel test alone: at most ``max_fraction`` of the pixels beyond the tolerance."""
+        return self.fraction_beyond <= self.max_fraction
+
+    @property
+    def common_flagged(self) -> bool:
+        """The common-mode test flags a mean shift on either axis."""
+        return any(c is not None and c.flagged for c in (self.common_x, self.common_y))
+
+    @property
+    def like_with_like(self) -> bool:
+        """Both LUTs have the same model, degree and smoothing scale."""
+        return self.models[0] == self.models[1]
+
+    @property
+    def pixel_false_alarm(self) -> float:
+        """Per-pixel false-alarm rate of the tolerance (:func:`pixel_false_alarm_rate`)."""
+        return pixel_false_alarm_rate(self.tolerance_sigma)
+
+    def verdict_words(self) -> str:
+        """``consistent`` or ``DIFFER``, with what flagged it and whether the models match."""
+        why = [w for w, on in (("per pixel", not self.pixels_consistent), ("common mode", self.common_flagged)) if on]
+        text = "consistent" if self.consistent else f"DIFFER ({', '.join(why)})"
+        if not self.like_with_like:
+            text += (f"; unlike models ({self.models[0]} vs {self.models[1]}): part of any difference is the"
+                     " models', compare LUTs fitted alike")
+        return text
 
     def summary(self) -> dict:
         """The numbers (no maps), for JSON."""
@@ -95,6 +280,13 @@ class LutDiff:
                 "predicted_rms_um": num(self.predicted_rms_um), "ratio": num(self.ratio),
                 "fraction_beyond": num(self.fraction_beyond), "tolerance_sigma": self.tolerance_sigma,
                 "tolerance_um": self.tolerance_um, "max_fraction": self.max_fraction,
+                "pixel_false_alarm_rate": num(self.pixel_false_alarm),
+                "pixels_verdict": "consistent" if self.pixels_consistent else "differ",
+                "common_mode": {k: c.summary() for k, c in (("x", self.common_x), ("y", self.common_y))
+                                if c is not None},
+                "common_false_alarm_rate": self.common_false_alarm,
+                "common_mode_verdict": "differ" if self.common_flagged else "consistent",
+                "models": list(self.models), "like_with_like": self.like_with_like,
                 "verdict": "consistent" if self.consistent else "differ"}
 
     def histogram(self, bins: int = 50) -> tuple[np.ndarray, np.ndarray]:
@@ -103,18 +295,22 @@ class LutDiff:
         return np.histogram(d, bins=bins, range=(0.0, float(np.max(d)) if d.size else 1.0))
 
 
-def _check(a: Lut, b: Lut, tolerance_sigma: float, tolerance_um: float, max_fraction: float) -> None:
+def _check(a: Lut, b: Lut, tolerance_sigma: float, tolerance_um: float, max_fraction: float,
+           common_false_alarm: float = COMMON_FALSE_ALARM) -> None:
     if a.shape != b.shape:
         raise ValueError(f"the LUTs are of different cameras: {a.shape[1]}x{a.shape[0]} and"
                          f" {b.shape[1]}x{b.shape[0]} px")
     if not (tolerance_sigma > 0 and tolerance_um >= 0 and 0 <= max_fraction <= 1):
         raise ValueError("tolerance-sigma must be > 0, tolerance-um >= 0 and max-fraction within 0..1")
+    if not 0 < common_false_alarm < 1:
+        raise ValueError(f"common-false-alarm must be within 0..1 (exclusive), not {common_false_alarm:g}")
     if (a.sigma_x is None or b.sigma_x is None) and tolerance_um <= 0:
         raise ValueError("a LUT has no sigma maps (/quality/sigma_x, sigma_y): give --tolerance-um")
 
 
 def diff_luts(a: Lut, b: Lut, *, tolerance_sigma: float = 3.0, tolerance_um: float = 0.0,
-              max_fraction: float = 0.01, n_heights: int = N_HEIGHTS) -> LutDiff:
+              max_fraction: float = 0.01, n_heights: int = N_HEIGHTS,
+              common_false_alarm: float = COMMON_FALSE_ALARM) -> LutDiff:
     """Compare two LUTs of one camera (see the module docstring).
 
     Parameters
@@ -127,6 +323,8 @@ def diff_luts(a: Lut, b: Lut, *, tolerance_sigma: float = 3.0, tolerance_um: flo
     max_fraction : float
         The LUTs differ when more than this fraction of the common pixels is beyond the tolerance.
     n_heights : int
+    common_false_alarm : float
+        False-alarm rate of the common-mode test (both axes, two-sided); the LUTs also differ when it flags.
 
     Returns
     -------
@@ -137,7 +335,7 @@ def diff_luts(a: Lut, b: Lut, *, tolerance_sigma: float = 3.0, tolerance_um: flo
     ValueError
         Different cameras, no common pixels or z range, bad tolerances.
     """
-    _check(a, b, tolerance_sigma, tolerance_um, max_fraction)
+    _check(a, b, tolerance_sigma, tolerance_um, max_fraction, common_false_alarm)
     z0, z1 = max(a.z_min, b.z_min), min(a.z_max, b.z_max)
     if not z1 > z0:
         raise ValueError(f"the LUTs cover no common heights ({a.z_min:g}..{a.z_max:g} and"
@@ -163,7 +361,21 @@ def diff_luts(a: Lut, b: Lut, *, tolerance_sigma: float = 3.0, tolerance_um: flo
     if not common.any():
         raise ValueError("the LUTs have no valid pixel in common")
     d = np.sqrt(0.5 * (dx * dx + dy * dy))
-    return _verdict(a, b, z, dx, dy, sx, sy, d, common, tolerance_sigma, tolerance_um, max_fraction)
+    r = _verdict(a, b, z, dx, dy, sx, sy, d, common, tolerance_sigma, tolerance_um, max_fraction)
+    side = block_side(max(_smoothing_scale(a), _smoothing_scale(b)), (h, w))
+    r.common_x, r.common_y = (common_mode_shift(m, common, side, common_false_alarm / 2.0) for m in (sx, sy))
+    r.common_false_alarm = float(common_false_alarm)
+    r.models = (describe_model(a), describe_model(b))
+    r.consistent = r.pixels_consistent and not r.common_flagged
+    return r
+
+
+def _smoothing_scale(lut: Lut) -> float:
+    """A smooth LUT's smoothing scale (px, Gaussian sigma); 0 for a per-pixel model."""
+    try:
+        return float(lut.extra_attrs.get("smoothing_scale_px", 0.0)) if lut.extra_attrs else 0.0
+    except (TypeError, ValueError):
+        return 0.0
 
 
 def _verdict(a, b, z, dx, dy, sx, sy, d, common, tolerance_sigma, tolerance_um, max_fraction) -> LutDiff:

@@ -10,7 +10,8 @@ from __future__ import annotations
 from typing import Callable
 
 from ptpcore.fit.perpixel import fit_lut
-from ptpcore.fit.smooth import fit_smooth_lut, poly_sigma_maps, sigma_scale
+from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
+from ptpcore.fit.smooth import fit_smooth_lut, poly_model_variance, poly_sigma_maps, sigma_scale
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig, rig_to_toml
@@ -47,4 +48,29 @@ def fit_kind(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 
     lut = fit_lut(samples, model, degree, positions=positions, rig_toml=toml, progress=progress)
     if with_sigma:
         lut.sigma_x, lut.sigma_y = poly_sigma_maps(samples, rig, lut, positions, stage_sigma_mm, scale=scale)
+        _add_poly_model_part(lut, samples, rig, positions, stage_sigma_mm, scale)
     return lut
+
+
+def _add_poly_model_part(lut: Lut, samples: SampleStack, rig: Rig, positions, stage_sigma_mm: float,
+                         scale: float) -> None:
+    """The model's own error (:func:`ptpcore.fit.smooth.poly_model_variance`) into the poly LUT's sigma
+    maps in quadrature, its part as ``sigma_model_x``, ``_y`` and how in ``/provenance`` ``model_error``."""
+    import json
+
+    import numpy as np
+
+    var, info = poly_model_variance(samples, rig, lut, positions, stage_sigma_mm, scale)
+    for a in "xy":
+        noise = getattr(lut, f"sigma_{a}").astype(np.float64)
+        setattr(lut, f"sigma_{a}", np.sqrt(noise * noise + var[a]).astype(np.float32))
+        setattr(lut, f"sigma_model_{a}", np.sqrt(var[a]).astype(np.float32))
+    valid = lut.valid.astype(bool)
+    rms = float(np.sqrt(np.mean([np.nanmean(var[a][valid]) for a in "xy"]))) if valid.any() else 0.0
+    lut.provenance["model_error"] = json.dumps({
+        "method": "poly leave-one-position-out (r_k / (1 - h_kk), closed form): per interior sample, its square"
+                  " minus its predicted noise variance (sum_j (I - H)_kj^2 sigma_j^2 / (1 - h_kk)^2); "
+                  + MODEL_MAP_WORDS + "; added to the noise in quadrature",
+        "scale_px": {a: float(v) for a, v in info["scale_px"].items()}, "rms_um": round(1e3 * rms, 6),
+        "resolved_limit_um": {a: round(1e3 * v, 6) for a, v in info["resolved_limit_mm"].items()},
+        "n_samples": info["n_samples"], "spatial": MODEL_MAP_SPATIAL})

@@ -22,7 +22,7 @@ from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 
-__all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut", "positions_needed", "check_positions_for_model"]
+__all__ = ["LUT_MODELS", "fit_model", "lut_model", "describe_lut", "describe_model", "positions_needed", "check_positions_for_model"]
 
 LUT_MODELS = ("auto", "poly", "pchip", "linear", "smooth")
 
@@ -128,6 +128,12 @@ def describe_lut(lut: Lut) -> str:
     if isinstance(chosen_by, bytes):
         chosen_by = chosen_by.decode("utf-8", "replace")
     return f"{text}, chosen by {chosen_by}" if chosen_by else text
+
+
+def describe_model(lut: Lut) -> str:
+    """The model, degree and smoothing scale of a LUT (:func:`describe_lut` without how it was chosen):
+    two LUTs with equal descriptions were fitted alike."""
+    return _describe(lut)
 
 
 def _describe(lut: Lut) -> str:

@@ -82,7 +82,8 @@ class Lut:
     pixel_z_min, pixel_z_max : (H, W) float32
     rms_x, rms_y, loo_x, loo_y : (H, W) float32, mm
     sigma_x, sigma_y : (H, W) float32 or None
-        Predicted 1-sigma uncertainty (optional).
+        Predicted 1-sigma uncertainty (optional): the propagated noise and the model's own error
+        in quadrature.
     rig_toml : str
     extra_attrs : dict
         More ``/model`` attributes (``method``, ``chosen_by``, ...).
@@ -95,6 +96,9 @@ class Lut:
         per-position dx, dy, dz (um), pitch, yaw, roll (urad) and 1 sigma.
     n_rejected : (H, W) uint16 or None
         Samples a robust fit left out of each pixel (optional ``/quality/n_rejected``).
+    sigma_model_x, sigma_model_y : (H, W) float32 or None
+        The model's part of ``sigma_x``, ``sigma_y`` (optional ``/quality/sigma_model_x``, ``_y``;
+        ``/provenance`` attribute ``model_error`` says how it was estimated).
     """
 
     kind: str
@@ -122,6 +126,8 @@ class Lut:
     stage_pose: np.ndarray | None = None
     stage_pose_sigma: np.ndarray | None = None
     n_rejected: np.ndarray | None = None
+    sigma_model_x: np.ndarray | None = None
+    sigma_model_y: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -139,7 +145,7 @@ class Lut:
             return a[:, r0:r1] if a.ndim == 3 else a[r0:r1]
 
         per_pixel = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y",
-                     "loo_x", "loo_y", "sigma_x", "sigma_y", "n_rejected")
+                     "loo_x", "loo_y", "sigma_x", "sigma_y", "n_rejected", "sigma_model_x", "sigma_model_y")
         return dataclasses.replace(self, **{name: band(getattr(self, name)) for name in per_pixel})
 
     def evaluate(self, z, *, extrapolate: bool = False) -> LutEvaluation:
@@ -401,6 +407,10 @@ def _write_lut_group(group, lut: Lut) -> None:
             create_compressed(q, name, np.asarray(val, np.float32))
     if lut.n_rejected is not None:
         create_compressed(q, "n_rejected", np.minimum(lut.n_rejected, 65535).astype(np.uint16))
+    for name in ("sigma_model_x", "sigma_model_y"):
+        val = getattr(lut, name)
+        if val is not None:
+            create_compressed(q, name, np.asarray(val, np.float32))
     group.create_group("rig").attrs["toml"] = lut.rig_toml
     if lut.provenance or lut.stage_pose is not None:
         prov = group.create_group("provenance")
@@ -420,7 +430,8 @@ def save_lut(lut: Lut, path) -> None:
         _write_lut_group(f, lut)
 
     write_hdf5_atomic(path, fill, _nbytes(lut.x, lut.y, lut.valid, lut.n_positions, lut.rms_x, lut.rms_y,
-                                          lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y))
+                                          lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y, lut.sigma_model_x,
+                                          lut.sigma_model_y))
 
 
 IN_MEMORY_MAX = 64 * 2 ** 20
@@ -625,7 +636,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
     valid_raw = rd.array("valid", 2, "uib")
     q = {n: rd.array(f"quality/{n}", 2) for n in _QUALITY}
     sig = {n: (rd.array(f"quality/{n}", 2, "f") if f"quality/{n}" in group else None)
-           for n in ("sigma_x", "sigma_y")}
+           for n in ("sigma_x", "sigma_y", "sigma_model_x", "sigma_model_y")}
     n_rejected = rd.array("quality/n_rejected", 2, "ui") if "quality/n_rejected" in group else None
     rig_toml = ""
     if "rig" in group:
@@ -643,7 +654,7 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
         rms_x=q["rms_x"], rms_y=q["rms_y"], loo_x=q["loo_x"], loo_y=q["loo_y"],
         sigma_x=sig["sigma_x"], sigma_y=sig["sigma_y"], rig_toml=str(rig_toml), extra_attrs=extra,
         provenance=provenance, stage_pose=poses.get("stage_pose"), stage_pose_sigma=poses.get("stage_pose_sigma"),
-        n_rejected=n_rejected,
+        n_rejected=n_rejected, sigma_model_x=sig["sigma_model_x"], sigma_model_y=sig["sigma_model_y"],
     )
     return lut, (h, w)
 
@@ -673,7 +684,8 @@ def _check_lut_shapes(rd: _GroupReader, lut: Lut, camera_shape: tuple[int, int])
             raise rd.fail(f"{rd.name(rel)} has shape {arr.shape}, expected {want}")
     quality = {"n_positions": lut.n_positions, "z_min": lut.pixel_z_min, "z_max": lut.pixel_z_max,
                "rms_x": lut.rms_x, "rms_y": lut.rms_y, "loo_x": lut.loo_x, "loo_y": lut.loo_y,
-               "sigma_x": lut.sigma_x, "sigma_y": lut.sigma_y, "n_rejected": lut.n_rejected}
+               "sigma_x": lut.sigma_x, "sigma_y": lut.sigma_y, "n_rejected": lut.n_rejected,
+               "sigma_model_x": lut.sigma_model_x, "sigma_model_y": lut.sigma_model_y}
     for n, arr in quality.items():
         if arr is not None and arr.shape != (h, w):
             raise rd.fail(f"{rd.name('quality/' + n)} has shape {arr.shape}, expected {(h, w)}")

@@ -180,3 +180,68 @@ def test_diff_png_has_a_title_a_colour_bar_and_its_scale(tmp_path):
     labels = right[:, bar_cols[-1] + 8:]
     assert labels.shape[1] > 80 and (labels < 100).any()
     assert (page[top + 60 * f:] < 100).any()  # the scale line under the map
+
+
+def test_common_mode_standard_error_holds_on_correlated_noise():
+    """The common-mode t of an unchanged pair: difference fields of Gaussian-smoothed white noise
+    (scale 2 px, as a smooth LUT's) with a corner left out. If the block-mean standard error accounts
+    for the correlation, t is Student's with 23 degrees of freedom (24 blocks of 30 px, the side capped at
+    a quarter of the image): std(t) = sqrt(23 / 21) = 1.05 within 4 standard errors of its estimate over
+    200 fields (+- 0.2), and at most 6 of 200 beyond the 1 % critical value
+    (expected 2; 7 or more has chance 0.004 when the rate is right). Assuming independent
+    pixels instead gives std(t) about 2 sqrt(pi) * 2 = 7 (checked below too)."""
+    import cv2
+
+    from ptpcore.evaluate.diff import block_side, common_mode_shift
+
+    rng = np.random.default_rng(5)
+    h, w, scale = 120, 160, 2.0
+    common = np.ones((h, w), bool)
+    common[:20, :30] = False
+    side = block_side(scale, (h, w))
+    ts, naive = [], []
+    for _ in range(200):
+        f = cv2.GaussianBlur(rng.standard_normal((h, w)), (0, 0), scale, borderType=cv2.BORDER_REFLECT)
+        c = common_mode_shift(f, common, side, 0.01)
+        ts.append(c.t)
+        v = f[common]
+        naive.append(v.mean() / (v.std() / np.sqrt(v.size)))
+    ts = np.array(ts)
+    assert c.n_blocks == 24 and side == 30
+    assert 0.85 <= ts.std() <= 1.25, ts.std()
+    assert np.sum(np.abs(ts) > c.critical) <= 6
+    assert np.std(naive) > 3  # the independent-pixel standard error would cry wolf
+
+
+def test_a_rigid_shift_far_below_one_pixels_noise_is_flagged_by_the_common_mode(two_sweeps):
+    """A shift of 0.2 predicted sigmas in X: the per-pixel test cannot see it (consistent per pixel),
+    the common mode flags X (its standard error is about 1/100 of a pixel's sigma at 160x120 px), and the
+    unchanged pair is not flagged; the shift is measured within 3 standard errors."""
+    (a, b), _ = two_sweeps
+    r0 = diff_luts(a, b)
+    assert not r0.common_flagged and r0.consistent
+    assert r0.like_with_like and "unlike" not in r0.verdict_words()
+    shift = 0.2 * float(np.sqrt(np.nanmean(a.sigma_x[a.valid] ** 2)))
+    moved = replace(b, x=b.x.copy())
+    moved.x[0] += shift
+    r = diff_luts(a, moved)
+    assert r.pixels_consistent and r.common_x.flagged and not r.consistent
+    assert "common mode" in r.verdict_words() and "per pixel" not in r.verdict_words()
+    measured = -(r.common_x.shift_um - r0.common_x.shift_um)
+    assert abs(measured - shift * 1e3) < 3 * r.common_x.se_um
+    s = r.summary()
+    assert s["common_mode"]["x"]["flagged"] and s["common_mode_verdict"] == "differ"
+    assert abs(s["pixel_false_alarm_rate"] - 0.0027) < 1e-4
+
+
+def test_luts_of_different_models_say_they_are_unlike(two_sweeps, tmp_path, capsys):
+    (a, _b), (pa, _pb) = two_sweeps
+    lower = replace(a, x=a.x[:3], y=a.y[:3], degree=2)  # the same data's first coefficients: another model
+    r = diff_luts(a, lower)
+    assert not r.like_with_like and r.models == ("poly degree 3", "poly degree 2")
+    assert "unlike models" in r.verdict_words()
+    p = tmp_path / "deg2.lut.h5"
+    save_lut(lower, p)
+    main(["diff", str(pa), str(p), "--json", str(tmp_path / "d.json")])
+    assert "UNLIKE" in capsys.readouterr().out
+    assert json.loads((tmp_path / "d.json").read_text())["like_with_like"] is False

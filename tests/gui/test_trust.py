@@ -71,6 +71,9 @@ def test_export_page_diffs_against_a_reference_lut(wizard, qtbot, tmp_path):
     r = panel.result
     want = diff_luts(lut, moved)
     assert not r.consistent and "DIFFER" in panel.verdict.text()
+    # The common mode's line: the shift in X (the same LUT moved: measured exactly, standard error 0).
+    assert "Common mode" in panel.verdict.text() and f"X {r.common_x.shift_um:+.3f}" in panel.verdict.text()
+    assert r.common_x.flagged and abs(-r.common_x.shift_um - shift * 1e3) <= 3 * r.common_x.se_um + 1e-9
     shown = panel.heatmap.view.image.image
     np.testing.assert_allclose(shown[r.common], want.diff[r.common] * 1e3, rtol=1e-5)
     # |dX| = shift everywhere, so |d| = shift / sqrt(2) (RMS over X and Y)

@@ -47,7 +47,7 @@ from .noise import (phase_sigma_mm, sample_sigma_from_noise, position_sigma_from
     stage_leverage)
 from .global_model import global_pinhole, footprint_bias, FOOTPRINT_M2_MAX_PX2
 from .smoothing import local_linear_smooth, CV_PIXELS
-from .uncertainty import poly_sigma_maps
+from .uncertainty import poly_model_variance, poly_sigma_maps
 from .estimator import fit_smooth_lut, SmoothInfo
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "local_linear_smooth",
     "CV_PIXELS",
     "poly_sigma_maps",
+    "poly_model_variance",
     "fit_smooth_lut",
     "SmoothInfo",
 ]

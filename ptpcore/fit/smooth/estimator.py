@@ -8,6 +8,7 @@ from typing import Callable
 import numpy as np
 
 from ptpcore.fit.perpixel import _z_normalisation, fit_lut
+from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
 from ptpcore.fit.smooth.global_model import GlobalRays, global_pinhole
 from ptpcore.fit.smooth.leave_one_out import LooSetup
 from ptpcore.fit.smooth.noise import check_noise, sigma_scale_from
@@ -151,6 +152,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     fits.load("fit")
     coef = {"x": fits.fit[0], "y": fits.fit[1]}
     lut = _assemble_lut(degree, z_norm, z, coef, valid, fits, q, loo, sig, rig_toml, scale)
+    if uncertainty and merr.sigma is not None:
+        _add_model_part(lut, merr, valid)
     report(1.0, "smooth LUT fitted")
     return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
                            float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
@@ -212,6 +215,21 @@ def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float) 
     noise = smooth_sigma_maps(fits, *z_norm, degree, noise_scale, {})["x"]
     fits.var = fits.own_var = fits.own_diag = None
     return noise
+
+
+def _add_model_part(lut: Lut, merr, valid) -> None:
+    """The model's part of the sigma maps into ``lut`` (``sigma_model_x``, ``_y``) and how it was
+    estimated into ``/provenance`` ``model_error``."""
+    import json
+
+    lut.sigma_model_x, lut.sigma_model_y = (np.where(valid, merr.sigma[a], np.float32(np.nan)) for a in "xy")
+    lut.provenance["model_error"] = json.dumps({
+        "method": "smooth leave-one-position-out: per interior held-out sample, residual^2 minus its noise"
+                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted noise; " + MODEL_MAP_WORDS
+                  + "; added to the noise in quadrature",
+        "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
+        "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6),
+        "spatial": MODEL_MAP_SPATIAL})
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,

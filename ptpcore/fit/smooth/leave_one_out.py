@@ -12,24 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ptpcore.fit.sigma import model_variance_map
 from ptpcore.fit.smooth.blocks import row_blocks, run_blocks
 from ptpcore.fit.smooth.global_model import GlobalRays, corrected_samples, footprint_bias, global_residuals
 from ptpcore.fit.smooth.noise import noise_rows
 from ptpcore.fit.smooth.pixel_fits import SmoothPass, smoothed_coefficients, weighted_poly_fits
-from ptpcore.fit.smooth.smoothing import bin_sums, upsample_bins
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import position_store, release_free_memory, row_store
 
-__all__ = ["MODEL_ERROR_REGIONS", "LooSetup", "LooSums", "ModelError", "OwnNoise", "leave_one_out", "model_error"]
-
-
-MODEL_ERROR_REGIONS = 1
-"""Regions along the image's longer side over which the model-error term of the smooth LUT's
-sigma maps is measured (square regions; the term is interpolated bilinearly between their centres).
-One: the term is a small excess over the sample noise, so its standard error per region grows as the
-square root of the number of regions; on the presets at 96 x 72 px four regions per side leave a
-2-standard-error limit of 3.1 um (realistic) against a model error of 2.3 um."""
+__all__ = ["LooSetup", "LooSums", "ModelError", "OwnNoise", "leave_one_out", "model_error"]
 
 
 @dataclass
@@ -61,12 +53,18 @@ class ModelError:
     rms_mm : float
         RMS of ``sqrt(var)`` over both axes and the pixels with samples.
     limit_mm : float
-        RMS over regions and axes of the smallest resolvable model error (2 standard errors).
+        The smallest model error the image-wide mean resolves (2 standard errors, RMS over the axes).
+    scale_px : dict ``"x"``, ``"y"`` -> float, optional
+        The scale the map was drawn at (:func:`ptpcore.fit.sigma.model_variance_map`).
+    sigma : dict ``"x"``, ``"y"`` -> (H, W) float32, mm, optional
+        ``sqrt(var)``, once the variances are in the sigma maps.
     """
 
     var: dict
     rms_mm: float
     limit_mm: float
+    scale_px: dict | None = None
+    sigma: dict | None = None
 
 
 def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -> tuple[dict, ModelError]:
@@ -115,7 +113,7 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     for a in "xy":
         with np.errstate(all="ignore"):
             loo[a] = np.where(sums.count > 0, np.sqrt(sums.get("loo_sq", a) / sums.count), np.nan).astype(np.float32)
-    return loo, model_error(sums)
+    return loo, model_error(sums, s.scale)
 
 
 def _refit_without(s: LooSetup, k: int) -> dict:
@@ -266,8 +264,8 @@ def _own_noise_all(s: LooSetup, positions) -> OwnNoise:
     return store
 
 
-def model_error(sums: "LooSums") -> ModelError:
-    """The model-error variance per region from the leave-one-out residuals' excess over the noise.
+def model_error(sums: "LooSums", smoothing_scale_px: float = 0.0) -> ModelError:
+    """The model-error variance per pixel from the leave-one-out residuals' excess over the noise.
 
     A left-out sample's residual ``r`` is its own noise, the left-out fit's
     noise and the model error ``b`` (what the smoothing and the global model
@@ -276,30 +274,21 @@ def model_error(sums: "LooSums") -> ModelError:
     weighted fit through all positions, ``E[r_own^2 / (1 - h)] = sigma^2``
     (exact for any scale of the noise model: a 1 % error of that scale would
     otherwise pass for a model error of 0.7 um on the mild preset at 320 px),
-    ``sigma_fit^2`` is the predicted noise of the left-out fit. Per region
-    (:data:`MODEL_ERROR_REGIONS` along the longer side) the mean of
-    ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``, its
-    standard error from the spread of ``x``. It is kept where it exceeds 2
-    standard errors (the data resolve it) and interpolated bilinearly between
-    the regions' centres; elsewhere the model error is below what the data can
-    tell from the noise and left out. ``sums`` holds ``x`` and ``x^2`` summed per pixel
-    (``excess``, ``excess_sq``) and their count (``n_model``).
+    ``sigma_fit^2`` is the predicted noise of the left-out fit. The mean of
+    ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``; it is mapped over the image by
+    :func:`ptpcore.fit.sigma.model_variance_map` (Gaussian kernel regression at a scale chosen by
+    cross-validation, floored at 0, scaled to the image-wide mean; 0 where that mean is within 2
+    standard errors of 0: the data do not resolve a model error). ``sums`` holds ``x`` and ``x^2``
+    summed per pixel (``excess``, ``excess_sq``) and their count (``n_model``). ``limit_mm`` is the
+    2-standard-error limit of the image-wide mean.
     """
     count = sums.n_model
-    h, w = count.shape
-    side = max(1, int(np.ceil(max(h, w) / MODEL_ERROR_REGIONS)))
-    n = bin_sums(count, side)
-    var, limits = {}, []
+    var, limits, scales = {}, [], {}
     for a in "xy":
-        with np.errstate(all="ignore"):
-            b2 = bin_sums(sums.get("excess", a), side) / n
-            spread = np.maximum(bin_sums(sums.get("excess_sq", a), side) / n - b2 * b2, 0.0)
-            se = np.sqrt(spread / np.maximum(n - 1, 1))
-        resolved = (n > 1) & (b2 > 2.0 * se)
-        limits.append(np.where(n > 1, 2.0 * se, np.nan))
-        var[a] = np.maximum(upsample_bins(np.where(resolved, b2, 0.0), side, h, w), 0.0)
+        var[a], scales[a], info = model_variance_map(sums.get("excess", a), count, smoothing_scale_px,
+                                                     excess_sq_sum=sums.get("excess_sq", a))
+        if np.isfinite(info["limit"]):
+            limits.append(info["limit"])
     has = count > 0
     rms = float(np.sqrt(np.mean([np.mean(var[a][has]) for a in "xy"]))) if has.any() else 0.0
-    lim = np.concatenate([x.ravel() for x in limits])
-    lim = lim[np.isfinite(lim)]
-    return ModelError(var, rms, float(np.sqrt(np.mean(lim))) if lim.size else 0.0)
+    return ModelError(var, rms, float(np.sqrt(np.mean(limits))) if limits else 0.0, scales)

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ptpcore.fit.sigma import _normalised_heights, predicted_poly_sigma_flat
+from ptpcore.fit.sigma import _normalised_heights, model_variance_map, predicted_poly_sigma_flat
+from ptpcore.io.lutfile import _group_by_pattern
+from ptpcore.store import read_block
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks
 from ptpcore.fit.smooth.leave_one_out import LooSetup, LooSums, ModelError, leave_one_out
 from ptpcore.fit.smooth.noise import noise_rows, sigma_scale, stage_leverage
@@ -23,6 +25,7 @@ from ptpcore.pinhole.camera import PinholeModel
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["uncertainty_maps", "stage_variance", "global_leak_variance", "smooth_sigma_maps", "poly_sigma_maps",
+           "poly_model_variance",
            "LEAK_GRID_PX"]
 
 
@@ -56,6 +59,7 @@ def uncertainty_maps(setup: LooSetup, gfit, inputs: dict, fits: "PixelFits", val
     Returns
     -------
     sig, loo : dict ``"x"``, ``"y"`` -> (H, W) float32, mm ; model : ModelError
+        (its ``sigma``: the model part of ``sig``, (H, W) float32 mm per axis)
     """
     s = setup
     leak = {}
@@ -74,12 +78,15 @@ def uncertainty_maps(setup: LooSetup, gfit, inputs: dict, fits: "PixelFits", val
         loo, merr = leave_one_out(s, valid, sums, lambda f, m: report(0.92 + 0.07 * f, m))
     else:
         loo = {a: np.full(valid.shape, np.nan, np.float32) for a in "xy"}
-        merr = ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"))
+        merr = ModelError({a: np.zeros(valid.shape) for a in "xy"}, 0.0, float("nan"), None)
     sig = {a: np.empty(valid.shape, np.float32) for a in "xy"}
     for a in "xy":
         for r0, r1 in row_blocks(*valid.shape):
             sig[a][r0:r1] = np.sqrt(sums.rows("fit_var", a, r0, r1) + merr.var[a][r0:r1]).astype(np.float32)
-    merr.var = None  # in the sigma maps now: not held while the LUT's coefficients come back (190 MB at 12 MP)
+    # In the sigma maps now; its part kept as float32 sigma maps (/quality/sigma_model_x, _y), the
+    # float64 variances not held while the LUT's coefficients come back (190 MB at 12 MP).
+    merr.sigma = {a: np.sqrt(merr.var[a]).astype(np.float32) for a in "xy"}
+    merr.var = None
     return sig, loo, merr
 
 
@@ -257,3 +264,75 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
 
     run_blocks(block, row_blocks(h, w))
     return (maps[0], maps[0].copy()) if len(maps) == 1 else tuple(maps)
+
+
+def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None, stage_sigma_mm: float = 0.0,
+                        scale: float = 1.0) -> tuple[dict, dict]:
+    """The model's own error variance of a plain, unweighted ``poly`` LUT, per pixel and axis (mm^2).
+
+    Every interior calibration sample's leave-one-out residual ``e_k = r_k / (1 - h_kk)`` (the closed
+    form of the pixel's least-squares fit, no refit) has ``E[e_k^2] = Var(r_k) / (1 - h_kk)^2 + b_k^2``
+    with ``Var(r_k) = sum_j (I - H)_kj^2 sigma_j^2`` from the samples' predicted noise (``scale`` x
+    :func:`ptpcore.fit.smooth.noise.phase_sigma_mm`, with the stage readings' term as in
+    :func:`poly_sigma_maps`) and ``b_k`` the error of the curve fitted without the sample: the model's
+    own error between the calibrated heights. ``x_k = e_k^2 - Var(r_k) / (1 - h_kk)^2`` summed per
+    pixel is mapped by :func:`ptpcore.fit.sigma.model_variance_map` (0 unless the image-wide mean is
+    beyond 2 standard errors). Only interior positions count:
+    the LUT is used between its calibrated heights, and leaving an end out extrapolates.
+
+    Returns
+    -------
+    var : dict ``"x"``, ``"y"`` -> (H, W) float64, mm^2 (>= 0, NaN where the LUT is invalid)
+    info : dict ``scale_px`` per axis, ``n_samples``, ``resolved_limit_mm`` per axis (the square root of
+        2 standard errors of the image-wide mean excess)
+    """
+    positions = list(range(samples.z.size)) if positions is None else list(positions)
+    sel = np.asarray(positions)
+    z = np.asarray(samples.z, dtype=float)[sel]
+    t, _ = _normalised_heights(z, [])
+    interior = (z > z.min()) & (z < z.max())
+    h, w = samples.shape
+    sums = {a: np.zeros(h * w) for a in "xy"}
+    sums_sq = {a: np.zeros(h * w) for a in "xy"}
+    count = np.zeros(h * w)
+    vander = np.vander(t, lut.degree + 1, increasing=True)
+
+    def block(r0, r1):
+        a0, a1 = r0 * w, r1 * w
+        valid, _, _, sig = noise_rows(samples, rig, sel, a0, a1)
+        valid = valid & lut.valid[r0:r1].reshape(-1)[None, :]
+        sig = sig * scale
+        for d, a in enumerate("xy"):
+            coef = getattr(lut, a)[:, r0:r1].reshape(lut.degree + 1, -1)
+            s = sig if not stage_sigma_mm else np.hypot(sig, np.abs(
+                coef[1] / lut.z_scale - rig.stage.direction[d]) * stage_sigma_mm)
+            ref = getattr(samples, f"{a}_ref").reshape(-1)[a0:a1]
+            vals = read_block(getattr(samples, a), a0, a1, sel).astype(np.float64) + ref[None, :]
+            r = vals - vander @ coef
+            x = np.zeros(r.shape)
+            use = np.zeros(r.shape, bool)
+            for pattern, cols in _group_by_pattern(valid):
+                if pattern.sum() < lut.degree + 2:
+                    continue
+                vp = vander[pattern]
+                m = np.eye(int(pattern.sum())) - vp @ np.linalg.pinv(vp)  # I - H
+                var_r = (m * m) @ (s[pattern][:, cols] ** 2)
+                one_minus_h = np.diag(m)[:, None]
+                xp = (r[pattern][:, cols] ** 2 - var_r) / one_minus_h ** 2
+                inner = interior[pattern]
+                rows_idx = np.flatnonzero(pattern)[inner]
+                x[np.ix_(rows_idx, cols)] = xp[inner]
+                use[np.ix_(rows_idx, cols)] = np.isfinite(xp[inner])
+            sums[a][a0:a1] = np.where(use, x, 0.0).sum(axis=0)
+            sums_sq[a][a0:a1] = np.where(use, x * x, 0.0).sum(axis=0)
+            if d == 0:
+                count[a0:a1] = use.sum(axis=0)
+
+    run_blocks(block, row_blocks(h, w))
+    var, scales, limits = {}, {}, {}
+    for a in "xy":
+        v, scales[a], info = model_variance_map(sums[a].reshape(h, w), count.reshape(h, w), 0.0,
+                                                excess_sq_sum=sums_sq[a].reshape(h, w))
+        var[a] = np.where(lut.valid, v, np.nan)
+        limits[a] = float(np.sqrt(info["limit"])) if np.isfinite(info["limit"]) else float("nan")
+    return var, {"scale_px": scales, "n_samples": int(count.sum()), "resolved_limit_mm": limits}
