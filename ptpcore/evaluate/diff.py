@@ -46,7 +46,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special  # not scipy.stats: the desktop bundle leaves it out (9.6 MB)
 
 from ptpcore.fit.models import describe_model
 from ptpcore.io.lutfile import Lut
@@ -115,7 +115,7 @@ def pixel_false_alarm_rate(tolerance_sigma: float) -> float:
     The pixel's difference is Gaussian with at least one degree of freedom when the sigma maps are
     right; with one (the worst case) the chance is ``2 (1 - Phi(k))``, with more it is smaller.
     """
-    return float(2.0 * stats.norm.sf(tolerance_sigma))
+    return float(special.erfc(tolerance_sigma / np.sqrt(2.0)))  # 2 (1 - Phi(k))
 
 
 def block_side(scale_px: float, shape) -> int:
@@ -174,7 +174,7 @@ def common_mode_shift(signed: np.ndarray, common: np.ndarray, block_px: int, fal
     var = j / (j - 1) * max(independent, independent + 2.0 * adjacent)
     se = np.sqrt(var)
     t = mean / se if se > 0 else (0.0 if mean == 0 else float(np.copysign(np.inf, mean)))  # identical LUTs: 0
-    critical = float(stats.t.isf(false_alarm / 2.0, j - 1))
+    critical = float(special.stdtrit(j - 1, 1.0 - false_alarm / 2.0))  # Student t's upper quantile
     return CommonMode(mean * 1e3, se * 1e3, float(t), critical, j, block_px, bool(abs(t) > critical))
 
 
