@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from ptpcore.cli import main
 from ptpcore.io import load_lut
@@ -90,6 +91,7 @@ def test_help_everywhere():
         assert proc.returncode == 0 and "usage: ptp" in proc.stdout
 
 
+@pytest.mark.slow  # ~70 s; the README's main command, also run by the bundle and wheel tests
 def test_demo_runs_end_to_end_and_leaves_no_temporary_folder(capsys, tmp_path, monkeypatch):
     """The README's main job, for real (not a stub): simulate, decode, fit, report against the truth."""
     import tempfile

@@ -290,6 +290,7 @@ def test_disk_full_on_a_1mb_filesystem_spill(tiny_fs, dataset, capfd, monkeypatc
     assert sorted(p.name for p in tiny_fs.iterdir()) == ["filler"]
 
 
+@pytest.mark.slow  # ~55 s (a decode big enough to be stopped mid-way, then resumed)
 def test_sigterm_mid_decode_leaves_no_temporary_and_resumes(tmp_path):
     rig, settings = scaled_preset("realistic", 320, positions=6)
     ds = simulate_dataset(tmp_path / "ds", rig, settings, seed=1)

@@ -122,6 +122,7 @@ def test_landing_page_follows_the_stage_and_autosave_writes_after_a_fit(qtbot, t
     src.close()
 
 
+@pytest.mark.slow  # ~65 s (a smooth fit with stage refinement in the GUI's worker)
 def test_the_fit_settings_of_the_calibrate_page_are_saved_and_restored(qtbot, tmp_path, small_session_args):
     src = StudioWizard(tour_session(**small_session_args))
     qtbot.addWidget(src)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import pyqtgraph as pg
 from gui_helpers import run_job
 from PySide6.QtCore import Qt
@@ -24,6 +25,9 @@ def _next_enabled(wiz) -> bool:
     return wiz.button(QWizard.NextButton).isEnabled()
 
 
+# Slow tier: the default tier walks every page in test_tour and test_layout; this walk (~100 s) adds the
+# state checks between pages, and runs in CI with the slow tests.
+@pytest.mark.slow
 def test_full_walk(wizard, qtbot, tmp_path):
     wiz = wizard
     s = wiz.model.session
