@@ -36,7 +36,11 @@ def verdict_text(r: LutDiff, reference: str) -> str:
              + (f" (at least {r.tolerance_um:g} µm)" if r.tolerance_um else "")
              + f" (per-pixel false-alarm rate at most {100 * r.pixel_false_alarm:.2g} %);"
              f" the LUTs differ above {100 * r.max_fraction:g} %.")
-    if r.common_x is not None and r.common_y is not None:
+    if r.common_x is not None and not r.common_x.assessed:
+        text += (f"<br>Common mode: not assessed (its standard error needs 4 × 4 blocks of {r.common_x.block_px} px"
+                 f" at the LUTs' smoothing scale; the image is smaller). Mean shift X {r.common_x.shift_um:+.3f} µm,"
+                 f" Y {r.common_y.shift_um:+.3f} µm.")
+    elif r.common_x is not None and r.common_y is not None:
         cx, cy = r.common_x, r.common_y
         word = "FLAGGED" if r.common_flagged else "no shift"
         text += (f"<br>Common mode (mean shift of the image, false-alarm rate {100 * r.common_false_alarm:g} %):"

@@ -379,6 +379,10 @@ def cmd_diff(args) -> int:
     print(f"  beyond tolerance    {100 * r.fraction_beyond:.2f} % of the pixels ({tol}: per-pixel false-alarm"
           f" rate at most {100 * r.pixel_false_alarm:.2g} %; limit {100 * r.max_fraction:g} %)")
     for axis, c in (("x", r.common_x), ("y", r.common_y)):
+        if not c.assessed:
+            print(f"  common mode {axis}       mean shift {c.shift_um:+.3f} µm: not assessed (its standard error needs"
+                  f" 4 x 4 blocks of {c.block_px} px at the LUTs' smoothing scale; the image is smaller)")
+            continue
         print(f"  common mode {axis}       mean shift {c.shift_um:+.3f} µm, standard error {c.se_um:.3f} µm"
               f" ({c.n_blocks} blocks of {c.block_px} px): t = {c.t:+.2f}, limit {c.critical:.2f}"
               + (" FLAGGED" if c.flagged else ""))

@@ -245,3 +245,19 @@ def test_luts_of_different_models_say_they_are_unlike(two_sweeps, tmp_path, caps
     main(["diff", str(pa), str(p), "--json", str(tmp_path / "d.json")])
     assert "UNLIKE" in capsys.readouterr().out
     assert json.loads((tmp_path / "d.json").read_text())["like_with_like"] is False
+
+
+def test_the_common_mode_is_not_assessed_where_the_image_cannot_hold_its_blocks(two_sweeps, capsys):
+    """A smooth LUT at a 64 px scale on a 160x120 image: blocks of 8 correlation lengths (733 px) do not
+    fit 4 x 4 times, cut smaller they under-estimate the error (the slow two-sweep test was flagged at
+    t = 5.5 on an unchanged rig so): no t, never flagged, the mean shift still reported, and said so."""
+    from ptpcore.evaluate.diff import needed_block_side
+
+    (a, b), (pa, pb) = two_sweeps
+    big = {**(a.extra_attrs or {}), "smoothing_scale_px": 64.0}
+    r = diff_luts(replace(a, extra_attrs=big), b)
+    assert needed_block_side(64.0) > min(a.x.shape[1:]) // 4
+    for c in (r.common_x, r.common_y):
+        assert not c.assessed and not c.flagged and np.isfinite(c.shift_um) and c.block_px == needed_block_side(64.0)
+    assert r.consistent == r.pixels_consistent
+    assert r.summary()["common_mode"]["x"]["t"] is None
