@@ -117,13 +117,25 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-_OWNER = f"{os.getpid()}-{_start_token(os.getpid()) or 0}"
+def _own_tag() -> str:
+    return f"{os.getpid()}-{_start_token(os.getpid()) or 0}"
+
+
+_OWNER = _own_tag()
+_SWEPT: set[tuple[str, str, str]] = set()  # (folder, prefix, suffix) this process has swept already
+
+
+def _after_fork() -> None:
+    global _OWNER
+    _OWNER = _own_tag()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork)
 
 
 def owner_tag() -> str:
     """``PID-START`` of this process, put into the names of its temporary files."""
-    if not _OWNER.startswith(f"{os.getpid()}-"):  # a forked child: its own tag
-        globals()["_OWNER"] = f"{os.getpid()}-{_start_token(os.getpid()) or 0}"
     return _OWNER
 
 
@@ -232,7 +244,10 @@ def atomic_path(target: str | os.PathLike, need_bytes: int | None = None) -> Ite
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    sweep_orphans(target.parent, ".", ".part")  # left in this folder by killed runs
+    key = (str(target.parent), ".", ".part")
+    if key not in _SWEPT:  # once per folder and process: capture writes thousands of files into a few
+        _SWEPT.add(key)
+        sweep_orphans(*key)  # left in this folder by killed runs
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.{owner_tag()}-", suffix=".part", dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)

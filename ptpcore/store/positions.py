@@ -76,6 +76,8 @@ def remove_orphaned_spill_files(directory=None) -> list[Path]:
     """Remove the spill files that killed runs of this user left in the spill folder (``directory``,
     else ``PTP_SPILL_DIR``, else the system's temporary folder); return them. Only where spill files
     have names (not POSIX, where they are unlinked at creation); called when a program starts."""
+    if _UNLINK_OPEN_FILES and directory is None:  # POSIX: no spill file ever has a name to leave
+        return []
     folder = directory or os.environ.get("PTP_SPILL_DIR") or tempfile.gettempdir()
     return sweep_orphans(folder, "ptp-samples-", ".tmp")
 
