@@ -72,6 +72,11 @@ means through their shared border is about ``c / (sqrt(2 pi) L)`` for a Gaussian
 length ``c`` (0.05 at ``L = 8 c``); what is left of it is estimated from the adjacent blocks."""
 
 
+def _json_number(v) -> float | None:
+    """``v`` for JSON: rounded to 6 digits, None for NaN or infinity."""
+    return None if not np.isfinite(v) else round(float(v), 6)
+
+
 @dataclass
 class CommonMode:
     """The mean shift of one axis over the image against its standard error (module docstring).
@@ -113,10 +118,8 @@ class CommonMode:
         return bool(np.isfinite(self.se_um))
 
     def summary(self) -> dict:
-        def num(v):
-            return None if not np.isfinite(v) else round(float(v), 6)
-        return {"shift_um": num(self.shift_um), "se_um": num(self.se_um), "t": num(self.t),
-                "critical": num(self.critical), "n_blocks": self.n_blocks, "block_px": self.block_px,
+        return {"shift_um": _json_number(self.shift_um), "se_um": _json_number(self.se_um), "t": _json_number(self.t),
+                "critical": _json_number(self.critical), "n_blocks": self.n_blocks, "block_px": self.block_px,
                 "flagged": bool(self.flagged)}
 
 
@@ -292,14 +295,12 @@ class LutDiff:
 
     def summary(self) -> dict:
         """The numbers (no maps), for JSON."""
-        def num(v):
-            return None if not np.isfinite(v) else round(float(v), 6)
         return {"n_pixels": self.n_pixels, "heights_mm": [round(float(z), 6) for z in self.z],
-                "rms_um": num(self.rms_um), "p95_um": num(self.p95_um), "max_um": num(self.max_um),
-                "predicted_rms_um": num(self.predicted_rms_um), "ratio": num(self.ratio),
-                "fraction_beyond": num(self.fraction_beyond), "tolerance_sigma": self.tolerance_sigma,
+                "rms_um": _json_number(self.rms_um), "p95_um": _json_number(self.p95_um), "max_um": _json_number(self.max_um),
+                "predicted_rms_um": _json_number(self.predicted_rms_um), "ratio": _json_number(self.ratio),
+                "fraction_beyond": _json_number(self.fraction_beyond), "tolerance_sigma": self.tolerance_sigma,
                 "tolerance_um": self.tolerance_um, "max_fraction": self.max_fraction,
-                "pixel_false_alarm_rate": num(self.pixel_false_alarm),
+                "pixel_false_alarm_rate": _json_number(self.pixel_false_alarm),
                 "pixels_verdict": "consistent" if self.pixels_consistent else "differ",
                 "common_mode": {k: c.summary() for k, c in (("x", self.common_x), ("y", self.common_y))
                                 if c is not None},
