@@ -20,6 +20,11 @@ wrong noise prediction can cost a tie but never choose a worse model) (with a fe
 is known to far better than 5 %; what is not known better is how far the
 held-out positions, fitted from half the positions, speak for the full fit).
 
+The smooth candidate is judged as ``--model smooth`` writes it: its smoothing scale is chosen
+first by the smooth fit's own cross-validation on all calibration positions, and the fold's fit
+keeps that scale (a fold with half the positions would choose a smaller one: 2 px where all
+positions choose 16 px on a glass rig, issue 30).
+
 The candidates are compared over the pixels every one of them covers; a
 candidate covering less than :data:`MIN_COVERAGE` of the best covered pixels
 (e.g. ``poly`` degree 3 with too few positions in a fold) is left out, with a
@@ -45,8 +50,13 @@ __all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "Candidate
            "choice_folds", "choose_model", "fit_auto"]
 
 AUTO = "auto"
-AUTO_CANDIDATES: tuple[tuple[str, int], ...] = (("poly", 1), ("poly", 2), ("poly", 3), ("smooth", 2))
-"""``(model, degree)`` in order of simplicity (ties go to the earlier one)."""
+SMOOTH_DEGREE = 3
+"""The smooth candidate's degree: ``ptp calibrate --model smooth``'s (its ``--degree`` default)."""
+
+AUTO_CANDIDATES: tuple[tuple[str, int], ...] = (("poly", 1), ("poly", 2), ("poly", 3), ("smooth", SMOOTH_DEGREE))
+"""``(model, degree)`` in order of simplicity (ties go to the earlier one). The smooth candidate is
+the LUT ``--model smooth`` writes: its degree, and its smoothing scale chosen on all positions
+(:func:`choose_model`), so the choice judges the LUT it would then write."""
 
 TIE_FRACTION = 0.05
 """A simpler candidate whose model error is within this fraction of the best one's is chosen."""
@@ -195,13 +205,27 @@ def choice_folds(n_positions: int, min_fit: int = 5) -> list[tuple[np.ndarray, n
 
 
 def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level_bias, footprint,
-                   progress=None) -> Lut | None:
+                   smooth_scale_px=None, progress=None) -> Lut | None:
+    scales = None if smooth_scale_px is None else (smooth_scale_px,)
     try:
         return fit_kind(samples, rig, model, degree, positions=positions, progress=progress,
                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                        uncertainty=False)  # judged by its predictions only
+                        uncertainty=False, smooth_scales_px=scales)  # judged by its predictions only
     except ValueError:
         return None
+
+
+def _smooth_scale_on_all(samples, rig, degree, positions, stage_sigma_mm, level_bias, footprint) -> float | None:
+    """The smoothing scale (px) ``--model smooth`` chooses on all ``positions`` (its own cross-validation;
+    None when it cannot be fitted: the candidate then chooses on its fold)."""
+    from ptpcore.fit.smooth import fit_smooth_lut
+
+    try:
+        _lut, info = fit_smooth_lut(samples, rig, degree, list(positions), stage_sigma_mm=stage_sigma_mm,
+                                    level_bias=level_bias, footprint=footprint, uncertainty=False)
+    except ValueError:
+        return None
+    return float(info.scale_px)
 
 
 class _HeldOutJudge:
@@ -374,6 +398,8 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
     pos = np.arange(samples.z.size) if positions is None else np.asarray(positions)
     folds = choice_folds(pos.size)
     cands = list(candidates)
+    scales = {d: _smooth_scale_on_all(samples, rig, d, pos, stage_sigma_mm, level_bias, footprint)
+              for m, d in cands if m == "smooth"}
     sums = np.zeros(len(cands))
     counts = np.zeros(len(cands), dtype=np.int64)
     fitted = np.ones(len(cands), dtype=bool)
@@ -385,8 +411,8 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
         for ci, (model, degree) in enumerate(cands):
             if progress:
                 progress((fi * len(cands) + ci) / steps, f"choosing the model: fitting {model} {degree}")
-            lut = _fit_candidate(samples, rig, model, degree, pos[fit_i], stage_sigma_mm, level_bias, footprint) \
-                if fitted[ci] else None
+            lut = _fit_candidate(samples, rig, model, degree, pos[fit_i], stage_sigma_mm, level_bias, footprint,
+                                 scales.get(degree) if model == "smooth" else None) if fitted[ci] else None
             fitted[ci] &= lut is not None
             if fitted[ci]:
                 judge.add(ci, lut)

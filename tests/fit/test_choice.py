@@ -7,7 +7,7 @@ import pytest
 
 from ptpcore.evaluate import held_out_accuracy
 from ptpcore.fit import fit_model
-from ptpcore.fit.choice import AUTO_CANDIDATES, ModelChoice, choice_folds, fit_auto
+from ptpcore.fit.choice import AUTO_CANDIDATES, SMOOTH_DEGREE, ModelChoice, choice_folds, fit_auto
 from ptpcore.io import SimulatedSource, load_lut, save_lut
 from ptpcore.run import collect_samples
 from ptpcore.simulate import VirtualRig, scaled_preset
@@ -50,13 +50,13 @@ def test_auto_picks_the_most_accurate_candidate_and_says_so(tmp_path, mild_21_po
     auto, fixed, lut, choice = _held_out_errors(vr, samples)
     assert auto <= 1.05 * min(fixed.values())
     assert auto <= fixed["poly 1"]
-    assert (choice.model, choice.degree) == ("smooth", 2)
+    assert (choice.model, choice.degree) == ("smooth", SMOOTH_DEGREE)
     path = tmp_path / "a.lut.h5"
     save_lut(lut, path)
     back = load_lut(path)
     assert back.extra_attrs["chosen_by"] == "held-out positions"
     d = json.loads(back.provenance["model_choice"])
-    assert d["chosen"] == {"model": "smooth", "degree": 2}
+    assert d["chosen"] == {"model": "smooth", "degree": SMOOTH_DEGREE}
     assert [(c["model"], c["degree"]) for c in d["candidates"]] == [tuple(c) for c in AUTO_CANDIDATES]
     again = ModelChoice.from_json(back.provenance["model_choice"])
     assert again.chosen == choice.chosen
@@ -138,3 +138,32 @@ def test_candidates_judged_in_row_bands_give_the_whole_image_numbers(monkeypatch
         np.testing.assert_array_equal(a, b)
     sums, counts, n_common, noise_sum = banded
     assert n_common > 0 and np.all(sums > 0) and np.all(counts > 0) and np.isfinite(noise_sum)
+
+
+@pytest.mark.slow
+def test_the_smooth_candidate_is_judged_as_model_smooth_writes_it(monkeypatch, tmp_path):
+    """Issue 30: the smooth candidate has ``ptp calibrate --model smooth``'s degree and the smoothing
+    scale that command chooses on all positions; the fold's fit keeps that scale, and when smooth is
+    chosen the written LUT equals ``--model smooth``'s (same coefficients, same scale)."""
+    import ptpcore.fit.choice as choice_mod
+    from ptpcore.cli.main import build_parser
+    from ptpcore.fit.smooth import fit_smooth_lut
+
+    assert build_parser().parse_args(["calibrate", str(tmp_path), "--out", "l.lut.h5", "--model", "smooth"]).degree == SMOOTH_DEGREE
+    vr, samples = _rig("realistic", 1, positions=11)
+    seen = []
+    real = choice_mod.fit_kind
+
+    def spy(*args, **kw):
+        if args[2] == "smooth":
+            seen.append((args[3], kw.get("smooth_scales_px")))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(choice_mod, "fit_kind", spy)
+    lut, choice = fit_auto(samples, vr.rig)
+    _ref, info = fit_smooth_lut(samples, vr.rig, SMOOTH_DEGREE, uncertainty=False)
+    assert seen and seen[0] == (SMOOTH_DEGREE, (info.scale_px,))  # the fold's fit
+    if choice.model == "smooth":
+        smooth = fit_model(samples, vr.rig, "smooth", SMOOTH_DEGREE)
+        assert lut.extra_attrs["smoothing_scale_px"] == smooth.extra_attrs["smoothing_scale_px"] == info.scale_px
+        np.testing.assert_array_equal(lut.x, smooth.x)
