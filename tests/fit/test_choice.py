@@ -50,13 +50,13 @@ def test_auto_picks_the_most_accurate_candidate_and_says_so(tmp_path, mild_21_po
     auto, fixed, lut, choice = _held_out_errors(vr, samples)
     assert auto <= 1.05 * min(fixed.values())
     assert auto <= fixed["poly 1"]
-    assert (choice.model, choice.degree) == ("smooth", SMOOTH_DEGREE)
+    assert choice.model == "smooth"
     path = tmp_path / "a.lut.h5"
     save_lut(lut, path)
     back = load_lut(path)
     assert back.extra_attrs["chosen_by"] == "held-out positions"
     d = json.loads(back.provenance["model_choice"])
-    assert d["chosen"] == {"model": "smooth", "degree": SMOOTH_DEGREE}
+    assert d["chosen"] == {"model": "smooth", "degree": choice.degree}
     assert [(c["model"], c["degree"]) for c in d["candidates"]] == [tuple(c) for c in AUTO_CANDIDATES]
     again = ModelChoice.from_json(back.provenance["model_choice"])
     assert again.chosen == choice.chosen
@@ -72,12 +72,13 @@ def test_ties_go_to_the_simpler_model():
     n = 1000
     noise_var = 1.0e-6  # (1 um)^2 per value
     # poly 1: model error 1.00 um, poly 2: 0.97 um (within 5 %), others worse.
-    err2 = np.array([1.00, 0.97, 1.5, 1.2]) ** 2 * 1e-6
+    k = len(cands)
+    err2 = np.array([1.00, 0.97, 1.5, 1.2, 1.3][:k]) ** 2 * 1e-6
     sums = (err2 + noise_var) * n
-    choice = _pick(cands, np.ones(4, bool), [""] * 4, sums, np.full(4, n), n, noise_var * n, [[1, 3]])
+    choice = _pick(cands, np.ones(k, bool), [""] * k, sums, np.full(k, n), n, noise_var * n, [[1, 3]])
     assert choice.chosen == 0
     err2[1] = 0.9 ** 2 * 1e-6  # 10 % better: not a tie
-    choice = _pick(cands, np.ones(4, bool), [""] * 4, (err2 + noise_var) * n, np.full(4, n), n,
+    choice = _pick(cands, np.ones(k, bool), [""] * k, (err2 + noise_var) * n, np.full(k, n), n,
                    noise_var * n, [[1, 3]])
     assert choice.chosen == 1
 
@@ -142,9 +143,10 @@ def test_candidates_judged_in_row_bands_give_the_whole_image_numbers(monkeypatch
 
 @pytest.mark.slow
 def test_the_smooth_candidate_is_judged_as_model_smooth_writes_it(monkeypatch, tmp_path):
-    """Issue 30: the smooth candidate has ``ptp calibrate --model smooth``'s degree and the smoothing
-    scale that command chooses on all positions; the fold's fit keeps that scale, and when smooth is
-    chosen the written LUT equals ``--model smooth``'s (same coefficients, same scale)."""
+    """Issue 30: the smooth candidates are ``ptp calibrate --model smooth --degree D``'s LUTs (D = 2 and
+    the command's default 3) with the smoothing scale that command chooses on all positions; the folds'
+    fits keep that scale, and when smooth is chosen the written LUT equals the command's (same
+    coefficients, same scale)."""
     import ptpcore.fit.choice as choice_mod
     from ptpcore.cli.main import build_parser
     from ptpcore.fit.smooth import fit_smooth_lut
@@ -162,8 +164,10 @@ def test_the_smooth_candidate_is_judged_as_model_smooth_writes_it(monkeypatch, t
     monkeypatch.setattr(choice_mod, "fit_kind", spy)
     lut, choice = fit_auto(samples, vr.rig)
     _ref, info = fit_smooth_lut(samples, vr.rig, SMOOTH_DEGREE, uncertainty=False)
-    assert seen and seen[0] == (SMOOTH_DEGREE, (info.scale_px,))  # the fold's fit
+    scale = {d: fit_smooth_lut(samples, vr.rig, d, uncertainty=False)[1].scale_px for d in (2, SMOOTH_DEGREE)}
+    assert (SMOOTH_DEGREE, (info.scale_px,)) in seen and (2, (scale[2],)) in seen  # the folds' smooth fits
+    assert all(scales is not None or deg == choice.degree for deg, scales in seen)  # every fold fit: a fixed scale
     if choice.model == "smooth":
-        smooth = fit_model(samples, vr.rig, "smooth", SMOOTH_DEGREE)
-        assert lut.extra_attrs["smoothing_scale_px"] == smooth.extra_attrs["smoothing_scale_px"] == info.scale_px
+        smooth = fit_model(samples, vr.rig, "smooth", choice.degree)
+        assert lut.extra_attrs["smoothing_scale_px"] == smooth.extra_attrs["smoothing_scale_px"] == scale[choice.degree]
         np.testing.assert_array_equal(lut.x, smooth.x)
