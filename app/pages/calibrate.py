@@ -17,6 +17,7 @@ from ptpcore.rig import lut_stage_z, position_label
 from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
 from ptpcore.fit.glass import describe_corrections
 from ptpcore.fit.choice import ModelChoice
+from ptpcore.fit.sigma import sigma_parts
 from ptpcore.evaluate import ScaledMap, pixel_series, prepare_display, reason_text
 from ptpcore.evaluate.residuals import residual_field
 from ptpcore.run.pipeline import repeat_drift
@@ -37,7 +38,8 @@ MODEL_NOTES = {"auto": "Auto: the model best at held-out positions",
                "linear": "Linear interpolation of the table",
                "smooth": "Smooth: polynomial regularised across neighbouring pixels"}
 DEGREE_MODELS = ("poly", "smooth")
-SIGMA_TIP = "Predicted 1σ uncertainty of the LUT (noise, global model, model error the leave-one-out resolves)"
+SIGMA_TIP = ("Predicted 1σ uncertainty of the LUT: the propagated noise and the model's own error (estimated"
+             " from held-out positions) in quadrature; the statistics line gives both parts")
 OPTIONAL_MAPS = {"sigma_x": SIGMA_TIP, "sigma_y": SIGMA_TIP,
                  "drift": "|repeat − sweep| per pixel at the position captured again after the sweep"
                           " ([stage] repeat_z_mm)"}
@@ -189,11 +191,22 @@ def _stats_text(lut, maps: dict, fitted_samples) -> str:
         text += (f" Median residual RMS X {np.nanmedian(rms):.2f} µm, Y {np.nanmedian(maps['rms_y'][1][v]):.2f} µm;"
                  f" median LOO RMS X {np.nanmedian(maps['loo_x'][1][v]):.2f} µm.")
     if "sigma_x" in maps and rms.size:
-        text += (f" Predicted 1σ (median) X {np.nanmedian(maps['sigma_x'][1][v]):.2f} µm,"
-                 f" Y {np.nanmedian(maps['sigma_y'][1][v]):.2f} µm.")
+        text += " Predicted 1σ (median) " + ", ".join(_sigma_text(lut, a, v) for a in "xy") + "."
     for line in describe_corrections(fitted_samples.corrections if fitted_samples is not None else {}):
         text += f" {line[0].upper()}{line[1:]}."
     return text + robust_text(lut) + drift_text(lut)
+
+
+def _sigma_text(lut, axis: str, where) -> str:
+    """``X 0.71 µm`` and, when the fit estimated its model's part, ``(noise 0.52, model 0.48)``: the
+    medians over ``where`` (a mask, or a pixel's ``(row, col)``) of the total and its two parts."""
+    total, noise, model = sigma_parts(lut, axis)
+
+    def um(a):
+        return 1e3 * float(np.nanmedian(a[where]))
+
+    text = f"{axis.upper()} {um(total):.2f} µm"
+    return text if model is None else text + f" (noise {um(noise):.2f}, model {um(model):.2f})"
 
 
 _CENTRE_ROWS = 256
@@ -637,8 +650,7 @@ class CalibratePage(StudioPage):
                     f"RMS X {1e3 * lut.rms_x[row, col]:.2f} µm, Y {1e3 * lut.rms_y[row, col]:.2f} µm; "
                     f"LOO X {1e3 * lut.loo_x[row, col]:.2f} µm, Y {1e3 * lut.loo_y[row, col]:.2f} µm")
             if lut.sigma_x is not None and lut.sigma_y is not None:
-                text += (f"; predicted 1σ X {1e3 * lut.sigma_x[row, col]:.2f} µm,"
-                         f" Y {1e3 * lut.sigma_y[row, col]:.2f} µm")
+                text += "; predicted 1σ " + ", ".join(_sigma_text(lut, a, (row, col)) for a in "xy")
         else:
             bad = [reason_text(r) for r in ps.reasons if r]
             text = (f"<b>pixel row {row}, col {col}</b>: no usable LUT "

@@ -159,9 +159,11 @@ def _sigma_lines(lut, v) -> list[str]:
         return (f"median {1e3 * np.median(arr):.2f} µm, 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
                 if arr.size else "")
 
+    from ptpcore.fit.sigma import sigma_parts
+
     lines = []
     for a in "xy":
-        sig, model = getattr(lut, f"sigma_{a}"), getattr(lut, f"sigma_model_{a}")
+        sig, noise, model = sigma_parts(lut, a)
         total = stats(sig)
         if not total:
             continue
@@ -169,8 +171,6 @@ def _sigma_lines(lut, v) -> list[str]:
             lines.append(f"  {'predicted sigma ' + a.upper():<20}{total}"
                          " (phase noise; stage pose and glass tolerances when given)")
             continue
-        with np.errstate(invalid="ignore"):
-            noise = np.sqrt(np.maximum(sig.astype(np.float64) ** 2 - model.astype(np.float64) ** 2, 0.0))
         lines += [f"  {'predicted sigma ' + a.upper():<20}{total} (noise and model in quadrature)",
                   f"  {'  noise part ' + a.upper():<20}{stats(noise)}"
                   " (phase noise; stage pose and glass tolerances when given)",

@@ -46,7 +46,7 @@ from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import release_free_memory
 
-__all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "CandidateError", "ModelChoice",
+__all__ = ["AUTO", "AUTO_CANDIDATES", "TIE_FRACTION", "MIN_COVERAGE", "CandidateError", "ModelChoice", "SmoothGlobalFits",
            "choice_folds", "choose_model", "fit_auto"]
 
 AUTO = "auto"
@@ -89,6 +89,9 @@ class CandidateError:
         Fraction of the best covered candidate's held-out samples this one predicts.
     note : str
         Why it was not judged (empty if it was).
+    smoothing_scale_px : float
+        ``smooth`` only: the scale ``--model smooth`` chooses on all positions, which each fold's fit
+        kept and the final fit reuses (NaN for the other models, or when it could not be chosen).
     """
 
     model: str
@@ -97,10 +100,14 @@ class CandidateError:
     model_error_um: float
     coverage: float
     note: str = ""
+    smoothing_scale_px: float = float("nan")
 
     @property
     def name(self) -> str:
-        return f"poly degree {self.degree}" if self.model == "poly" else f"{self.model} (degree {self.degree})"
+        if self.model == "poly":
+            return f"poly degree {self.degree}"
+        at = f", {self.smoothing_scale_px:g} px" if np.isfinite(self.smoothing_scale_px) else ""
+        return f"{self.model} (degree {self.degree}{at})"
 
 
 @dataclass
@@ -145,7 +152,9 @@ class ModelChoice:
             "noise_rms_um": _num(self.noise_rms_um), "n_samples": int(self.n_samples),
             "candidates": [{"model": k.model, "degree": k.degree, "held_out_rms_um": _num(k.held_out_rms_um),
                             "model_error_um": _num(k.model_error_um), "coverage": _num(k.coverage),
-                            "note": k.note} for k in self.candidates],
+                            "note": k.note,
+                            **({"smoothing_scale_px": _num(k.smoothing_scale_px)} if k.model == "smooth" else {})}
+                           for k in self.candidates],
         })
 
     @classmethod
@@ -153,7 +162,8 @@ class ModelChoice:
         """Read back :meth:`to_json` (missing numbers come back as NaN)."""
         d = json.loads(text)
         cands = [CandidateError(k["model"], int(k["degree"]), _flt(k.get("held_out_rms_um")),
-                                _flt(k.get("model_error_um")), _flt(k.get("coverage")), k.get("note", ""))
+                                _flt(k.get("model_error_um")), _flt(k.get("coverage")), k.get("note", ""),
+                                _flt(k.get("smoothing_scale_px")))
                  for k in d["candidates"]]
         pick = d["chosen"]
         chosen = next(i for i, k in enumerate(cands) if (k.model, k.degree) == (pick["model"], pick["degree"]))
@@ -207,25 +217,50 @@ def choice_folds(n_positions: int, min_fit: int = 5) -> list[tuple[np.ndarray, n
     return [(np.setdiff1d(allk, [i]), np.array([i])) for i in range(1, k - 1)]
 
 
+class SmoothGlobalFits:
+    """The smooth fit's global model per set of positions, fitted once and shared by the smooth
+    candidates of every degree (it depends on neither degree nor scale), the scale pre-passes and
+    the final fit (:func:`ptpcore.fit.smooth.smooth_global_fit`; 3.5 s of CPU each).
+    """
+
+    def __init__(self, samples: SampleStack, rig: Rig, level_bias: bool):
+        self._args = (samples, rig)
+        self._level_bias = level_bias
+        self._fits = {}
+
+    def __call__(self, positions):
+        from ptpcore.fit.smooth import smooth_global_fit
+
+        key = tuple(int(k) for k in positions)
+        if key not in self._fits:
+            self._fits[key] = smooth_global_fit(*self._args, key, self._level_bias)
+        return self._fits[key]
+
+
 def _fit_candidate(samples, rig, model, degree, positions, stage_sigma_mm, level_bias, footprint,
-                   smooth_scale_px=None, progress=None) -> Lut | None:
-    scales = None if smooth_scale_px is None else (smooth_scale_px,)
+                   smooth_scale_px=None, global_fits=None, progress=None) -> Lut | None:
+    smooth = {}
+    if model == "smooth":
+        smooth = {"smooth_scales_px": None if smooth_scale_px is None else (smooth_scale_px,),
+                  "smooth_global_fit": None if global_fits is None else global_fits(positions)}
     try:
         return fit_kind(samples, rig, model, degree, positions=positions, progress=progress,
                         stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                        uncertainty=False, smooth_scales_px=scales)  # judged by its predictions only
+                        uncertainty=False, **smooth)  # judged by its predictions only
     except ValueError:
         return None
 
 
-def _smooth_scale_on_all(samples, rig, degree, positions, stage_sigma_mm, level_bias, footprint) -> float | None:
+def _smooth_scale_on_all(samples, rig, degree, positions, stage_sigma_mm, level_bias, footprint,
+                         global_fits) -> float | None:
     """The smoothing scale (px) ``--model smooth`` chooses on all ``positions`` (its own cross-validation;
     None when it cannot be fitted: the candidate then chooses on its fold)."""
     from ptpcore.fit.smooth import fit_smooth_lut
 
     try:
         _lut, info = fit_smooth_lut(samples, rig, degree, list(positions), stage_sigma_mm=stage_sigma_mm,
-                                    level_bias=level_bias, footprint=footprint, uncertainty=False)
+                                    level_bias=level_bias, footprint=footprint, uncertainty=False,
+                                    global_fit=global_fits(positions))
     except ValueError:
         return None
     return float(info.scale_px)
@@ -374,7 +409,7 @@ def _noise_variance_sum(samples, rig, k, common, slope2, stage_sigma_mm, sigma_f
 
 def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=AUTO_CANDIDATES,
                  stage_sigma_mm: float = 0.0, level_bias: bool = True, footprint: bool = True,
-                 progress: Progress | None = None) -> ModelChoice:
+                 progress: Progress | None = None, global_fits: SmoothGlobalFits | None = None) -> ModelChoice:
     """Judge every candidate at held-out positions (see the module docstring).
 
     Parameters
@@ -388,6 +423,8 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
     stage_sigma_mm, level_bias, footprint
         As for :func:`ptpcore.fit.models.fit_model`.
     progress : callable, optional
+    global_fits : SmoothGlobalFits, optional
+        Shared with the caller's final fit (:func:`fit_auto`); a new one by default.
 
     Returns
     -------
@@ -401,7 +438,8 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
     pos = np.arange(samples.z.size) if positions is None else np.asarray(positions)
     folds = choice_folds(pos.size)
     cands = list(candidates)
-    scales = {d: _smooth_scale_on_all(samples, rig, d, pos, stage_sigma_mm, level_bias, footprint)
+    global_fits = global_fits or SmoothGlobalFits(samples, rig, level_bias)
+    scales = {d: _smooth_scale_on_all(samples, rig, d, pos, stage_sigma_mm, level_bias, footprint, global_fits)
               for m, d in cands if m == "smooth"}
     sums = np.zeros(len(cands))
     counts = np.zeros(len(cands), dtype=np.int64)
@@ -415,7 +453,8 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
             if progress:
                 progress((fi * len(cands) + ci) / steps, f"choosing the model: fitting {model} {degree}")
             lut = _fit_candidate(samples, rig, model, degree, pos[fit_i], stage_sigma_mm, level_bias, footprint,
-                                 scales.get(degree) if model == "smooth" else None) if fitted[ci] else None
+                                 scales.get(degree) if model == "smooth" else None, global_fits) \
+                if fitted[ci] else None
             fitted[ci] &= lut is not None
             if fitted[ci]:
                 judge.add(ci, lut)
@@ -429,7 +468,11 @@ def choose_model(samples: SampleStack, rig: Rig, positions=None, *, candidates=A
         s, c, n, ns = judge.errors(rig)
         del judge  # its temporary file with it
         sums, counts, n_common, noise_sum = sums + s, counts + c, n_common + n, noise_sum + ns
-    return _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, [pos[h].tolist() for _, h in folds])
+    choice = _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, [pos[h].tolist() for _, h in folds])
+    for c in choice.candidates:
+        if c.model == "smooth" and scales.get(c.degree) is not None:
+            c.smoothing_scale_px = scales[c.degree]
+    return choice
 
 
 def _pick(cands, fitted, notes, sums, counts, n_common, noise_sum, held) -> ModelChoice:
@@ -480,15 +523,24 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
     def sub(lo, hi):
         return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
 
+    global_fits = SmoothGlobalFits(samples, rig, level_bias)
     try:
         choice = choose_model(samples, rig, positions, candidates=candidates, stage_sigma_mm=stage_sigma_mm,
-                              level_bias=level_bias, footprint=footprint, progress=sub(0.0, 0.7))
+                              level_bias=level_bias, footprint=footprint, progress=sub(0.0, 0.7),
+                              global_fits=global_fits)
     except ValueError as exc:  # too few positions to hold any out: the simplest model, and why
         choice = ModelChoice([CandidateError("poly", 1, np.nan, np.nan, np.nan, "not judged")], 0, [],
                              np.nan, 0, f"poly degree 1 without a choice: {exc}")
     release_free_memory()  # the candidates' freed heap, before the final fit maps its own arrays
+    # A smooth pick reuses the scale its pre-pass chose on these same positions (the command's own
+    # cross-validation, not run twice): the LUT is the one ``--model smooth`` writes.
+    scale = choice.candidates[choice.chosen].smoothing_scale_px
+    smooth = {} if choice.model != "smooth" else {
+        "smooth_scales_px": (scale,) if np.isfinite(scale) else None,
+        "smooth_global_fit": global_fits(np.arange(samples.z.size) if positions is None else positions)}
     lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
-                   stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint)
+                   stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint, **smooth)
+    del global_fits
     lut.extra_attrs["chosen_by"] = "held-out positions"
     lut.provenance["model_choice"] = choice.to_json()
     return lut, choice

@@ -24,13 +24,15 @@ LUT_KINDS = ("poly", "pchip", "linear", "smooth")
 def fit_kind(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 3, positions=None,
              progress: Callable[[float, str], None] | None = None, *, stage_sigma_mm: float = 0.0,
              level_bias: bool = True, footprint: bool = True, uncertainty: bool = True,
-             smooth_scales_px=None) -> Lut:
+             smooth_scales_px=None, smooth_global_fit=None) -> Lut:
     """Fit one LUT of kind ``model`` (one of :data:`LUT_KINDS`) to decoded samples.
 
     Parameters and result as :func:`ptpcore.fit.models.fit_model` (without ``auto`` and ``robust``).
     Plain ``poly`` LUTs get their predicted sigma maps when the samples carry a noise model.
     ``smooth_scales_px``: the smooth fit's candidate smoothing scales (default its own ladder); one
     scale fixes it (the model choice's folds use the scale chosen on all positions).
+    ``smooth_global_fit``: the smooth fit's global model on these positions, to reuse
+    (:func:`ptpcore.fit.smooth.smooth_global_fit`).
     """
     if model not in LUT_KINDS:
         raise ValueError(f"model must be one of {', '.join(LUT_KINDS)}, got {model!r}")
@@ -39,7 +41,7 @@ def fit_kind(samples: SampleStack, rig: Rig, model: str = "poly", degree: int = 
         scales = {} if smooth_scales_px is None else {"scales_px": tuple(float(v) for v in smooth_scales_px)}
         lut, _info = fit_smooth_lut(samples, rig, degree, positions, rig_toml=toml, progress=progress,
                                     stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint,
-                                    uncertainty=uncertainty, **scales)
+                                    uncertainty=uncertainty, global_fit=smooth_global_fit, **scales)
         return lut
     with_sigma = model == "poly" and uncertainty and samples.noise is not None and samples.modulation is not None
     scale = None

@@ -16,7 +16,7 @@ from ptpcore.io.samples import SampleStack
 __all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat", "stage_pose_sample_sigma",
            "stage_pose_sigma_maps", "add_stage_pose_sigma", "MODEL_MAP_SCALES_PX", "MODEL_MAP_SPATIAL", "MODEL_MAP_WORDS",
            "correlation_length_px",
-           "model_variance_map"]
+           "model_variance_map", "sigma_parts"]
 
 
 def sample_sigma(samples: SampleStack, noise_dn, n_steps: int, period_px: int, pitch_mm: float,
@@ -375,3 +375,32 @@ def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scal
     var = np.maximum(var, 0.0)
     mean_map = float(np.sum(var * n)) / total
     return (var * (level / mean_map) if mean_map > 0 else np.full(e.shape, level)), float(scale), info
+
+
+def sigma_parts(lut, axis: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A LUT's predicted 1-sigma along ``axis`` and its two parts (METHOD.md section 5).
+
+    The total is written (``/quality/sigma_x``); the model's part too when the fit estimated it
+    (``/quality/sigma_model_x``); the noise part is what the total holds beside it in quadrature.
+
+    Parameters
+    ----------
+    lut : Lut
+    axis : {"x", "y"}
+
+    Returns
+    -------
+    total : (H, W) float32 or None
+        mm; None when the LUT has no sigma maps.
+    noise : (H, W) float64 or None
+        mm: propagated phase noise (and the stage-pose and glass tolerances when given); None
+        without a model part (then the total is the noise alone).
+    model : (H, W) float32 or None
+        mm: the model's own error estimated from held-out positions; None when not estimated.
+    """
+    total, model = getattr(lut, f"sigma_{axis}"), getattr(lut, f"sigma_model_{axis}")
+    if total is None or model is None:
+        return total, None, None
+    with np.errstate(invalid="ignore"):
+        noise = np.sqrt(np.maximum(total.astype(np.float64) ** 2 - model.astype(np.float64) ** 2, 0.0))
+    return total, noise, model

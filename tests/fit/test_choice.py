@@ -60,6 +60,10 @@ def test_auto_picks_the_most_accurate_candidate_and_says_so(tmp_path, mild_21_po
     assert [(c["model"], c["degree"]) for c in d["candidates"]] == [tuple(c) for c in AUTO_CANDIDATES]
     again = ModelChoice.from_json(back.provenance["model_choice"])
     assert again.chosen == choice.chosen
+    # The smooth candidates' scales (chosen on all positions, reused by the final fit) come back.
+    scales = [c.smoothing_scale_px for c in again.candidates if c.model == "smooth"]
+    assert scales == [c.smoothing_scale_px for c in choice.candidates if c.model == "smooth"]
+    assert all(np.isfinite(scales)) and lut.extra_attrs["smoothing_scale_px"] == again.candidates[again.chosen].smoothing_scale_px
     # The held-out RMS includes the sample noise (same for all); the smooth one is the lowest.
     rms = [c.held_out_rms_um for c in again.candidates]
     assert np.argmin(rms) == again.chosen
@@ -166,8 +170,11 @@ def test_the_smooth_candidate_is_judged_as_model_smooth_writes_it(monkeypatch, t
     _ref, info = fit_smooth_lut(samples, vr.rig, SMOOTH_DEGREE, uncertainty=False)
     scale = {d: fit_smooth_lut(samples, vr.rig, d, uncertainty=False)[1].scale_px for d in (2, SMOOTH_DEGREE)}
     assert (SMOOTH_DEGREE, (info.scale_px,)) in seen and (2, (scale[2],)) in seen  # the folds' smooth fits
-    assert all(scales is not None or deg == choice.degree for deg, scales in seen)  # every fold fit: a fixed scale
+    # Every smooth fit through fit_kind (folds and the final one) keeps the scale chosen on all positions.
+    assert all(scales == (scale[deg],) for deg, scales in seen)
+    assert {c.degree: c.smoothing_scale_px for c in choice.candidates if c.model == "smooth"} == scale
     if choice.model == "smooth":
         smooth = fit_model(samples, vr.rig, "smooth", choice.degree)
         assert lut.extra_attrs["smoothing_scale_px"] == smooth.extra_attrs["smoothing_scale_px"] == scale[choice.degree]
-        np.testing.assert_array_equal(lut.x, smooth.x)
+        for name in ("x", "y", "sigma_x", "sigma_y", "loo_x", "loo_y"):  # the LUT --model smooth writes
+            np.testing.assert_array_equal(getattr(lut, name), getattr(smooth, name), err_msg=name)

@@ -48,7 +48,7 @@ from .noise import (phase_sigma_mm, sample_sigma_from_noise, position_sigma_from
 from .global_model import global_pinhole, footprint_bias, FOOTPRINT_M2_MAX_PX2
 from .smoothing import local_linear_smooth, CV_PIXELS
 from .uncertainty import poly_model_variance, poly_sigma_maps
-from .estimator import fit_smooth_lut, SmoothInfo
+from .estimator import fit_smooth_lut, SmoothInfo, smooth_global_fit
 
 __all__ = [
     "phase_sigma_mm",
@@ -64,5 +64,6 @@ __all__ = [
     "poly_sigma_maps",
     "poly_model_variance",
     "fit_smooth_lut",
+    "smooth_global_fit",
     "SmoothInfo",
 ]

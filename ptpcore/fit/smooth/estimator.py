@@ -20,7 +20,7 @@ from ptpcore.pinhole.camera import PinholeModel
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import release_free_memory
 
-__all__ = ["fit_smooth_lut", "SmoothInfo"]
+__all__ = ["fit_smooth_lut", "SmoothInfo", "smooth_global_fit"]
 
 
 @dataclass
@@ -64,7 +64,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                    level_bias: bool = True, footprint: bool = True, global_points: int = 100_000,
                    seed: int = 0, rig_toml: str = "", cv_bin: int | None = None,
                    progress: Callable[[float, str], None] | None = None,
-                   uncertainty: bool = True) -> tuple[Lut, SmoothInfo]:
+                   uncertainty: bool = True, global_fit=None) -> tuple[Lut, SmoothInfo]:
     """Fit the ``smooth`` LUT (the method: :mod:`ptpcore.fit.smooth`'s docstring).
 
     Parameters
@@ -110,6 +110,10 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
         The full sigma maps and the real leave-one-out
         (:func:`ptpcore.fit.smooth.uncertainty.uncertainty_maps`, ~1.8x the fit's time);
         off for fits judged only by their predictions (auto's candidates): noise-only sigma, NaN LOO.
+    global_fit : PinholeFit, optional
+        :func:`smooth_global_fit` of these samples, positions, ``level_bias``, ``global_points`` and
+        ``seed``, to reuse: it does not depend on the degree or the scales, and the model choice
+        fits several smooth candidates on the same positions (3.5 s of CPU each at any image size).
 
     Returns
     -------
@@ -121,8 +125,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report = progress or (lambda f, m: None)
     # 1. The global model, fitted to a random subset of every position's samples.
     report(0.0, "fitting the global camera model")
-    gfit = global_pinhole(samples, positions, n_points=global_points, seed=seed,
-                          rig=rig if level_bias else None, full=True)
+    gfit = global_fit if global_fit is not None else smooth_global_fit(samples, rig, positions, level_bias,
+                                                                       global_points, seed)
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
     z_norm = _z_normalisation(z)
@@ -157,6 +161,19 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     report(1.0, "smooth LUT fitted")
     return lut, SmoothInfo(gfit.model, scale, np.asarray(scales_px, dtype=float), cv_score, noise_scale,
                            float(np.sqrt(excess_var)), merr.rms_mm, merr.limit_mm)
+
+
+def smooth_global_fit(samples: SampleStack, rig: Rig, positions, level_bias: bool = True,
+                      global_points: int = 100_000, seed: int = 0):
+    """The smooth fit's global model (step 1): :func:`global_pinhole` on ``positions``' samples.
+
+    Returns
+    -------
+    PinholeFit
+        For :func:`fit_smooth_lut`'s ``global_fit`` (same arguments give the same fit).
+    """
+    return global_pinhole(samples, list(positions), n_points=global_points, seed=seed,
+                          rig=rig if level_bias else None, full=True)
 
 
 def _checked_positions(samples: SampleStack, degree: int, positions) -> list[int]:
