@@ -33,3 +33,27 @@ def test_the_split_recovers_the_noise_and_the_shared_part():
     assert r["noise_low_pass_um"]["2px"] < 0.5 * r["all"]["noise_measured_um"]
     lines = trust_split.report("x", r)
     assert lines[0] == "axis x" and "measured" in lines[1] and "low-pass" in lines[-1]
+
+
+def test_the_smooth_noise_tool_draws_white_noise_of_each_samples_predicted_sigma():
+    """benchmarks/smooth_noise.py: the replaced samples are the truth plus noise of exactly their predicted
+    sigma, on the real samples' masks."""
+    from benchmarks.smooth_noise import white_noise_stack
+    from ptpcore.fit.smooth.noise import position_sigma_from_noise
+    from ptpcore.io import SimulatedSource
+    from ptpcore.run import collect_samples
+    from ptpcore.simulate import VirtualRig, scaled_preset
+
+    rig, settings = scaled_preset("mild", 96, positions=5)
+    vr = VirtualRig(rig, settings, 3)
+    samples = collect_samples(SimulatedSource(vr))
+    fake = white_noise_stack(samples, rig, vr.truth(), seed=1)
+    z = []
+    for k in range(samples.z.size):
+        tx, _ty = vr.truth().xy(np.full(samples.shape, samples.z[k]))
+        x = fake.x_ref + fake.x[k]
+        assert np.array_equal(np.isfinite(fake.x[k]), np.isfinite(samples.x[k]))
+        ok = np.isfinite(x)
+        z.append(((x - tx) / position_sigma_from_noise(samples, rig, k))[ok])
+    z = np.concatenate(z)
+    assert z.size > 10000 and abs(np.std(z) - 1) < 0.03 and abs(np.mean(z)) < 0.03
