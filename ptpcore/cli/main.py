@@ -34,6 +34,8 @@ def cmd_simulate(args) -> int:
     from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
 
     check_output_folder(args.out_dir, force=args.force)
+    if args.preset.startswith("scanner-"):
+        return _simulate_scanner(args)
     rig, settings = preset(args.preset)
     if args.width or args.height or args.positions:
         # Same field of view and lens with another sensor size (see scaled_preset).
@@ -66,6 +68,27 @@ def cmd_simulate(args) -> int:
     n = (rig.stage.n_positions + len(rig.stage.repeat_z_mm)) * per_position
     print(f"wrote {n} images of {rig.camera.width}x{rig.camera.height} ({args.preset} preset, seed {args.seed})"
           f" and truth.h5 to {out}")
+    return 0
+
+
+def _simulate_scanner(args) -> int:
+    """``ptp simulate --preset scanner-*``: the LCD sweep, the plate's height sweep and object scans."""
+    from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
+
+    for flag in ("repeat", "drift_um", "gray", "gray_inverse", "references", "heterodyne", "heterodyne_steps",
+                 "positions"):
+        if getattr(args, flag):
+            raise PtpError(f"--{flag.replace('_', '-')} is not available with the scanner presets")
+    rig, sim, scanner = scanner_preset(args.preset, args.width, args.height)
+    bar = progress_bar(args)
+    try:
+        out = simulate_scanner_dataset(args.out_dir, rig, sim, scanner, seed=args.seed, progress=bar,
+                                       image_ext=".tif" if args.tiff else ".png")
+    finally:
+        bar.close()
+    print(f"wrote a {rig.camera.width}x{rig.camera.height} scanner dataset ({args.preset} preset, seed {args.seed}):"
+          f" {rig.stage.n_positions} LCD positions, {len(rig.height.z_mm)} plate heights, scans in"
+          f" {out / 'scans'}, truth in truth.h5, scanner_truth.h5 and each scan's truth.h5, to {out}")
     return 0
 
 
@@ -555,12 +578,15 @@ def build_parser() -> OneLineParser:
 
 
 def _add_simulate(sub) -> None:
+    from ptpcore.simulate.scanner import SCANNER_PRESETS
     from ptpcore.simulate.virtual_rig import PRESETS
 
     s = sub.add_parser("simulate", help="render a ptp-dataset folder (/1, or /2 when the design needs it) with the virtual rig",
                        description="Render a ptp-dataset/1 or /2 folder (rig.toml, images, truth.h5) with the virtual rig.")
     s.add_argument("out_dir", metavar="OUT_DIR")
-    s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
+    s.add_argument("--preset", default="realistic", choices=list(PRESETS) + list(SCANNER_PRESETS),
+                   help="rig preset (default realistic); scanner-mild and scanner-rough add the scanner's projector,"
+                        " its height sweep and object scans (ptp-dataset/2 [projector], [height]; scans/*)")
     s.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
     s.add_argument("--width", type=positive_int, help="camera width in pixels, same field of view"
                                                       " (default: the preset's)")
