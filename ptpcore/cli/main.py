@@ -149,6 +149,14 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
     if drift is not None:
         session.lut.provenance["drift"] = drift.to_json()
     release_free_memory()  # the fit's transients, before the LUT is written and the residuals computed
+    if session.rig.height is not None and session.dataset:
+        from ptpcore.run.scanner import calibrate_height
+
+        bar = progress_bar(args)
+        try:  # the scanner's height sweep (METHOD.md section 9): the map goes into the LUT's /height
+            session.lut.height = calibrate_height(session.dataset, options=session.options, progress=bar)
+        finally:
+            bar.close()
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
     if drift is not None:
@@ -249,7 +257,41 @@ def _lut_summary(lut, path) -> str:
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
     lines += _choice_lines(lut)
     lines += _robust_lines(lut)
+    lines += _height_lines(lut)
     return "\n".join(lines)
+
+
+def _height_lines(lut) -> list[str]:
+    """``ptp inspect``'s lines on the scanner's height map (``/height``), none without one."""
+    hm = lut.height
+    if hm is None:
+        return []
+    v = hm.valid
+    d = hm.design
+    lines = [f"  height map          rational, numerator degree {hm.degree} ({hm.chosen_by}), u_p from projector"
+             f" direction {hm.direction}, {d.get('width')}x{d.get('height')} px, periods"
+             f" {', '.join(f'{t:g}' for t in d.get('periods_px', []))} px",
+             f"    valid pixels      {v.sum()} ({100 * v.mean():.1f} %)"]
+    if not v.any():
+        return lines
+    npos = hm.n_positions[v]
+    lines.append(f"    heights per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
+    for name, label in (("rms_z", "fit residual RMS Z"), ("loo_z", "leave-one-out RMS Z"),
+                        ("sigma_z", "predicted sigma Z"), ("sigma_model_z", "  model part Z")):
+        arr = getattr(hm, name)
+        if arr is None:
+            continue
+        arr = arr[v][np.isfinite(arr[v])]
+        if arr.size:
+            lines.append(f"    {label:<20}median {1e3 * np.median(arr):.2f} µm, 95th percentile"
+                         f" {1e3 * np.percentile(arr, 95):.2f} µm")
+    choice = hm.provenance.get("degree_choice", {}).get("held_out_rms_mm")
+    if choice:
+        lines.append("    degree choice     held-out RMS " + ", ".join(f"D={k}: {1e3 * val:.2f} µm"
+                                                                    for k, val in choice.items()))
+    if hm.n_rejected is not None and hm.n_rejected.any():
+        lines.append(f"    robust fit        {int(hm.n_rejected.sum())} samples left out")
+    return lines
 
 
 def cmd_decode(args) -> int:
@@ -362,6 +404,35 @@ def cmd_apply(args) -> int:
     write_point_cloud(cloud, out, comment=f"ptp apply {Path(args.lut_file).name} --z {args.z}"
                       + (" --extrapolate" if args.extrapolate else ""))
     print(f"{out}: {cloud.summary()}")
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    """``ptp reconstruct SCAN_DIR --lut F.lut.h5 --out cloud.ply``: the scanner's point cloud."""
+    from ptpcore.io.lutfile import load_lut
+    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES, write_point_cloud
+    from ptpcore.run.scanner import reconstruct
+
+    out = Path(args.out)
+    if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
+        raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
+    check_output_file(out, "points", force=args.force, inputs=[args.lut, args.scan_dir])
+    lut = load_lut(args.lut)
+    if lut.height is None:
+        raise ValueError(f"{args.lut}: the LUT has no height map (/height); calibrate a dataset with a height"
+                         " sweep ([projector] and [height] in rig.toml)")
+    bar = progress_bar(args)
+    try:
+        views = reconstruct(args.scan_dir, lut, progress=bar)
+    finally:
+        bar.close()
+    for i, view in enumerate(views):
+        path = out if len(views) == 1 else out.with_name(f"{out.stem}.view{i:03d}{out.suffix}")
+        if view.cloud.n_points == 0:
+            raise ValueError(f"{args.scan_dir}: no point in view {i} ({view.cloud.summary()})")
+        write_point_cloud(view.cloud, path, comment=f"ptp reconstruct {Path(args.scan_dir).name} --lut"
+                                                    f" {Path(args.lut).name}")
+        print(f"{path}: {view.cloud.summary()}")
     return 0
 
 
@@ -569,6 +640,7 @@ def build_parser() -> OneLineParser:
     _add_calibrate(sub)
     _add_resume_inspect(sub)
     _add_compare(sub)
+    _add_reconstruct(sub)
     _add_diff_parser(sub)
     _add_demo(sub)
     from ptpcore.cli.capture import add_parser as add_capture_parser
@@ -700,6 +772,23 @@ def _add_resume_inspect(sub) -> None:
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
     a.add_argument("--force", action="store_true", help="replace an existing point cloud")
     a.set_defaults(func=cmd_apply)
+
+def _add_reconstruct(sub) -> None:
+    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES  # noqa: F401  (the suffixes the help names)
+
+    r = sub.add_parser("reconstruct", help="scan folder + LUT with a height map -> point cloud (PLY, .npy or .h5)",
+                       description="Decode a scan (ptp-scan/1) with the scanner's projector coordinate, take each"
+                                   " pixel's Z from the LUT's height map and (X, Y) from its XY LUT at that Z;"
+                                   " each point with its per-axis 1-sigma. Pixels without a decoded coordinate,"
+                                   " or outside either map's calibrated range, have no point (never extrapolated).")
+    r.add_argument("scan_dir", metavar="SCAN_DIR", type=existing_dir)
+    r.add_argument("--lut", required=True, metavar="F.lut.h5", type=existing_file)
+    r.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
+                   help="point cloud; a scan of several views writes OUT.view000.ply, ...")
+    r.add_argument("--force", action="store_true", help="replace an existing point cloud")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_reconstruct)
+
 
 def _add_compare(sub) -> None:
     from ptpcore.io.lutfile import MODELS
