@@ -183,10 +183,13 @@ class ScanResult:
     x, y, z : (H, W) float64, mm
         NaN where the pixel has no point.
     sigma_x, sigma_y, sigma_z : (H, W) float64, mm
+        Per-axis 1-sigma of each point: ``sigma_z`` is u_p's noise through dZ/du_p and the height
+        map's sigma in quadrature; ``sigma_x`` adds the XY LUT's own sigma to ``slope_x * sigma_z``.
     slope_x, slope_y : (H, W) float64
-        dX/dZ, dY/dZ of the XY LUT at the point: a Z error moves the point along the ray.
-    sigma_z_noise, sigma_xy_lut : (H, W) float64 / (2, H, W), mm
-        The parts: Z's error (u_p's noise through dZ/du_p and the map's sigma) and the LUT's own X, Y sigma.
+        dX/dZ, dY/dZ of the XY LUT at the point: a Z error moves the point along the ray (so the
+        axes' errors are correlated; :func:`ptpcore.evaluate.scanner.scan_accuracy` uses it).
+    sigma_lut_x, sigma_lut_y : (H, W) float64, mm
+        The XY LUT's own sigma (0 where the LUT has none).
     """
 
     cloud: PointCloud
