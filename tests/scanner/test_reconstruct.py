@@ -165,3 +165,21 @@ def test_the_whole_scanner_from_the_command_line(tmp_path, capsys):
         assert NORMALISED[0] <= acc.rms_normalised <= NORMALISED[1], (name, acc.rms_normalised)
         assert acc.n_beyond_4 <= max(acc.allowed_out, int(VDI_LEAVE_OUT * acc.n_points)), name
         assert Path(out).stat().st_size > 0
+
+
+def test_a_scan_of_several_views_writes_one_cloud_per_view(scanner, tmp_path, capsys):
+    """``{pos}`` in the scan's template: views counted from the files, one cloud each."""
+    import shutil
+
+    folder, _sr, _lut = scanner
+    scan = tmp_path / "views"
+    for pos, name in enumerate(("sphere", "plane")):
+        shutil.copytree(folder / name, scan / f"v{pos}", ignore=shutil.ignore_patterns("*.toml", "*.h5"))
+    spec = load_scan(folder / "sphere")
+    (scan / "scan.toml").write_text(scan_to_toml(replace(spec, template="v{pos}/" + spec.template)))
+    assert load_scan(scan).views == 2
+    out = tmp_path / "cloud.npy"
+    assert main(["reconstruct", str(scan), "--lut", str(folder / "scanner.lut.h5"), "--out", str(out)]) == 0
+    sizes = [np.load(tmp_path / f"cloud.view{i:03d}.npy").size for i in range(2)]
+    assert 0 < sizes[0] < sizes[1]  # the sphere is smaller than the plane
+    assert not out.exists()
