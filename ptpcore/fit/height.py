@@ -53,6 +53,9 @@ REJECT_ROUNDS = 3
 """Rejection rounds (each leaves out at most one sample per pixel, then refits)."""
 
 
+TILE_PIXELS = 1 << 15
+"""Pixels fitted together: the (K, T, D+2) design arrays stay a few tens of MB."""
+
 _EVAL_S, _EVAL_W = np.polynomial.legendre.leggauss(8)
 _EVAL_W = _EVAL_W / _EVAL_W.sum()
 """Where (and with which weights) the fit's noise is averaged for its RMS over the pixel's range
@@ -259,27 +262,33 @@ def _held_out(u, sigma_u, z, mask, degree, folds, k_sigma):
     return r2, v
 
 
-def _choose_degree(held: dict) -> tuple[int, dict]:
+def _choose_degree(sums: dict, n: int) -> tuple[int, dict]:
     """The lowest degree whose held-out mean squared error is within two standard errors of the best.
 
-    The standard error of a mean of n squared residuals is ``sqrt(2 / n)`` of it (chi-square): a
-    higher degree must beat a lower one by more than that to be worth its extra unknown.
+    ``sums``: per degree the sum of squared held-out residuals over the ``n`` samples every degree
+    predicted. The standard error of a mean of n squared residuals is ``sqrt(2 / n)`` of it
+    (chi-square): a higher degree must beat a lower one by more than that to be worth its extra unknown.
     """
-    common = np.ones_like(next(iter(held.values()))[0], bool)
-    for r2, _v in held.values():
-        common &= np.isfinite(r2)
-    n = int(common.sum())
-    mse = {d: float(np.mean(r2[common])) if n else float("inf") for d, (r2, _v) in held.items()}
+    mse = {d: total / n if n else float("inf") for d, total in sums.items()}
     best = min(mse.values())
     limit = best * (1.0 + 2.0 * np.sqrt(2.0 / max(n, 1)))
     pick = min(d for d, m in mse.items() if m <= limit)
-    return pick, {"held_out_rms_mm": {str(d): float(np.sqrt(m)) for d, m in mse.items()}, "n_samples": n,
+    return pick, {"held_out_rms_mm": {str(d): float(np.sqrt(m)) for d, m in mse.items()}, "n_samples": int(n),
                   "pick": pick, "rule": "lowest degree within 2 standard errors of the best held-out mean square"}
+
+
+def _tiles(p_total: int):
+    for start in range(0, p_total, TILE_PIXELS):
+        yield slice(start, min(start + TILE_PIXELS, p_total))
 
 
 def fit_height_map(u: np.ndarray, sigma_u: np.ndarray, z, *, degree: int | None = None, positions=None,
                    k_sigma: float | None = K_SIGMA, design: dict | None = None, direction: str = "x") -> HeightMap:
     """Fit the per-pixel height map to a height sweep's decoded projector coordinates.
+
+    Pixels are fitted in tiles of :data:`TILE_PIXELS` (a bounded working set on a big sensor; the
+    robust scale is each tile's). The degree is chosen over the whole image, then every tile is
+    fitted with it on all positions, and the model's error is mapped over the image.
 
     Parameters
     ----------
@@ -303,63 +312,111 @@ def fit_height_map(u: np.ndarray, sigma_u: np.ndarray, z, *, degree: int | None 
     -------
     HeightMap
     """
-    u = np.asarray(u, float)
-    k_all, h, w = u.shape
+    k_all, h, w = np.shape(u)
     idx = np.arange(k_all) if positions is None else np.asarray(positions)
     z = np.asarray(z, float)[idx]
-    uf = u[idx].reshape(len(idx), -1)
-    sf = np.asarray(sigma_u, float)[idx].reshape(len(idx), -1)
-    mask = np.isfinite(uf) & np.isfinite(sf) & (sf > 0)
+    uf = np.asarray(u)[idx].reshape(len(idx), -1)
+    sf = np.asarray(sigma_u)[idx].reshape(len(idx), -1)
     folds = choice_folds(len(idx))
-    held = {d: _held_out(uf, sf, z, mask, d, folds, k_sigma) for d in (DEGREES if degree is None else (degree,))}
+    cands = DEGREES if degree is None else (int(degree),)
+    excess = {d: np.zeros((3, h * w)) for d in cands}  # per pixel: sum of x, of x^2, count (held out)
+    sums, n_common = {d: 0.0 for d in cands}, 0
+    for sl in _tiles(h * w):
+        ut, st, mask = _tile(uf, sf, sl)
+        held = {d: _held_out(ut, st, z, mask, d, folds, k_sigma) for d in cands}
+        common = np.logical_and.reduce([np.isfinite(r2) for r2, _v in held.values()])
+        n_common += int(common.sum())
+        for d, (r2, v) in held.items():
+            sums[d] += float(r2[common].sum())
+            ok = np.isfinite(r2)
+            x = np.where(ok, r2 - v, 0.0)
+            excess[d][:, sl] = x.sum(axis=0), (x * x).sum(axis=0), ok.sum(axis=0)
     if degree is None:
-        degree, choice = _choose_degree(held)
+        degree, choice = _choose_degree(sums, n_common)
         chosen_by = "held-out positions"
     else:
         choice, chosen_by = {"pick": int(degree)}, "user"
-    centre, scale, lo, hi = _normalise(uf, mask)
-    s = (uf - centre) / scale
-    fit = fit_degree(s, z, mask, sf, scale, degree, k_sigma)
-    noise_var = _EVAL_W @ _fit_noise_var(fit, np.broadcast_to(_EVAL_S[:, None], (len(_EVAL_S), h * w)))
-    r2, v = held[degree]
-    model_var, model_info = _model_variance(r2, v, (h, w))
-    return _height_map(fit, centre, scale, lo, hi, noise_var, model_var, (h, w), design or {}, direction,
-                       chosen_by, {"degree_choice": choice, "model_error": model_info})
+    model_var, model_info = _model_variance(excess[degree], (h, w))
+    out = _FlatMap.empty(h * w, degree)
+    for sl in _tiles(h * w):
+        ut, st, mask = _tile(uf, sf, sl)
+        out.fill(sl, ut, st, z, mask, degree, k_sigma)
+    return out.height_map(model_var, (h, w), design or {}, direction, chosen_by,
+                          {"degree_choice": choice, "model_error": model_info})
 
 
-def _model_variance(r2: np.ndarray, v: np.ndarray, shape) -> tuple[np.ndarray, dict]:
-    """The model's own error variance map (mm^2) from held-out residuals beyond their predicted noise."""
-    x = np.where(np.isfinite(r2), r2 - v, 0.0)
-    n = np.isfinite(r2).sum(axis=0).reshape(shape)
-    var, scale, info = model_variance_map(x.sum(axis=0).reshape(shape), n, 0.0,
-                                          excess_sq_sum=(x * x).sum(axis=0).reshape(shape))
+def _tile(uf: np.ndarray, sf: np.ndarray, sl: slice):
+    """One tile's ``u_p``, sigma (float64 copies, (K, T)) and valid samples."""
+    ut = np.asarray(uf[:, sl], float)
+    st = np.asarray(sf[:, sl], float)
+    with np.errstate(invalid="ignore"):
+        mask = np.isfinite(ut) & np.isfinite(st) & (st > 0)
+    return ut, st, mask
+
+
+def _model_variance(excess: np.ndarray, shape) -> tuple[np.ndarray, dict]:
+    """The model's own error variance map (mm^2) from held-out residuals beyond their predicted noise
+    (``excess``: (3, P) per pixel the sum of x = r^2 - predicted, of x^2, and their count)."""
+    var, scale, info = model_variance_map(excess[0].reshape(shape), excess[2].reshape(shape), 0.0,
+                                          excess_sq_sum=excess[1].reshape(shape))
     return var.reshape(-1), {"scale_px": scale, "mean_mm2": info.get("mean"), "resolved": info.get("resolved")}
 
 
-def _height_map(fit: HeightFit, centre, scale, lo, hi, noise_var, model_var, shape, design, direction,
-                chosen_by, provenance) -> HeightMap:
-    """The :class:`HeightMap` of a fit (flat arrays reshaped to the image)."""
-    h, w = shape
-    v = fit.valid
-    used = fit.used
-    n = used.sum(axis=0)
-    res = np.where(used, fit.residual, 0.0)
-    loo = np.where(used, fit.residual / np.maximum(1.0 - np.nan_to_num(fit.leverage), 1e-6), 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt((res ** 2).sum(axis=0) / n)
-        loo_rms = np.sqrt((loo ** 2).sum(axis=0) / n)
-    sigma = np.sqrt(noise_var + model_var)
+@dataclass
+class _FlatMap:
+    """A height map's per-pixel results over the flat image (P = H*W), filled tile by tile."""
 
-    def img(a, dtype=np.float32, fill=np.nan):
-        return np.where(v, a, fill).astype(dtype).reshape(h, w)
+    degree: int
+    centre: np.ndarray
+    scale: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    coef: np.ndarray
+    valid: np.ndarray
+    n: np.ndarray
+    n_rejected: np.ndarray
+    rms: np.ndarray
+    loo: np.ndarray
+    noise_var: np.ndarray
 
-    d = fit.degree
-    return HeightMap(
-        degree=d, direction=direction, u_center=img(centre, np.float64), u_scale=img(scale, np.float64),
-        p=np.where(v, fit.coef[:d + 1], np.nan).reshape(d + 1, h, w), q=np.where(v, fit.coef[d + 1:], np.nan).reshape(1, h, w),
-        valid=v.reshape(h, w), u_min=img(lo), u_max=img(hi), rms_z=img(rms), loo_z=img(loo_rms), sigma_z=img(sigma),
-        n_positions=np.where(v, n, 0).astype(np.uint16).reshape(h, w), design=dict(design), chosen_by=chosen_by,
-        sigma_model_z=img(np.sqrt(model_var)),
-        n_rejected=np.where(v, (np.isfinite(fit.residual) & ~used).sum(axis=0), 0).astype(np.uint16).reshape(h, w),
-        provenance=provenance,
-    )
+    @classmethod
+    def empty(cls, p_total: int, degree: int) -> "_FlatMap":
+        f = lambda: np.full(p_total, np.nan)  # noqa: E731
+        return cls(degree, f(), f(), f(), f(), np.full((degree + 2, p_total), np.nan), np.zeros(p_total, bool),
+                   np.zeros(p_total, int), np.zeros(p_total, int), f(), f(), f())
+
+    def fill(self, sl: slice, ut, st, z, mask, degree: int, k_sigma) -> None:
+        """Fit one tile on every position and keep its per-pixel results."""
+        centre, scale, lo, hi = _normalise(ut, mask)
+        fit = fit_degree((ut - centre) / scale, z, mask, st, scale, degree, k_sigma)
+        used = fit.used
+        n = used.sum(axis=0)
+        res = np.where(used, fit.residual, 0.0)
+        loo = np.where(used, fit.residual / np.maximum(1.0 - np.nan_to_num(fit.leverage), 1e-6), 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.rms[sl] = np.sqrt((res ** 2).sum(axis=0) / n)
+            self.loo[sl] = np.sqrt((loo ** 2).sum(axis=0) / n)
+        self.centre[sl], self.scale[sl], self.lo[sl], self.hi[sl] = centre, scale, lo, hi
+        self.coef[:, sl], self.valid[sl], self.n[sl] = fit.coef, fit.valid, n
+        self.n_rejected[sl] = (np.isfinite(fit.residual) & ~used).sum(axis=0)
+        grid = np.broadcast_to(_EVAL_S[:, None], (len(_EVAL_S), n.size))
+        self.noise_var[sl] = _EVAL_W @ _fit_noise_var(fit, grid)
+
+    def height_map(self, model_var, shape, design, direction, chosen_by, provenance) -> HeightMap:
+        """The :class:`HeightMap` (flat arrays reshaped to the image; NaN / 0 where invalid)."""
+        h, w = shape
+        v = self.valid
+        d = self.degree
+
+        def img(a, dtype=np.float32, fill=np.nan):
+            return np.where(v, a, fill).astype(dtype).reshape(h, w)
+
+        coef = np.where(v, self.coef, np.nan)
+        return HeightMap(
+            degree=d, direction=direction, u_center=img(self.centre, np.float64), u_scale=img(self.scale, np.float64),
+            p=coef[:d + 1].reshape(d + 1, h, w), q=coef[d + 1:].reshape(1, h, w), valid=v.reshape(h, w),
+            u_min=img(self.lo), u_max=img(self.hi), rms_z=img(self.rms), loo_z=img(self.loo),
+            sigma_z=img(np.sqrt(self.noise_var + model_var)), n_positions=img(self.n, np.uint16, 0),
+            design=dict(design), chosen_by=chosen_by, sigma_model_z=img(np.sqrt(model_var)),
+            n_rejected=img(self.n_rejected, np.uint16, 0), provenance=provenance,
+        )
