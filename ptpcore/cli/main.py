@@ -96,6 +96,7 @@ def cmd_calibrate(args) -> int:
     from ptpcore.run.session import new_session, save_session
 
     _check_calibrate_outputs(args)
+    _check_height_sweep(args.dataset_dir)
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
@@ -104,6 +105,17 @@ def cmd_calibrate(args) -> int:
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
+
+
+def _check_height_sweep(dataset_dir) -> None:
+    """A dataset's height sweep (``[projector]``, ``[height]``): every frame present and readable
+    (headers), before the long decode of the LCD sweep; nothing without one."""
+    from ptpcore.io.dataset import validate_dataset
+    from ptpcore.rig import load_rig
+
+    rig = load_rig(dataset_dir)
+    if rig.height is not None:
+        validate_dataset(dataset_dir, rig.height_rig(), check_design=False)
 
 
 def _check_calibrate_outputs(args) -> None:

@@ -224,7 +224,7 @@ def _scanner_design(camera_width: int) -> Projector:
     spans as many camera pixels.
     """
     scale = camera_width / 640.0
-    fine = 20.0 / min(scale, 1.0)
+    fine = round(20.0 / min(scale, 1.0), 1)  # one decimal: readable file names
     mid = float(np.sqrt(1280.0 * fine))
     from ptpcore.rig.rigfile import FringeDesign
 

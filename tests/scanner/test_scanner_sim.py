@@ -112,3 +112,17 @@ def test_cli_simulate_writes_a_scanner_dataset(tmp_path):
         assert spec.views == 1 and spec.projector == rig.projector
         assert (out / "scans" / name / "truth.h5").is_file()
     assert main(["simulate", "--preset", "scanner-mild", "--gray", "2", "--force", "-q", str(out)]) == 2
+
+
+def test_calibrate_names_a_missing_height_frame_before_decoding(tmp_path, capsys):
+    from ptpcore.cli.main import main
+
+    out = tmp_path / "ds"
+    assert main(["simulate", "--preset", "scanner-mild", "--width", "48", "-q", str(out)]) == 0
+    victim = sorted((out / "h007").glob("x_T*_n05.png"))[0]
+    victim.unlink()
+    capsys.readouterr()
+    assert main(["calibrate", str(out), "--out", str(tmp_path / "a.lut.h5"), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "h007/" + victim.name in err[0], err
+    assert not (tmp_path / "a.lut.h5").exists()
