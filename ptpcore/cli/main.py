@@ -492,6 +492,11 @@ def cmd_diff(args) -> int:
         print(f"  common mode {axis}       mean shift {c.shift_um:+.3f} µm, standard error {c.se_um:.3f} µm"
               f" ({c.n_blocks} blocks of {c.block_px} px): t = {c.t:+.2f}, limit {c.critical:.2f}"
               + (" FLAGGED" if c.flagged else ""))
+    if r.height is not None:
+        hd = r.height
+        print(f"  height map Z        {hd.n_pixels} common pixels: RMS {hd.rms_um:.3f} µm, 95th percentile"
+              f" {hd.p95_um:.3f} µm, max {hd.max_um:.3f} µm; predicted RMS {hd.predicted_rms_um:.3f} µm, observed /"
+              f" predicted {hd.ratio:.2f}; {100 * hd.fraction_beyond:.2f} % beyond tolerance")
     print(f"  verdict             {r.verdict_words()} (common-mode false-alarm rate {100 * r.common_false_alarm:g} %)")
     if args.json:
         with atomic_path(args.json) as tmp:

@@ -2,7 +2,8 @@
 
 - :func:`height_map_accuracy`: a height map at held-out heights, against the true ``u_p -> Z``;
 - :func:`scan_accuracy`: a reconstructed scan's points against the true surface, in mm and in units
-  of each point's predicted sigma along the surface normal.
+  of each point's predicted sigma along the surface normal;
+- :func:`diff_height_maps`: two height maps of one camera against their predicted sigmas (``ptp diff``).
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HeightAccuracy", "height_map_accuracy", "ScanAccuracy", "scan_accuracy", "VDI_LEAVE_OUT"]
+__all__ = ["HeightAccuracy", "height_map_accuracy", "ScanAccuracy", "scan_accuracy", "VDI_LEAVE_OUT",
+           "HeightDiff", "diff_height_maps", "N_HEIGHT_POINTS"]
 
 VDI_LEAVE_OUT = 0.003
 """VDI/VDE 2634-2 lets a fit leave out up to 0.3 % of its points."""
@@ -106,3 +108,83 @@ def scan_accuracy(result, obj, truth: dict) -> ScanAccuracy:
     return ScanAccuracy(int(dist.size), float(1e3 * np.sqrt(np.mean(dist ** 2))), float(np.sqrt(np.mean(zn ** 2))),
                         int(np.count_nonzero(np.abs(zn) > 4)), int(VDI_LEAVE_OUT * dist.size),
                         dist.size / max(lit, 1), dist, zn)
+
+
+N_HEIGHT_POINTS = 9
+"""Projector coordinates two height maps are compared at, evenly over each pixel's common u_p range."""
+
+
+@dataclass
+class HeightDiff:
+    """Two height maps of one camera compared (``ptp diff`` when both LUTs have ``/height``).
+
+    Per pixel valid in both, ``d`` is the RMS over :data:`N_HEIGHT_POINTS` projector coordinates of
+    the common ``u_p`` range of ``Z_A - Z_B``; the predicted difference is
+    ``sqrt(sigma_z,A^2 + sigma_z,B^2)``, as for X and Y (module :mod:`ptpcore.evaluate.diff`).
+
+    Attributes
+    ----------
+    diff, predicted : (H, W) float64, mm (NaN outside the common pixels)
+    common, beyond : (H, W) bool
+    n_pixels : int
+    rms_um, p95_um, max_um, predicted_rms_um, ratio, fraction_beyond : float
+    consistent : bool
+        At most ``max_fraction`` of the common pixels beyond the tolerance.
+    """
+
+    diff: np.ndarray
+    predicted: np.ndarray
+    common: np.ndarray
+    beyond: np.ndarray
+    n_pixels: int
+    rms_um: float
+    p95_um: float
+    max_um: float
+    predicted_rms_um: float
+    ratio: float
+    fraction_beyond: float
+    consistent: bool
+
+    def summary(self) -> dict:
+        """The numbers (no maps), for JSON."""
+        return {k: (float(v) if isinstance(v, (float, np.floating)) and np.isfinite(v) else
+                    (None if isinstance(v, (float, np.floating)) else v))
+                for k, v in (("n_pixels", self.n_pixels), ("rms_um", self.rms_um), ("p95_um", self.p95_um),
+                             ("max_um", self.max_um), ("predicted_rms_um", self.predicted_rms_um),
+                             ("ratio", self.ratio), ("fraction_beyond", self.fraction_beyond),
+                             ("verdict", "consistent" if self.consistent else "differ"))}
+
+
+def diff_height_maps(a, b, *, tolerance_sigma: float = 3.0, tolerance_um: float = 0.0,
+                     max_fraction: float = 0.01, n_points: int = N_HEIGHT_POINTS) -> HeightDiff:
+    """Compare two :class:`~ptpcore.io.heightmap.HeightMap` of one camera over their common ``u_p`` ranges.
+
+    Raises
+    ------
+    ValueError
+        Different cameras, or no pixel with a common ``u_p`` range.
+    """
+    if a.shape != b.shape:
+        raise ValueError(f"the height maps are of different cameras: {a.shape[1]}x{a.shape[0]} and"
+                         f" {b.shape[1]}x{b.shape[0]} px")
+    lo = np.fmax(a.u_min.astype(float), b.u_min.astype(float))
+    hi = np.fmin(a.u_max.astype(float), b.u_max.astype(float))
+    with np.errstate(invalid="ignore"):
+        common = a.valid & b.valid & (hi > lo)
+    if not common.any():
+        raise ValueError("the height maps have no pixel with a common u_p range")
+    sq = np.zeros(a.shape)
+    for f in np.linspace(0.0, 1.0, int(n_points)):
+        u = np.where(common, lo + f * (hi - lo), np.nan)
+        dz = a.evaluate(u).z - b.evaluate(u).z
+        sq += np.where(common, dz * dz, 0.0)
+    d = np.where(common, np.sqrt(sq / n_points), np.nan)
+    pred = np.where(common, np.sqrt(a.sigma_z.astype(float) ** 2 + b.sigma_z.astype(float) ** 2), np.nan)
+    tol = np.fmax(tolerance_sigma * pred, tolerance_um * 1e-3)
+    beyond = common & (d > tol)
+    dc, pc = 1e3 * d[common], 1e3 * pred[common]
+    rms, pred_rms = float(np.sqrt(np.mean(dc ** 2))), float(np.sqrt(np.mean(pc ** 2)))
+    frac = float(beyond.sum() / common.sum())
+    return HeightDiff(d, pred, common, beyond, int(common.sum()), rms, float(np.percentile(dc, 95)),
+                      float(dc.max()), pred_rms, rms / pred_rms if pred_rms > 0 else float("nan"), frac,
+                      frac <= max_fraction)
