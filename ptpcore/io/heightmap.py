@@ -71,6 +71,10 @@ class HeightMap:
         Samples the robust fit left out.
     provenance : dict
         JSON-able: the degree choice's held-out errors, the model error's estimate.
+    camera_noise : (2,) float or None
+        The camera's noise as the height sweep measured it: ``read_var`` (DN^2) and ``gain`` (DN),
+        ``var = read_var + gain * level`` (attributes ``camera_noise_read_var``, ``camera_noise_gain``):
+        a scan's own frames, a few hundred pixels of an object, measure it poorly.
     """
 
     degree: int
@@ -91,6 +95,7 @@ class HeightMap:
     sigma_model_z: np.ndarray | None = None
     n_rejected: np.ndarray | None = None
     provenance: dict = field(default_factory=dict)
+    camera_noise: tuple[float, float] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -133,6 +138,8 @@ def write_height_group(parent, hm: HeightMap) -> None:
         g.attrs[key] = val
     if hm.provenance:
         g.attrs["provenance"] = json.dumps(hm.provenance)
+    if hm.camera_noise is not None:
+        g.attrs["camera_noise_read_var"], g.attrs["camera_noise_gain"] = (float(v) for v in hm.camera_noise)
     create_compressed(g, "u_center", np.asarray(hm.u_center, np.float64))
     create_compressed(g, "u_scale", np.asarray(hm.u_scale, np.float64))
     create_compressed(g, "p", np.asarray(hm.p, np.float64))
@@ -190,6 +197,12 @@ def read_height_group(rd, shape: tuple[int, int]) -> HeightMap:
                        if "height/quality/sigma_model_z" in rd.group else None),
         n_rejected=rd.array("height/quality/n_rejected", 2) if "height/quality/n_rejected" in rd.group else None,
     )
+    if "camera_noise_read_var" in rd.group["height"].attrs:
+        noise = (rd.attr("height", "camera_noise_read_var", float), rd.attr("height", "camera_noise_gain", float))
+        if min(noise) < 0:
+            raise rd.fail(f"attributes 'camera_noise_read_var' and 'camera_noise_gain' of {rd.name('height')}"
+                          f" must not be negative, got {noise}")
+        hm.camera_noise = noise
     prov = rd.group["height"].attrs.get("provenance")
     if prov is not None:
         try:

@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from ptpcore.decode.noise import NoiseAccumulator
+from ptpcore.decode.noise import NoiseAccumulator, NoiseModel
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.errors import ConfigError, DatasetError
 from ptpcore.fit.height import fit_height_map
@@ -45,6 +45,8 @@ class ProjectorDecode:
     reasons : (K, H, W) uint8
         The decoder's reason bits (0 valid).
     noise_source : str
+    noise : NoiseModel or None
+        The camera noise model ``sigma_u`` came from (None: the neighbourhood's spread).
     """
 
     z_mm: np.ndarray
@@ -52,14 +54,17 @@ class ProjectorDecode:
     sigma_u: np.ndarray
     reasons: np.ndarray
     noise_source: str
+    noise: NoiseModel | None = None
 
 
 def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progress: Progress | None = None,
-                     ) -> ProjectorDecode:
+                     noise: NoiseModel | None = None) -> ProjectorDecode:
     """Decode ``u_p`` at every position of a projector rig's frames (:meth:`ptpcore.rig.Rig.height_rig`).
 
     The noise model is measured over all positions (the harmonic-free N-step residuals, as the LCD
-    sweep's); ``sigma_u`` follows from it, the finest level's background and modulation.
+    sweep's), unless one is given (a scan: the height sweep's, measured on every pixel of the
+    plate, where an object's few hundred pixels bias a fit weighted by their own scatter low);
+    ``sigma_u`` follows from it, the finest level's background and modulation.
 
     Raises
     ------
@@ -75,7 +80,7 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
     reasons = np.zeros((k_total, h, w), np.uint8)
     bg = np.zeros((k_total, h, w), np.float32)
     mod = np.zeros((k_total, h, w), np.float32)
-    noise = NoiseAccumulator(rig.camera.max_level)
+    accumulated = NoiseAccumulator(rig.camera.max_level)
     fallback = []
     with contextlib.closing(decode_positions(source, range(k_total), options)) as decoded:
         for k in range(k_total):
@@ -90,14 +95,14 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
             part = pos.info.get("noise_samples", {}).get("x")
             if part is not None:
                 sub = valid[part["rows"]][:, part["cols"]].ravel()
-                noise.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
+                accumulated.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
             used = pos.info.get("sigma", {}).get("x")
             if used is not None:
                 fallback.append(float(np.nanmedian(used)) if np.ndim(used) else float(used))
     if not np.any(np.isfinite(u)):
         raise DatasetError("no pixel decodes the projector's coordinate at any position")
     f = rig.fringes
-    model = noise.model()
+    model = noise if noise is not None else accumulated.model()
     sigma_u = np.full((k_total, h, w), np.nan, np.float32)
     if model is not None:
         for k in range(k_total):
@@ -114,7 +119,7 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
     sigma_u[~np.isfinite(u)] = np.nan
     if progress:
         progress(1.0, "projector decoded")
-    return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, sigma_u, reasons, source_name)
+    return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, sigma_u, reasons, source_name, model)
 
 
 def calibrate_height(dataset_dir, *, degree: int | None = None, positions=None,
@@ -149,6 +154,8 @@ def calibrate_height(dataset_dir, *, degree: int | None = None, positions=None,
     hm = fit_height_map(decoded.u, decoded.sigma_u, decoded.z_mm, degree=degree, positions=positions,
                         design=rig.projector.design_attrs, direction="x")
     hm.provenance["noise_source"] = decoded.noise_source
+    if decoded.noise is not None:
+        hm.camera_noise = (decoded.noise.read_var, decoded.noise.gain)
     return hm
 
 
@@ -235,7 +242,8 @@ def reconstruct(scan_dir, lut, *, options: DecodeOptions = DecodeOptions(),
         raise ConfigError(f"{where}: camera {spec.camera.width}x{spec.camera.height}, but the LUT's is"
                           f" {lut.shape[1]}x{lut.shape[0]}")
     check_scan_design(spec.projector.design_attrs, hm.design, where)
-    dec = decode_projector(DatasetSource(folder, rig=spec.rig()), options=options, progress=progress)
+    noise = None if hm.camera_noise is None else NoiseModel(*hm.camera_noise, source="height sweep")
+    dec = decode_projector(DatasetSource(folder, rig=spec.rig()), options=options, progress=progress, noise=noise)
     return [_points(dec.u[k], dec.sigma_u[k], hm, lut) for k in range(spec.views)]
 
 

@@ -45,6 +45,7 @@ def scanner(tmp_path_factory):
     sr = ScannerRig(rig, sim, sc, seed=4)
     dec = decode_projector(HeightSweepSource(sr))
     hm = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, design=rig.projector.design_attrs)
+    hm.camera_noise = (dec.noise.read_var, dec.noise.gain)  # as calibrate_height keeps it
     lut = _exact_lut(sr, hm)
     save_lut(lut, folder / "scanner.lut.h5")
     for i, (name, obj) in enumerate(default_objects(rig).items()):
@@ -63,6 +64,19 @@ def test_points_lie_on_the_true_surface_within_their_sigma(scanner, name):
     assert acc.n_beyond_4 <= acc.allowed_out, (acc.n_beyond_4, acc.allowed_out)
     # the points' own sigma along Z is the decoded u_p's noise through the map plus the map's sigma
     assert np.all(res.cloud.sigma_z > 0) and np.all(np.isfinite(res.cloud.sigma_x))
+
+
+def test_scans_decode_within_the_sweeps_noise_model(scanner):
+    """A scan's u_p against the exact u_p of the true surface point: within the sigma the height sweep's
+    camera noise model predicts (RMS(error / sigma_u) in the honesty band; an object's own few hundred
+    pixels measure the noise poorly)."""
+    folder, sr, lut = scanner
+    for name in ("sphere", "ballbar", "plane"):
+        res = reconstruct(folder / name, lut)[0]
+        _obj, truth = load_scan_truth(folder / name)
+        ok = np.isfinite(res.u)
+        err = (res.u - sr.project(truth["xyz"])[0])[ok] / res.sigma_u[ok]
+        assert 0.8 <= float(np.sqrt(np.mean(err ** 2))) <= 1.25, name
 
 
 def test_every_pixel_both_maps_cover_has_a_point(scanner):
