@@ -197,3 +197,14 @@ def test_a_scan_of_several_views_writes_one_cloud_per_view(scanner, tmp_path, ca
     sizes = [np.load(tmp_path / f"cloud.view{i:03d}.npy").size for i in range(2)]
     assert 0 < sizes[0] < sizes[1]  # the sphere is smaller than the plane
     assert not out.exists()
+
+
+def test_inspect_and_diff_report_the_height_map(scanner, capsys):
+    folder, _sr, lut = scanner
+    path = str(folder / "scanner.lut.h5")
+    assert main(["inspect", path]) == 0
+    out = capsys.readouterr().out
+    assert f"numerator degree {lut.height.degree}" in out and "predicted sigma Z" in out
+    assert main(["diff", path, path, "--tolerance-um", "1"]) == 0
+    out = capsys.readouterr().out
+    assert f"height map Z        {int(lut.height.valid.sum())} common pixels: RMS 0.000 µm" in out
