@@ -71,7 +71,7 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
     DatasetError
         No pixel valid at any position.
     """
-    from ptpcore.run.pipeline import _coordinate_sigma, decode_positions
+    from ptpcore.run.pipeline import decode_positions
 
     rig: Rig = source.rig
     k_total = rig.stage.n_positions
@@ -101,25 +101,33 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
                 fallback.append(float(np.nanmedian(used)) if np.ndim(used) else float(used))
     if not np.any(np.isfinite(u)):
         raise DatasetError("no pixel decodes the projector's coordinate at any position")
-    f = rig.fringes
     model = noise if noise is not None else accumulated.model()
-    sigma_u = np.full((k_total, h, w), np.nan, np.float32)
-    if model is not None:
-        for k in range(k_total):
-            rows = _coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
-                                     f.steps_of("x")[-1], f.amplitude, f.periods("x")[-1])
-            sigma_u[k] = rows(0, h)
-        source_name = model.source
-    elif fallback:
-        sigma_u[:] = float(np.median(fallback))
-        source_name = "neighbourhood"
-    else:
-        raise DatasetError("the projector's frames give no noise estimate (no level of 5 steps or more,"
-                           " and no neighbourhood to measure it from)")
+    sigma_u, source_name = _sigma_u(rig, model, bg, mod, fallback)
     sigma_u[~np.isfinite(u)] = np.nan
     if progress:
         progress(1.0, "projector decoded")
     return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, sigma_u, reasons, source_name, model)
+
+
+def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray, fallback: list):
+    """Predicted 1-sigma of ``u_p`` (K, H, W) float32 from the noise model and the finest level's
+    background and modulation (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD sweep's), or
+    the neighbourhood's spread without a model; and where it came from."""
+    from ptpcore.run.pipeline import _coordinate_sigma
+
+    f = rig.fringes
+    sigma_u = np.full(bg.shape, np.nan, np.float32)
+    if model is not None:
+        for k in range(bg.shape[0]):
+            rows = _coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
+                                     f.steps_of("x")[-1], f.amplitude, f.periods("x")[-1])
+            sigma_u[k] = rows(0, bg.shape[1])
+        return sigma_u, model.source
+    if fallback:
+        sigma_u[:] = float(np.median(fallback))
+        return sigma_u, "neighbourhood"
+    raise DatasetError("the projector's frames give no noise estimate (no level of 5 steps or more,"
+                       " and no neighbourhood to measure it from)")
 
 
 def calibrate_height(dataset_dir, *, degree: int | None = None, positions=None,

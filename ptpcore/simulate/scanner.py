@@ -30,10 +30,10 @@ import numpy as np
 
 from ptpcore.errors import ConfigError
 from ptpcore.io.lutfile import write_hdf5_atomic
-from ptpcore.rig.rigfile import HeightSweep, Projector, Rig, ScanSpec, projector_rig, save_rig, scan_to_toml
+from ptpcore.rig.rigfile import (FringeDesign, HeightSweep, Projector, Rig, ScanSpec, format_period, projector_rig,
+                                 save_rig, scan_to_toml)
 from ptpcore.decode.patterns import fringe_values
-from ptpcore.simulate.virtual_rig import (SimSettings, VirtualRig, _period_key, _write_image, preset, scale_rig,
-                                          save_truth)
+from ptpcore.simulate.virtual_rig import SimSettings, VirtualRig, _period_key, _write_image, preset, scale_rig
 from ptpcore.atomic import write_text_atomic
 
 __all__ = ["ProjectorSettings", "ScannerSettings", "ScanObject", "ScannerRig", "SCANNER_PRESETS",
@@ -226,8 +226,6 @@ def _scanner_design(camera_width: int) -> Projector:
     scale = camera_width / 640.0
     fine = round(20.0 / min(scale, 1.0), 1)  # one decimal: readable file names
     mid = float(np.sqrt(1280.0 * fine))
-    from ptpcore.rig.rigfile import FringeDesign
-
     return Projector(1280, 800, FringeDesign(("x",), (1280.0, round(mid, 1), fine), (4, 4, 8), 127.5, 100.0))
 
 
@@ -410,7 +408,6 @@ class ScannerRig:
 
     def plate_point(self, o: np.ndarray, d: np.ndarray, k: int) -> np.ndarray:
         """Where rays meet the plate at sweep height ``k``: its true height, tilt and bow (world mm)."""
-        s = self.scanner
         z0 = self.plate_z_true[k]
         z = np.full(o.shape[:-1], z0)
         for _ in range(4):  # the plate's departure from Z = z0 is microns: a few fixed-point steps
@@ -608,7 +605,7 @@ def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, im
     template = "{dir}_T{period}_n{step:02d}" + image_ext
     spec = ScanSpec(sr.rig.camera, sr.rig.projector, template)
     for (d, _j, t, n, big_n), img in sr.scan_frames(obj, scan_id):
-        _write_image(out / template.format(dir=d, period=_fmt(t), step=n), img, image_ext)
+        _write_image(out / template.format(dir=d, period=format_period(t), step=n), img, image_ext)
     truth = sr.scan_truth(obj)
 
     def fill(f) -> None:
@@ -622,12 +619,6 @@ def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, im
     write_hdf5_atomic(out / SCAN_TRUTH_FILE, fill)
     write_text_atomic(out / "scan.toml", scan_to_toml(spec))  # last: a folder without it is incomplete
     return out
-
-
-def _fmt(t):
-    from ptpcore.rig.rigfile import format_period
-
-    return format_period(t)
 
 
 def simulate_scanner_dataset(out_dir, rig: Rig, sim: SimSettings, scanner: ScannerSettings, seed: int = 0,
