@@ -315,8 +315,9 @@ def fit_height_map(u: np.ndarray, sigma_u: np.ndarray, z, *, degree: int | None 
     k_all, h, w = np.shape(u)
     idx = np.arange(k_all) if positions is None else np.asarray(positions)
     z = np.asarray(z, float)[idx]
-    uf = np.asarray(u)[idx].reshape(len(idx), -1)
-    sf = np.asarray(sigma_u)[idx].reshape(len(idx), -1)
+    # views (a spilled decode's memory maps stay on disk); each tile reads its pixels of the positions
+    uf = _positions(u, idx)
+    sf = _positions(sigma_u, idx)
     folds = choice_folds(len(idx))
     cands = DEGREES if degree is None else (int(degree),)
     excess = {d: np.zeros((3, h * w)) for d in cands}  # per pixel: sum of x, of x^2, count (held out)
@@ -345,7 +346,19 @@ def fit_height_map(u: np.ndarray, sigma_u: np.ndarray, z, *, degree: int | None 
                           {"degree_choice": choice, "model_error": model_info})
 
 
-def _tile(uf: np.ndarray, sf: np.ndarray, sl: slice):
+class _positions:
+    """Some positions of a ``(K, H, W)`` array, read by pixel tiles: ``[:, sl]`` gives ``(K', T)``."""
+
+    def __init__(self, a, idx: np.ndarray):
+        self.flat = np.asarray(a).reshape(np.shape(a)[0], -1)  # a view, also of a memory map
+        self.idx = idx
+
+    def __getitem__(self, key) -> np.ndarray:
+        _all, sl = key
+        return self.flat[self.idx, sl]
+
+
+def _tile(uf, sf, sl: slice):
     """One tile's ``u_p``, sigma (float64 copies, (K, T)) and valid samples."""
     ut = np.asarray(uf[:, sl], float)
     st = np.asarray(sf[:, sl], float)

@@ -57,29 +57,46 @@ class ProjectorDecode:
     noise: NoiseModel | None = None
 
 
+def _position_arrays(k: int, shape, spill: bool) -> dict:
+    """The decode's ``(K, H, W)`` arrays: in memory, or as maps of one temporary file
+    (:class:`ptpcore.store.SpillStore`: reserved up front, gone with the arrays) on a big sensor."""
+    fields = {"u": np.float32, "sigma_u": np.float32, "bg": np.float32, "mod": np.float32, "reasons": np.uint8}
+    fill = {"u": np.nan, "sigma_u": np.nan, "bg": 0, "mod": 0, "reasons": 0}
+    if not spill:
+        return {name: np.full((k, *shape), fill[name], dt) for name, dt in fields.items()}
+    from ptpcore.store import SpillStore
+
+    arrays = SpillStore(k, shape, fields, fill).arrays()
+    for name, a in arrays.items():
+        a[...] = fill[name]
+    return arrays
+
+
 def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progress: Progress | None = None,
-                     noise: NoiseModel | None = None) -> ProjectorDecode:
+                     noise: NoiseModel | None = None, spill: bool | None = None) -> ProjectorDecode:
     """Decode ``u_p`` at every position of a projector rig's frames (:meth:`ptpcore.rig.Rig.height_rig`).
 
     The noise model is measured over all positions (the harmonic-free N-step residuals, as the LCD
     sweep's), unless one is given (a scan: the height sweep's, measured on every pixel of the
     plate, where an object's few hundred pixels bias a fit weighted by their own scatter low);
-    ``sigma_u`` follows from it, the finest level's background and modulation.
+    ``sigma_u`` follows from it, the finest level's background and modulation. ``spill``: keep the
+    ``(K, H, W)`` arrays in a temporary file (default: when they would pass
+    :data:`ptpcore.run.pipeline.SPILL_BYTES`, as the LCD sweep's samples do).
 
     Raises
     ------
     DatasetError
         No pixel valid at any position.
     """
-    from ptpcore.run.pipeline import decode_positions
+    from ptpcore.run.pipeline import SPILL_BYTES, decode_positions
 
     rig: Rig = source.rig
     k_total = rig.stage.n_positions
     h, w = rig.camera.shape
-    u = np.full((k_total, h, w), np.nan, np.float32)
-    reasons = np.zeros((k_total, h, w), np.uint8)
-    bg = np.zeros((k_total, h, w), np.float32)
-    mod = np.zeros((k_total, h, w), np.float32)
+    if spill is None:
+        spill = k_total * h * w * 17 > SPILL_BYTES
+    arrays = _position_arrays(k_total, (h, w), spill)
+    u, reasons, bg, mod = arrays["u"], arrays["reasons"], arrays["bg"], arrays["mod"]
     accumulated = NoiseAccumulator(rig.camera.max_level)
     fallback = []
     with contextlib.closing(decode_positions(source, range(k_total), options)) as decoded:
@@ -102,30 +119,33 @@ def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progre
     if not np.any(np.isfinite(u)):
         raise DatasetError("no pixel decodes the projector's coordinate at any position")
     model = noise if noise is not None else accumulated.model()
-    sigma_u, source_name = _sigma_u(rig, model, bg, mod, fallback)
-    sigma_u[~np.isfinite(u)] = np.nan
+    sigma_u = arrays["sigma_u"]
+    source_name = _sigma_u(rig, model, bg, mod, fallback, sigma_u)
+    for k in range(k_total):
+        sigma_u[k][~np.isfinite(u[k])] = np.nan
+    del arrays, bg, mod
     if progress:
         progress(1.0, "projector decoded")
     return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, sigma_u, reasons, source_name, model)
 
 
-def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray, fallback: list):
-    """Predicted 1-sigma of ``u_p`` (K, H, W) float32 from the noise model and the finest level's
-    background and modulation (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD sweep's), or
-    the neighbourhood's spread without a model; and where it came from."""
+def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray, fallback: list,
+             sigma_u: np.ndarray) -> str:
+    """Predicted 1-sigma of ``u_p`` into ``sigma_u`` (K, H, W) from the noise model and the finest
+    level's background and modulation (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD
+    sweep's), or the neighbourhood's spread without a model; returns where it came from."""
     from ptpcore.run.pipeline import _coordinate_sigma
 
     f = rig.fringes
-    sigma_u = np.full(bg.shape, np.nan, np.float32)
     if model is not None:
         for k in range(bg.shape[0]):
             rows = _coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
                                      f.steps_of("x")[-1], f.amplitude, f.periods("x")[-1])
             sigma_u[k] = rows(0, bg.shape[1])
-        return sigma_u, model.source
+        return model.source
     if fallback:
         sigma_u[:] = float(np.median(fallback))
-        return sigma_u, "neighbourhood"
+        return "neighbourhood"
     raise DatasetError("the projector's frames give no noise estimate (no level of 5 steps or more,"
                        " and no neighbourhood to measure it from)")
 

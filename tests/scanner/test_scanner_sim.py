@@ -126,3 +126,18 @@ def test_calibrate_names_a_missing_height_frame_before_decoding(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "h007/" + victim.name in err[0], err
     assert not (tmp_path / "a.lut.h5").exists()
+
+
+def test_a_spilled_decode_equals_the_one_in_memory(mild):
+    """The big-sensor path (the (K, H, W) arrays in a temporary file) decodes and fits bit for bit alike."""
+    from ptpcore.fit.height import fit_height_map
+
+    a = decode_projector(HeightSweepSource(mild), spill=False)
+    b = decode_projector(HeightSweepSource(mild), spill=True)
+    assert isinstance(b.u, np.memmap) and not isinstance(a.u, np.memmap)
+    np.testing.assert_array_equal(a.u, b.u)
+    np.testing.assert_array_equal(a.sigma_u, b.sigma_u)
+    ha = fit_height_map(a.u, a.sigma_u, a.z_mm, degree=1, positions=[0, 2, 4, 6, 8, 10])
+    hb = fit_height_map(b.u, b.sigma_u, b.z_mm, degree=1, positions=[0, 2, 4, 6, 8, 10])
+    np.testing.assert_array_equal(ha.p, hb.p)
+    np.testing.assert_array_equal(ha.sigma_z, hb.sigma_z)
