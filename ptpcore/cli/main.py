@@ -34,6 +34,8 @@ def cmd_simulate(args) -> int:
     from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
 
     check_output_folder(args.out_dir, force=args.force)
+    if args.preset.startswith("scanner-"):
+        return _simulate_scanner(args)
     rig, settings = preset(args.preset)
     if args.width or args.height or args.positions:
         # Same field of view and lens with another sensor size (see scaled_preset).
@@ -69,10 +71,32 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _simulate_scanner(args) -> int:
+    """``ptp simulate --preset scanner-*``: the LCD sweep, the plate's height sweep and object scans."""
+    from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
+
+    for flag in ("repeat", "drift_um", "gray", "gray_inverse", "references", "heterodyne", "heterodyne_steps",
+                 "positions"):
+        if getattr(args, flag):
+            raise PtpError(f"--{flag.replace('_', '-')} is not available with the scanner presets")
+    rig, sim, scanner = scanner_preset(args.preset, args.width, args.height)
+    bar = progress_bar(args)
+    try:
+        out = simulate_scanner_dataset(args.out_dir, rig, sim, scanner, seed=args.seed, progress=bar,
+                                       image_ext=".tif" if args.tiff else ".png")
+    finally:
+        bar.close()
+    print(f"wrote a {rig.camera.width}x{rig.camera.height} scanner dataset ({args.preset} preset, seed {args.seed}):"
+          f" {rig.stage.n_positions} LCD positions, {len(rig.height.z_mm)} plate heights, scans in"
+          f" {out / 'scans'}, truth in truth.h5, scanner_truth.h5 and each scan's truth.h5, to {out}")
+    return 0
+
+
 def cmd_calibrate(args) -> int:
     from ptpcore.run.session import new_session, save_session
 
     _check_calibrate_outputs(args)
+    _check_height_sweep(args.dataset_dir)
     # Validates rig.toml, the design and every image in one pass, before the long decode.
     session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
                           stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
@@ -81,6 +105,17 @@ def cmd_calibrate(args) -> int:
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
+
+
+def _check_height_sweep(dataset_dir) -> None:
+    """A dataset's height sweep (``[projector]``, ``[height]``): every frame present and readable
+    (headers), before the long decode of the LCD sweep; nothing without one."""
+    from ptpcore.io.dataset import validate_dataset
+    from ptpcore.rig import load_rig
+
+    rig = load_rig(dataset_dir)
+    if rig.height is not None:
+        validate_dataset(dataset_dir, rig.height_rig(), check_design=False)
 
 
 def _check_calibrate_outputs(args) -> None:
@@ -126,6 +161,14 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
     if drift is not None:
         session.lut.provenance["drift"] = drift.to_json()
     release_free_memory()  # the fit's transients, before the LUT is written and the residuals computed
+    if session.rig.height is not None and session.dataset:
+        from ptpcore.run.scanner import calibrate_height
+
+        bar = progress_bar(args)
+        try:  # the scanner's height sweep (METHOD.md section 9): the map goes into the LUT's /height
+            session.lut.height = calibrate_height(session.dataset, options=session.options, progress=bar)
+        finally:
+            bar.close()
     save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
     if drift is not None:
@@ -226,7 +269,41 @@ def _lut_summary(lut, path) -> str:
         lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
     lines += _choice_lines(lut)
     lines += _robust_lines(lut)
+    lines += _height_lines(lut)
     return "\n".join(lines)
+
+
+def _height_lines(lut) -> list[str]:
+    """``ptp inspect``'s lines on the scanner's height map (``/height``), none without one."""
+    hm = lut.height
+    if hm is None:
+        return []
+    v = hm.valid
+    d = hm.design
+    lines = [f"  height map          rational, numerator degree {hm.degree} ({hm.chosen_by}), u_p from projector"
+             f" direction {hm.direction}, {d.get('width')}x{d.get('height')} px, periods"
+             f" {', '.join(f'{t:g}' for t in d.get('periods_px', []))} px",
+             f"    valid pixels      {v.sum()} ({100 * v.mean():.1f} %)"]
+    if not v.any():
+        return lines
+    npos = hm.n_positions[v]
+    lines.append(f"    heights per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
+    for name, label in (("rms_z", "fit residual RMS Z"), ("loo_z", "leave-one-out RMS Z"),
+                        ("sigma_z", "predicted sigma Z"), ("sigma_model_z", "  model part Z")):
+        arr = getattr(hm, name)
+        if arr is None:
+            continue
+        arr = arr[v][np.isfinite(arr[v])]
+        if arr.size:
+            lines.append(f"    {label:<20}median {1e3 * np.median(arr):.2f} µm, 95th percentile"
+                         f" {1e3 * np.percentile(arr, 95):.2f} µm")
+    choice = hm.provenance.get("degree_choice", {}).get("held_out_rms_mm")
+    if choice:
+        lines.append("    degree choice     held-out RMS " + ", ".join(f"D={k}: {1e3 * val:.2f} µm"
+                                                                    for k, val in choice.items()))
+    if hm.n_rejected is not None and hm.n_rejected.any():
+        lines.append(f"    robust fit        {int(hm.n_rejected.sum())} samples left out")
+    return lines
 
 
 def cmd_decode(args) -> int:
@@ -342,6 +419,35 @@ def cmd_apply(args) -> int:
     return 0
 
 
+def cmd_reconstruct(args) -> int:
+    """``ptp reconstruct SCAN_DIR --lut F.lut.h5 --out cloud.ply``: the scanner's point cloud."""
+    from ptpcore.io.lutfile import load_lut
+    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES, write_point_cloud
+    from ptpcore.run.scanner import reconstruct
+
+    out = Path(args.out)
+    if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
+        raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
+    check_output_file(out, "points", force=args.force, inputs=[args.lut, args.scan_dir])
+    lut = load_lut(args.lut)
+    if lut.height is None:
+        raise ValueError(f"{args.lut}: the LUT has no height map (/height); calibrate a dataset with a height"
+                         " sweep ([projector] and [height] in rig.toml)")
+    bar = progress_bar(args)
+    try:
+        views = reconstruct(args.scan_dir, lut, progress=bar)
+    finally:
+        bar.close()
+    for i, view in enumerate(views):
+        path = out if len(views) == 1 else out.with_name(f"{out.stem}.view{i:03d}{out.suffix}")
+        if view.cloud.n_points == 0:
+            raise ValueError(f"{args.scan_dir}: no point in view {i} ({view.cloud.summary()})")
+        write_point_cloud(view.cloud, path, comment=f"ptp reconstruct {Path(args.scan_dir).name} --lut"
+                                                    f" {Path(args.lut).name}")
+        print(f"{path}: {view.cloud.summary()}")
+    return 0
+
+
 def _height_argument(text: str, shape) -> tuple[object, str]:
     """``--z``: a height map file, or one height (mm) for every pixel."""
     from ptpcore.io.pointcloud import read_height_map
@@ -386,6 +492,11 @@ def cmd_diff(args) -> int:
         print(f"  common mode {axis}       mean shift {c.shift_um:+.3f} µm, standard error {c.se_um:.3f} µm"
               f" ({c.n_blocks} blocks of {c.block_px} px): t = {c.t:+.2f}, limit {c.critical:.2f}"
               + (" FLAGGED" if c.flagged else ""))
+    if r.height is not None:
+        hd = r.height
+        print(f"  height map Z        {hd.n_pixels} common pixels: RMS {hd.rms_um:.3f} µm, 95th percentile"
+              f" {hd.p95_um:.3f} µm, max {hd.max_um:.3f} µm; predicted RMS {hd.predicted_rms_um:.3f} µm, observed /"
+              f" predicted {hd.ratio:.2f}; {100 * hd.fraction_beyond:.2f} % beyond tolerance")
     print(f"  verdict             {r.verdict_words()} (common-mode false-alarm rate {100 * r.common_false_alarm:g} %)")
     if args.json:
         with atomic_path(args.json) as tmp:
@@ -546,6 +657,7 @@ def build_parser() -> OneLineParser:
     _add_calibrate(sub)
     _add_resume_inspect(sub)
     _add_compare(sub)
+    _add_reconstruct(sub)
     _add_diff_parser(sub)
     _add_demo(sub)
     from ptpcore.cli.capture import add_parser as add_capture_parser
@@ -555,12 +667,15 @@ def build_parser() -> OneLineParser:
 
 
 def _add_simulate(sub) -> None:
+    from ptpcore.simulate.scanner import SCANNER_PRESETS
     from ptpcore.simulate.virtual_rig import PRESETS
 
     s = sub.add_parser("simulate", help="render a ptp-dataset folder (/1, or /2 when the design needs it) with the virtual rig",
                        description="Render a ptp-dataset/1 or /2 folder (rig.toml, images, truth.h5) with the virtual rig.")
     s.add_argument("out_dir", metavar="OUT_DIR")
-    s.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
+    s.add_argument("--preset", default="realistic", choices=list(PRESETS) + list(SCANNER_PRESETS),
+                   help="rig preset (default realistic); scanner-mild and scanner-rough add the scanner's projector,"
+                        " its height sweep and object scans (ptp-dataset/2 [projector], [height]; scans/*)")
     s.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
     s.add_argument("--width", type=positive_int, help="camera width in pixels, same field of view"
                                                       " (default: the preset's)")
@@ -674,6 +789,23 @@ def _add_resume_inspect(sub) -> None:
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
     a.add_argument("--force", action="store_true", help="replace an existing point cloud")
     a.set_defaults(func=cmd_apply)
+
+def _add_reconstruct(sub) -> None:
+    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES  # noqa: F401  (the suffixes the help names)
+
+    r = sub.add_parser("reconstruct", help="scan folder + LUT with a height map -> point cloud (PLY, .npy or .h5)",
+                       description="Decode a scan (ptp-scan/1) with the scanner's projector coordinate, take each"
+                                   " pixel's Z from the LUT's height map and (X, Y) from its XY LUT at that Z;"
+                                   " each point with its per-axis 1-sigma. Pixels without a decoded coordinate,"
+                                   " or outside either map's calibrated range, have no point (never extrapolated).")
+    r.add_argument("scan_dir", metavar="SCAN_DIR", type=existing_dir)
+    r.add_argument("--lut", required=True, metavar="F.lut.h5", type=existing_file)
+    r.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
+                   help="point cloud; a scan of several views writes OUT.view000.ply, ...")
+    r.add_argument("--force", action="store_true", help="replace an existing point cloud")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_reconstruct)
+
 
 def _add_compare(sub) -> None:
     from ptpcore.io.lutfile import MODELS

@@ -263,6 +263,8 @@ class LutDiff:
     common_y: CommonMode | None = None
     common_false_alarm: float = COMMON_FALSE_ALARM
     models: tuple = ("", "")
+    height: object | None = None
+    """:class:`ptpcore.evaluate.scanner.HeightDiff` when both LUTs have a height map (``/height``)."""
 
     @property
     def pixels_consistent(self) -> bool:
@@ -286,7 +288,8 @@ class LutDiff:
 
     def verdict_words(self) -> str:
         """``consistent`` or ``DIFFER``, with what flagged it and whether the models match."""
-        why = [w for w, on in (("per pixel", not self.pixels_consistent), ("common mode", self.common_flagged)) if on]
+        why = [w for w, on in (("per pixel", not self.pixels_consistent), ("common mode", self.common_flagged),
+                               ("height map", self.height is not None and not self.height.consistent)) if on]
         text = "consistent" if self.consistent else f"DIFFER ({', '.join(why)})"
         if not self.like_with_like:
             text += (f"; unlike models ({self.models[0]} vs {self.models[1]}): part of any difference is the"
@@ -307,6 +310,7 @@ class LutDiff:
                 "common_false_alarm_rate": self.common_false_alarm,
                 "common_mode_verdict": "differ" if self.common_flagged else "consistent",
                 "models": list(self.models), "like_with_like": self.like_with_like,
+                **({"height": self.height.summary()} if self.height is not None else {}),
                 "verdict": "consistent" if self.consistent else "differ"}
 
     def histogram(self, bins: int = 50) -> tuple[np.ndarray, np.ndarray]:
@@ -391,6 +395,12 @@ def diff_luts(a: Lut, b: Lut, *, tolerance_sigma: float = 3.0, tolerance_um: flo
     r.common_false_alarm = float(common_false_alarm)
     r.models = (describe_model(a), describe_model(b))
     r.consistent = r.pixels_consistent and not r.common_flagged
+    if a.height is not None and b.height is not None:
+        from ptpcore.evaluate.scanner import diff_height_maps
+
+        r.height = diff_height_maps(a.height, b.height, tolerance_sigma=tolerance_sigma, tolerance_um=tolerance_um,
+                                    max_fraction=max_fraction)
+        r.consistent = r.consistent and r.height.consistent
     return r
 
 

@@ -609,13 +609,16 @@ class DatasetSource:
         The dataset folder (holding ``rig.toml``).
     workers : int, optional
         Reader threads (OpenCV decoding releases the GIL).
+    rig : Rig, optional
+        Read the folder's frames as this rig describes them instead of its ``rig.toml``'s: a height
+        sweep (:meth:`ptpcore.rig.Rig.height_rig`) or a scan (:meth:`ptpcore.rig.ScanSpec.rig`).
     """
 
-    def __init__(self, folder, workers: int | None = None):
+    def __init__(self, folder, workers: int | None = None, rig: Rig | None = None):
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise DatasetError(f"{self.folder}: dataset folder not found")
-        self.rig = load_rig(self.folder / "rig.toml")
+        self.rig = load_rig(self.folder / "rig.toml") if rig is None else rig
         self.workers = workers
         self._colour = None
 

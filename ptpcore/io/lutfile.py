@@ -28,6 +28,7 @@ from ptpcore import __version__
 from ptpcore.atomic import atomic_path, disk_full_error, write_bytes_atomic
 from ptpcore.errors import FileFormatError
 from ptpcore.io.h5chunks import create_compressed
+from ptpcore.io.heightmap import HeightMap, read_height_group, write_height_group
 from ptpcore.io.pointcloud import PointCloud, build_point_cloud
 
 __all__ = [
@@ -128,6 +129,8 @@ class Lut:
     n_rejected: np.ndarray | None = None
     sigma_model_x: np.ndarray | None = None
     sigma_model_y: np.ndarray | None = None
+    height: HeightMap | None = None
+    """The scanner's height map ``u_p -> Z`` (optional ``/height``, METHOD.md section 9)."""
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -146,7 +149,8 @@ class Lut:
 
         per_pixel = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y",
                      "loo_x", "loo_y", "sigma_x", "sigma_y", "n_rejected", "sigma_model_x", "sigma_model_y")
-        return dataclasses.replace(self, **{name: band(getattr(self, name)) for name in per_pixel})
+        # The height map is not banded: a band has none.
+        return dataclasses.replace(self, height=None, **{name: band(getattr(self, name)) for name in per_pixel})
 
     def evaluate(self, z, *, extrapolate: bool = False) -> LutEvaluation:
         """X, Y at height ``z``.
@@ -418,6 +422,8 @@ def _write_lut_group(group, lut: Lut) -> None:
         for name in ("stage_pose", "stage_pose_sigma"):
             if getattr(lut, name) is not None:
                 prov[name] = np.asarray(getattr(lut, name), dtype=np.float64)
+    if lut.height is not None:
+        write_height_group(group, lut.height)
 
 
 def save_lut(lut: Lut, path) -> None:
@@ -553,6 +559,11 @@ def _read_lut_group(group, where: str) -> Lut:
     _check_lut_model(rd, lut)
     _check_lut_shapes(rd, lut, camera_shape)
     _check_lut_values(rd, lut)
+    if "height" in group:
+        try:
+            lut.height = read_height_group(rd, camera_shape)
+        except (OSError, RuntimeError) as exc:
+            raise rd.fail(f"/height truncated or damaged ({exc})") from None
     return lut
 
 

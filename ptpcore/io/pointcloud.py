@@ -72,6 +72,10 @@ class PointCloud:
     n_invalid: int = 0
     n_out_of_range: int = 0
     n_no_value: int = 0
+    sigma_z: np.ndarray | None = None
+    """1-sigma of Z (mm) where the height came with one (``ptp reconstruct``)."""
+    n_out_of_height_range: int = 0
+    """Pixels left out because their ``u_p`` is outside their height map's calibrated range."""
 
     @property
     def n_points(self) -> int:
@@ -90,7 +94,9 @@ class PointCloud:
         left = [f"{n} {why}" for n, why in ((self.n_no_height, "without height"),
                                             (self.n_invalid, "invalid in the LUT"),
                                             (self.n_out_of_range, "outside their calibrated z range"),
-                                            (self.n_no_value, "without a LUT value at their height"))
+                                            (self.n_no_value, "without a LUT value at their height"),
+                                            (self.n_out_of_height_range,
+                                             "outside their height map's calibrated u_p range"))
                 if n]
         return ", ".join(parts) + ("; left out: " + ", ".join(left) if left else "; none left out")
 
@@ -192,6 +198,8 @@ def _records(cloud: PointCloud) -> np.ndarray:
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("row", "<i4"), ("col", "<i4")]
     if cloud.sigma_x is not None and cloud.sigma_y is not None:
         fields += [("sigma_x", "<f4"), ("sigma_y", "<f4")]
+    if cloud.sigma_z is not None:
+        fields.append(("sigma_z", "<f4"))
     fields.append(("extrapolated", "u1"))
     rec = np.empty(cloud.n_points, dtype=fields)
     for name, _ in fields:
@@ -224,6 +232,8 @@ def _write_h5(cloud: PointCloud, tmp: Path, comment: str) -> None:
         f.attrs["camera_height"], f.attrs["camera_width"] = cloud.shape
         for key in ("n_no_height", "n_invalid", "n_out_of_range", "n_no_value"):
             f.attrs[key] = getattr(cloud, key)
+        if cloud.n_out_of_height_range:
+            f.attrs["n_out_of_height_range"] = cloud.n_out_of_height_range
         rec = _records(cloud)
         for name in rec.dtype.names:
             f.create_dataset(name, data=rec[name], chunks=True if rec.size else None,

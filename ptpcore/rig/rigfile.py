@@ -33,6 +33,13 @@ __all__ = [
     "DecodeSettings",
     "FrameEntry",
     "Rig",
+    "Projector",
+    "HeightSweep",
+    "ScanSpec",
+    "SCAN_FORMAT",
+    "projector_rig",
+    "load_scan",
+    "scan_to_toml",
     "format_period",
     "load_rig",
     "rig_from_toml",
@@ -239,6 +246,37 @@ class FrameEntry:
         return (self.pos, "phase", self.dir, self.period_index, self.step)
 
 
+@dataclass(frozen=True)
+class Projector:
+    """ptp-dataset/2 ``[projector]``: the scanner's own fringe source, fixed to the camera (METHOD.md section 9).
+
+    ``width`` x ``height`` projector pixels: the range of the decoded projector coordinate ``u_p``
+    (and ``v_p``). ``fringes`` is its pattern design, as ``[fringes]`` but without a carrier.
+    """
+
+    width: int = 1280
+    height: int = 800
+    fringes: FringeDesign = field(default_factory=lambda: FringeDesign(("x",), (1280.0, 160.0, 20.0), (4, 4, 8)))
+
+    @property
+    def design_attrs(self) -> dict:
+        """The pattern design a scanner needs to decode ``u_p`` as the calibration did
+        (the ``/height`` attributes of ``ptp-lut/1``; direction ``x``)."""
+        f = self.fringes
+        return {"width": int(self.width), "height": int(self.height),
+                "periods_px": [float(t) for t in f.periods("x")], "steps": [int(n) for n in f.steps_of("x")],
+                "phase_origin_rad": float(f.origin("x")), "shift_sign": int(f.sign("x")), "unwrap": f.unwrap,
+                "offset": float(f.offset), "amplitude": float(f.amplitude), "gamma": float(f.gamma)}
+
+
+@dataclass(frozen=True)
+class HeightSweep:
+    """ptp-dataset/2 ``[height]``: the matte plate's heights (same datum as ``[stage] z_mm``) and its frames."""
+
+    z_mm: tuple[float, ...] = ()
+    template: str = "h{pos:03d}/{dir}_T{period}_n{step:02d}.png"
+
+
 def format_period(period) -> int | float:
     """A period as ``{period}`` shows it: its shortest decimal form (``67.5``; ``120`` for ``120.0``)."""
     p = float(period)
@@ -260,6 +298,21 @@ class Rig:
     white_template: str | None = None
     black_template: str | None = None
     frame_list: tuple[FrameEntry, ...] = ()
+    projector: Projector | None = None  # ptp-dataset/2 [projector] (METHOD.md section 9)
+    height: HeightSweep | None = None   # ptp-dataset/2 [height]: the plate's sweep
+
+    def height_rig(self) -> "Rig":
+        """The height sweep as a rig the decoder reads: the projector in the LCD's place (its
+        pixels, pitch 1), the plate's heights as the stage's, no carrier, the ``[height]`` template.
+
+        Raises
+        ------
+        ConfigError
+            The dataset has no ``[projector]`` and ``[height]``.
+        """
+        if self.projector is None or self.height is None:
+            raise ConfigError("the dataset has no height sweep ([projector] and [height], FORMATS.md)")
+        return projector_rig(self.camera, self.projector, self.height.z_mm, self.height.template, self.decode)
 
     def image_name(self, pos: int, direction: str, period, step: int, steps: int,
                    period_index: int | None = None) -> str:
@@ -568,10 +621,11 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
         Naming the key and what was expected.
     """
     known = {"format", "camera", "lcd", "stage", "fringes", "images"}
-    doc = _toml_document(text, source, (DATASET_FORMAT, DATASET_FORMAT_2), known | {"display", "decode"})
+    doc = _toml_document(text, source, (DATASET_FORMAT, DATASET_FORMAT_2),
+                         known | {"display", "decode", "projector", "height"})
     v2 = doc["format"] == DATASET_FORMAT_2
     if not v2:
-        for key in ("display", "decode"):
+        for key in ("display", "decode", "projector", "height"):
             if key in doc:
                 raise ConfigError(f"{source}: unknown key {key!r} in a {DATASET_FORMAT} file"
                                   f" (it is a {DATASET_FORMAT_2} key; set format = \"{DATASET_FORMAT_2}\")")
@@ -585,7 +639,175 @@ def rig_from_toml(text: str, source: str = "rig.toml") -> Rig:
     rig = _images_section(doc, source, v2, camera, lcd, stage, fringes, display, decode)
     if fringes.unwrap == "heterodyne":
         check_heterodyne_span(rig, source)
+    if v2 and ("projector" in doc or "height" in doc):
+        if "projector" not in doc or "height" not in doc:
+            missing = "projector" if "projector" not in doc else "height"
+            raise ConfigError(f"{source}: a height sweep needs both [projector] and [height]; [{missing}] is missing")
+        rig = replace(rig, projector=_projector_section(doc, source), height=_height_section(doc, source))
+        h_rig = rig.height_rig()
+        validate_template(rig.height.template, source, key="height.template",
+                          needed=_needed_fields(("pos", "dir", "period", "step"), h_rig.fringes, h_rig.stage))
     return rig
+
+
+def _projector_section(doc: dict, source: str) -> Projector:
+    """``[projector]`` (/2): the projector's size and its pattern design, as ``[fringes]`` without a carrier.
+
+    Unwrapping by periods or heterodyne (a height sweep names no Gray-code frames); direction ``x``
+    (what heights need) must be shown.
+    """
+    table = doc["projector"]
+    if not isinstance(table, dict):
+        raise ConfigError(f"{source}: 'projector' must be a table [projector], got {_tname(table)}")
+    size = {}
+    for key in ("width", "height"):
+        if key not in table:
+            raise ConfigError(f"{source}: missing key 'projector.{key}' (expected int)")
+        size[key] = _convert(table[key], "int", f"{source}: key 'projector.{key}'")
+        if not 1 <= size[key] <= 100_000:
+            raise ConfigError(f"{source}: key 'projector.{key}' must be between 1 and 100000, got {size[key]}")
+    if "carrier_px_per_mm" in table:
+        raise ConfigError(f"{source}: key 'projector.carrier_px_per_mm' is not allowed (the projector has no carrier)")
+    rest = {k: v for k, v in table.items() if k not in ("width", "height")}
+    rest.setdefault("directions", ["x"])
+    f = _fringes({"projector": rest}, source, True, name="projector")
+    if f.unwrap == "gray":
+        raise ConfigError(f"{source}: key 'projector.unwrap' = \"gray\" is not supported (a height sweep names"
+                          " no Gray-code frames); use \"periods\" or \"heterodyne\"")
+    if "x" not in f.directions:
+        raise ConfigError(f"{source}: key 'projector.directions' must include \"x\" (heights come from u_p),"
+                          f" got {_short_repr(list(f.directions))}")
+    for d in f.directions:
+        extent = size["width"] if d == "x" else size["height"]
+        if f.unwrap == "periods" and float(f.periods(d)[0]) < extent:
+            raise ConfigError(f"{source}: key 'projector.periods_px': the coarsest period of direction {d}"
+                              f" ({format_period(f.periods(d)[0])} px) must span the projector's {extent} px")
+    return Projector(size["width"], size["height"], f)
+
+
+def _height_section(doc: dict, source: str) -> HeightSweep:
+    """``[height]`` (/2): the plate's heights (at least 3, strictly monotonic) and its frames' template."""
+    s = _Section(doc, "height", source)
+    z = s.get("z_mm", "list[float]")
+    template = s.get("template", "str", HeightSweep().template)
+    s.finish()
+    if len(z) < 3:
+        raise ConfigError(f"{source}: key 'height.z_mm' needs at least 3 heights, got {len(z)}")
+    if len(z) > MAX_POSITIONS:
+        raise ConfigError(f"{source}: key 'height.z_mm' lists {len(z)} heights, at most {MAX_POSITIONS}")
+    dz = [b - a for a, b in zip(z, z[1:])]
+    if not (all(d > 0 for d in dz) or all(d < 0 for d in dz)):
+        i = next(i for i, d in enumerate(dz) if d == 0 or (d > 0) != (dz[0] > 0))
+        raise ConfigError(f"{source}: key 'height.z_mm' must be strictly monotonic; at index {i + 1}"
+                          f" ({z[i]} -> {z[i + 1]})")
+    return HeightSweep(tuple(float(v) for v in z), template)
+
+
+def projector_rig(camera: Camera, projector: Projector, z_mm, template: str,
+                  decode: DecodeSettings = DecodeSettings()) -> Rig:
+    """A rig the decoder reads for frames of the scanner's projector (a height sweep or a scan).
+
+    The projector stands in the LCD's place: its pixels (pitch 1, so world X of a decoded position
+    is ``u_p`` itself), the heights ``z_mm`` as stage readings (one 0 for a scan), no carrier.
+    """
+    fringes = replace(projector.fringes, carrier_px_per_mm=(0.0, 0.0))
+    return Rig(camera, Lcd(projector.width, projector.height, (1.0, 1.0)),
+               Stage(tuple(float(v) for v in z_mm)), fringes, template, None, decode)
+
+
+SCAN_FORMAT = "ptp-scan/1"
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """A scan to reconstruct (``scan.toml``, ``ptp-scan/1``): camera, projector design, frames' template.
+
+    ``views``: how many views the folder holds (``{pos}`` in the template: counted from the files
+    present, 0, 1, ... while a view's first frame exists; 1 without ``{pos}``).
+    """
+
+    camera: Camera
+    projector: Projector
+    template: str
+    views: int = 1
+
+    def rig(self) -> Rig:
+        """The rig the decoder reads for this scan's frames (:func:`projector_rig`), one position per view."""
+        return projector_rig(self.camera, self.projector, tuple(float(k) for k in range(self.views)), self.template)
+
+
+def load_scan(folder) -> ScanSpec:
+    """Read and validate a scan folder's ``scan.toml`` (FORMATS.md ``ptp-scan/1``).
+
+    Raises
+    ------
+    ConfigError
+        A missing or invalid ``scan.toml`` (naming the key), or a template naming no frame present.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ConfigError(f"{folder}: scan folder not found")
+    path = folder / "scan.toml"
+    source = str(path)
+    doc = _toml_document(_read_text(path), source, SCAN_FORMAT, {"format", "camera", "projector", "images"})
+    camera = _camera_section(doc, source, True)
+    if "projector" not in doc:
+        raise ConfigError(f"{source}: missing section [projector]")
+    projector = _projector_section(doc, source)
+    s = _Section(doc, "images", source)
+    template = s.get("template", "str")
+    s.finish()
+    needed = ("period", "step") + (("dir",) if len(projector.fringes.directions) > 1 else ())
+    validate_template(template, source, needed=needed)
+    spec = ScanSpec(camera, projector, template)
+    if "{pos" not in template:
+        return spec
+    first = next(iter(spec.rig().fringes.frames()))
+    d, j, t, n, big_n = first
+    views = 0
+    while (folder / template.format(pos=views, dir=d, period=format_period(t), step=n, steps=big_n,
+                                    period_index=j)).is_file() and views < MAX_POSITIONS:
+        views += 1
+    if views == 0:
+        raise ConfigError(f"{source}: key 'images.template' names no frame present (first:"
+                          f" {template.format(pos=0, dir=d, period=format_period(t), step=n, steps=big_n, period_index=j)})")
+    return replace(spec, views=views)
+
+
+def scan_to_toml(spec: ScanSpec) -> str:
+    """The ``scan.toml`` text of ``spec`` (round-trips through :func:`load_scan`)."""
+    c = spec.camera
+    camera = {"width": c.width, "height": c.height, "bit_depth": c.bit_depth}
+    if c.bit_shift:
+        camera["bit_shift"] = c.bit_shift
+    return tomli_w.dumps({"format": SCAN_FORMAT, "camera": camera, "projector": _projector_table(spec.projector),
+                          "images": {"template": spec.template}})
+
+
+def _projector_table(p: Projector) -> dict:
+    """``[projector]`` of ``rig.toml`` or ``scan.toml``: size and design (keys at their defaults left out)."""
+    f = p.fringes
+    t: dict = {"width": p.width, "height": p.height, "directions": list(f.directions),
+               "periods_px": [float(v) for v in f.periods_px], "steps": list(f.steps),
+               "offset": float(f.offset), "amplitude": float(f.amplitude), "gamma": float(f.gamma)}
+    if f.phase_origin_rad != 0.0:
+        t["phase_origin_rad"] = float(f.phase_origin_rad)
+    if f.shift_sign != 1:
+        t["shift_sign"] = int(f.shift_sign)
+    if f.unwrap != "periods":
+        t["unwrap"] = f.unwrap
+    for dname, o in f.per_direction:
+        sub = {}
+        if o.periods_px is not None:
+            sub["periods_px"] = [float(v) for v in o.periods_px]
+        if o.steps is not None:
+            sub["steps"] = list(o.steps)
+        for key in ("phase_origin_rad", "shift_sign"):
+            if getattr(o, key) is not None:
+                sub[key] = getattr(o, key)
+        if sub:
+            t[dname] = sub
+    return t
 
 
 def _camera_section(doc: dict, source: str, v2: bool) -> Camera:
@@ -773,15 +995,16 @@ def _images_section(doc: dict, source: str, v2: bool, camera: Camera, lcd: Lcd, 
     return rig
 
 
-def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
-    s = _Section(doc, "fringes", source)
+def _fringes(doc: dict, source: str, v2: bool, name: str = "fringes") -> FringeDesign:
+    """``[fringes]`` (or ``[projector]``'s fringe keys, ``name``): the design, checked; errors name ``name.key``."""
+    s = _Section(doc, name, source)
     directions = s.get("directions", "list[str]", ["x", "y"])
     s.used.add("periods_px")
     if "periods_px" not in s.table:
-        raise ConfigError(f"{source}: missing key 'fringes.periods_px' (expected list[{'float' if v2 else 'int'}])")
-    periods = _period_list(s.table["periods_px"], f"{source}: key 'fringes.periods_px'", v2)
+        raise ConfigError(f"{source}: missing key '{name}.periods_px' (expected list[{'float' if v2 else 'int'}])")
+    periods = _period_list(s.table["periods_px"], f"{source}: key '{name}.periods_px'", v2)
     s.used.add("steps")
-    steps = _steps_list(s.table.get("steps", 4), len(periods), f"{source}: key 'fringes.steps'")
+    steps = _steps_list(s.table.get("steps", 4), len(periods), f"{source}: key '{name}.steps'")
     offset = s.get("offset", "float", 127.5)
     amplitude = s.get("amplitude", "float", 100.0)
     carrier = s.get("carrier_px_per_mm", "list[float]", [0.0, 0.0])
@@ -790,80 +1013,80 @@ def _fringes(doc: dict, source: str, v2: bool) -> FringeDesign:
     per_direction = []
     if v2:
         extra["phase_origin_rad"] = s.get("phase_origin_rad", "float", 0.0)
-        extra["shift_sign"] = _check_sign(s.get("shift_sign", "int", 1), f"{source}: key 'fringes.shift_sign'")
+        extra["shift_sign"] = _check_sign(s.get("shift_sign", "int", 1), f"{source}: key '{name}.shift_sign'")
         unwrap = s.get("unwrap", "str", "periods")
         if unwrap not in ("periods", "gray", "heterodyne"):
-            raise ConfigError(f"{source}: key 'fringes.unwrap' must be \"periods\", \"gray\" or \"heterodyne\","
+            raise ConfigError(f"{source}: key '{name}.unwrap' must be \"periods\", \"gray\" or \"heterodyne\","
                               f" got {_short_repr(unwrap)}")
         extra["unwrap"] = unwrap
-        extra["gray_bits"] = _check_bits(s.get("gray_bits", "int", 0), f"{source}: key 'fringes.gray_bits'")
+        extra["gray_bits"] = _check_bits(s.get("gray_bits", "int", 0), f"{source}: key '{name}.gray_bits'")
         inv = s.table.get("gray_inverse", False)
         s.used.add("gray_inverse")
         if not isinstance(inv, bool):
-            raise ConfigError(f"{source}: key 'fringes.gray_inverse' must be true or false, got {_short_repr(inv)}")
+            raise ConfigError(f"{source}: key '{name}.gray_inverse' must be true or false, got {_short_repr(inv)}")
         extra["gray_inverse"] = inv
         for d in ("x", "y"):
             if d not in s.table:
                 continue
             s.used.add(d)
             sub = _Section(s.table, d, source)
-            sub.name = f"fringes.{d}"
+            sub.name = f"{name}.{d}"
             o_periods = None
             if "periods_px" in sub.table:
                 sub.used.add("periods_px")
-                o_periods = _period_list(sub.table["periods_px"], f"{source}: key 'fringes.{d}.periods_px'", True)
+                o_periods = _period_list(sub.table["periods_px"], f"{source}: key '{name}.{d}.periods_px'", True)
                 if unwrap != "heterodyne":
-                    _check_periods(o_periods, f"{source}: key 'fringes.{d}.periods_px'")
+                    _check_periods(o_periods, f"{source}: key '{name}.{d}.periods_px'")
             o_steps = None
             if "steps" in sub.table:
                 sub.used.add("steps")
-                o_steps = _steps_list(sub.table["steps"], len(o_periods or periods), f"{source}: key 'fringes.{d}.steps'")
+                o_steps = _steps_list(sub.table["steps"], len(o_periods or periods), f"{source}: key '{name}.{d}.steps'")
             elif o_periods is not None and len(o_periods) != len(steps):
                 if isinstance(s.table.get("steps", 4), list):
-                    raise ConfigError(f"{source}: key 'fringes.{d}.periods_px' lists {len(o_periods)} periods;"
-                                      f" give 'fringes.{d}.steps' too (fringes.steps has {len(steps)})")
+                    raise ConfigError(f"{source}: key '{name}.{d}.periods_px' lists {len(o_periods)} periods;"
+                                      f" give '{name}.{d}.steps' too ({name}.steps has {len(steps)})")
                 o_steps = (steps[0],) * len(o_periods)
             origin = sub.get("phase_origin_rad", "float", None)
             sign = sub.get("shift_sign", "int", None)
             if sign is not None:
-                _check_sign(sign, f"{source}: key 'fringes.{d}.shift_sign'")
+                _check_sign(sign, f"{source}: key '{name}.{d}.shift_sign'")
             bits = sub.get("gray_bits", "int", None)
             if bits is not None:
-                _check_bits(bits, f"{source}: key 'fringes.{d}.gray_bits'")
+                _check_bits(bits, f"{source}: key '{name}.{d}.gray_bits'")
             sub.finish()
             if unwrap == "heterodyne" and o_periods is not None:
                 o_periods, o_steps = _heterodyne_order(o_periods, o_steps or (steps[0],) * len(o_periods),
-                                                       f"{source}: key 'fringes.{d}.periods_px'")
+                                                       f"{source}: key '{name}.{d}.periods_px'")
             o = DirectionFringes(o_periods, o_steps, origin, sign, bits)
             if o != DirectionFringes():
                 per_direction.append((d, o))
     s.finish()
     if not directions or len(set(directions)) != len(directions) or any(d not in ("x", "y") for d in directions):
-        raise ConfigError(f"{source}: key 'fringes.directions' must list 'x' and/or 'y' once each,"
+        raise ConfigError(f"{source}: key '{name}.directions' must list 'x' and/or 'y' once each,"
                           f" got {_short_repr(directions)}")
     if extra.get("unwrap") == "heterodyne":
         order = sorted(range(len(periods)), key=lambda j: -float(periods[j]))
-        periods, steps = _heterodyne_order(periods, steps, f"{source}: key 'fringes.periods_px'")
+        periods, steps = _heterodyne_order(periods, steps, f"{source}: key '{name}.periods_px'")
         # a [fringes.x/y] steps list without its own periods follows the shared periods' order
         per_direction = [(d, o if o.periods_px is not None or o.steps is None else
                           replace(o, steps=tuple(o.steps[j] for j in order))) for d, o in per_direction]
     else:
-        _check_periods(periods, f"{source}: key 'fringes.periods_px'")
+        _check_periods(periods, f"{source}: key '{name}.periods_px'")
     if len(carrier) != 2:
-        raise ConfigError(f"{source}: key 'fringes.carrier_px_per_mm' must be [x, y], got {_short_repr(carrier)}")
+        raise ConfigError(f"{source}: key '{name}.carrier_px_per_mm' must be [x, y], got {_short_repr(carrier)}")
     if amplitude <= 0 or offset - amplitude < -0.5 or offset + amplitude > 255.5:
         raise ConfigError(
-            f"{source}: keys 'fringes.offset' ± 'fringes.amplitude' must stay within 0..255"
+            f"{source}: keys '{name}.offset' ± '{name}.amplitude' must stay within 0..255"
             f" with amplitude > 0, got {offset} ± {amplitude}"
         )
     if gamma <= 0:
-        raise ConfigError(f"{source}: key 'fringes.gamma' must be positive, got {gamma}")
+        raise ConfigError(f"{source}: key '{name}.gamma' must be positive, got {gamma}")
     f = FringeDesign(tuple(directions), periods, steps, offset, amplitude, (carrier[0], carrier[1]), gamma,
                      **extra, per_direction=tuple(per_direction))
     if f.unwrap == "gray":
         for d in f.directions:
             if f.bits(d) < 1:
-                raise ConfigError(f"{source}: key 'fringes.gray_bits' must be at least 1 with unwrap = \"gray\""
+                raise ConfigError(f"{source}: key '{name}.gray_bits' must be at least 1 with unwrap = \"gray\""
                                   f" (direction {d})")
     return f
 
@@ -1080,6 +1303,9 @@ def rig_to_toml(rig: Rig) -> str:
         put("images", "frames", frames)
     if st.n_positions < 2:
         v2.setdefault("stage", {})
+    if rig.projector is not None and rig.height is not None:
+        v2["projector"] = _projector_table(rig.projector)
+        v2["height"] = {"z_mm": [float(z) for z in rig.height.z_mm], "template": rig.height.template}
 
     doc = {
         "format": DATASET_FORMAT_2 if v2 else DATASET_FORMAT,

@@ -1,0 +1,693 @@
+"""The whole scanner in the simulator: a projector fixed to the camera, its height sweep, object scans.
+
+METHOD.md section 9. The camera is a :class:`~ptpcore.simulate.virtual_rig.VirtualRig` (its lens,
+pose, noise model); the projector is a pinhole with its own Brown distortion, an optional smooth
+non-parametric field (projector px, added to the Brown image point), a response gamma and a black
+level. What the camera sees of a surface lit by the projector: for every sub-pixel sample, the
+camera ray meets the surface at ``P``; the projector pixel that lights ``P`` is
+``project(P)`` (an explicit forward map, no inversion needed); the pattern's level there goes through
+the design's gamma pre-compensation and the projector's response, times the surface's albedo and
+its Lambertian shading; then the camera's defocus blur, exposure, ambient light, shot and read
+noise and quantisation (:meth:`VirtualRig._expose`).
+
+Surfaces: the matte plate of the height sweep (an albedo that varies smoothly, a flatness bow and a
+tilt against the stage axis) and objects of exact geometry (a sphere, a ball bar, a tilted plane).
+
+Truth is exact: the true ``u_p`` a camera pixel's centre ray sees on any plane ``Z = z``
+(:meth:`ScannerRig.true_up`), the height a pixel sees at any ``u_p`` (:meth:`ScannerRig.true_z`),
+and each scanned object's surface and every pixel's true point on it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+
+from ptpcore.errors import ConfigError
+from ptpcore.io.lutfile import write_hdf5_atomic
+from ptpcore.rig.rigfile import (FringeDesign, HeightSweep, Projector, Rig, ScanSpec, format_period, projector_rig,
+                                 save_rig, scan_to_toml)
+from ptpcore.decode.patterns import fringe_values
+from ptpcore.simulate.virtual_rig import SimSettings, VirtualRig, _period_key, _write_image, preset, scale_rig
+from ptpcore.atomic import write_text_atomic
+
+__all__ = ["ProjectorSettings", "ScannerSettings", "ScanObject", "ScannerRig", "SCANNER_PRESETS",
+           "scanner_preset", "simulate_scanner_dataset", "simulate_scan", "default_objects", "load_scanner",
+           "load_scan_truth", "SCANNER_TRUTH_FILE", "SCAN_TRUTH_FILE", "HeightSweepSource", "ScanSource"]
+
+SCANNER_TRUTH_FILE = "scanner_truth.h5"
+SCAN_TRUTH_FILE = "truth.h5"
+
+
+@dataclass(frozen=True)
+class ProjectorSettings:
+    """The simulated projector: a pinhole fixed to the camera.
+
+    Attributes
+    ----------
+    focal_px : float
+        Focal length, projector px.
+    principal_offset_px : (2,) float
+        Principal point relative to the projector image's centre.
+    dist : (5,) float
+        Brown ``k1, k2, p1, p2, k3`` (OpenCV's convention), world -> projector image.
+    field_amplitude_px : float
+        Peak amplitude of a smooth non-parametric field (projector px) added to the Brown image point.
+    position_mm : (3,) float
+        Projector centre relative to the camera centre (world frame, mm).
+    aim_z_mm : float
+        The projector's axis passes through the point of the camera's axis at this world Z.
+    gamma : float
+        Projector response: luminance = black + (1 - black) * (level / 255) ** gamma.
+    black : float
+        Black level (fraction of white).
+    blur_px, blur_per_mm, focus_z_mm : float
+        Defocus on the camera image (camera px at the full camera width of the preset):
+        ``blur_px + blur_per_mm * |z - focus_z_mm|``.
+    """
+
+    focal_px: float = 1100.0
+    principal_offset_px: tuple[float, float] = (5.0, -3.0)
+    dist: tuple[float, ...] = (-0.05, 0.0, 0.0, 0.0, 0.0)
+    field_amplitude_px: float = 0.0
+    position_mm: tuple[float, float, float] = (-80.0, 0.0, 0.0)
+    aim_z_mm: float = 20.0
+    gamma: float = 1.0
+    black: float = 0.002
+    blur_px: float = 0.6
+    blur_per_mm: float = 0.02
+    focus_z_mm: float = 20.0
+
+
+@dataclass(frozen=True)
+class ScannerSettings:
+    """Everything of the simulated scanner that ``rig.toml`` does not say.
+
+    Attributes
+    ----------
+    projector : ProjectorSettings
+    plate_albedo_variation : float
+        Relative peak-to-mean variation of the plate's (smooth) albedo.
+    plate_tilt_urad : (2,) float
+        The plate's tilt against the stage axis: dZ/dX and dZ/dY (urad).
+    plate_bow_um : float
+        The plate's flatness: a bow of this peak height (um) over the field, the same at every height.
+    plate_z_error_um : float
+        1-sigma error of the plate's true height against its reading (um).
+    ambient : float
+        Ambient light on the camera (fraction of its full well), instead of the camera preset's.
+    exposure : float
+        Camera exposure of a white, lit surface (fraction of the full well).
+    supersample : int
+        Point samples per camera pixel and axis.
+    """
+
+    name: str = "custom"
+    projector: ProjectorSettings = field(default_factory=ProjectorSettings)
+    plate_albedo_variation: float = 0.1
+    plate_tilt_urad: tuple[float, float] = (0.0, 0.0)
+    plate_bow_um: float = 0.0
+    plate_z_error_um: float = 0.0
+    ambient: float = 0.02
+    exposure: float = 0.8
+    supersample: int = 2
+
+
+@dataclass(frozen=True)
+class ScanObject:
+    """An object of exact geometry under the scanner (world frame, mm).
+
+    ``kind``: ``"sphere"`` (``centres`` one (3,), ``radius``), ``"ballbar"`` (two centres, one
+    radius) or ``"plane"`` (``point`` (3,), ``normal`` (3,) toward the scanner, a square of side
+    ``size`` about ``point``).
+    """
+
+    kind: str
+    centres: tuple[tuple[float, float, float], ...] = ()
+    radius: float = 0.0
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    size: float = 0.0
+    albedo: float = 0.9
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ray parameters ``t`` of the first hit (inf where none) and the unit normal there.
+
+        Parameters
+        ----------
+        o, d : (..., 3) float64
+            Ray origins and directions (world, mm).
+
+        Returns
+        -------
+        t : (...) float64
+        normal : (..., 3) float64, pointing toward the camera side of the surface
+        """
+        t = np.full(o.shape[:-1], np.inf)
+        nrm = np.zeros(o.shape)
+        if self.kind in ("sphere", "ballbar"):
+            for c in self.centres:
+                oc = o - np.asarray(c)
+                a = np.einsum("...i,...i", d, d)
+                b = np.einsum("...i,...i", oc, d)
+                cc = np.einsum("...i,...i", oc, oc) - self.radius ** 2
+                disc = b * b - a * cc
+                with np.errstate(invalid="ignore"):
+                    tc = (-b - np.sqrt(disc)) / a
+                hit = (disc >= 0) & (tc > 0) & (tc < t)
+                t = np.where(hit, tc, t)
+                p = o + tc[..., None] * d
+                nrm = np.where(hit[..., None], (p - np.asarray(c)) / self.radius, nrm)
+            return t, nrm
+        if self.kind == "plane":
+            n = np.asarray(self.normal, float) / np.linalg.norm(self.normal)
+            p0 = np.asarray(self.point, float)
+            den = d @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tc = ((p0 - o) @ n) / den
+            p = o + tc[..., None] * d
+            # a square of side ``size`` about p0, in the plane's own axes
+            e1 = np.cross(n, [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(n, e1)
+            rel = p - p0
+            inside = (np.abs(rel @ e1) <= self.size / 2) & (np.abs(rel @ e2) <= self.size / 2)
+            hit = inside & (tc > 0) & np.isfinite(tc)
+            t = np.where(hit, tc, t)
+            facing = np.where((d @ n)[..., None] < 0, n, -n)
+            return t, np.where(hit[..., None], facing, nrm)
+        raise ConfigError(f"unknown scan object kind {self.kind!r} (sphere, ballbar, plane)")
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        """Signed distance (mm) of points ``p`` (..., 3) from the true surface (+ outside / toward the camera)."""
+        p = np.asarray(p, float)
+        if self.kind in ("sphere", "ballbar"):
+            dists = [np.linalg.norm(p - np.asarray(c), axis=-1) - self.radius for c in self.centres]
+            return np.min(np.stack(dists), axis=0)
+        n = np.asarray(self.normal, float) / np.linalg.norm(self.normal)
+        return (p - np.asarray(self.point)) @ n
+
+    def unit_normal(self, p: np.ndarray) -> np.ndarray:
+        """Outward unit normal of the true surface nearest to points ``p`` (..., 3)."""
+        p = np.asarray(p, float)
+        if self.kind in ("sphere", "ballbar"):
+            cs = np.asarray(self.centres, float)
+            dist = np.linalg.norm(p[..., None, :] - cs, axis=-1)
+            c = cs[np.argmin(dist, axis=-1)]
+            v = p - c
+            return v / np.linalg.norm(v, axis=-1, keepdims=True)
+        n = np.asarray(self.normal, float) / np.linalg.norm(self.normal)
+        return np.broadcast_to(n, p.shape)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> "ScanObject":
+        d = json.loads(text)
+        d["centres"] = tuple(tuple(c) for c in d["centres"])
+        for key in ("point", "normal"):
+            d[key] = tuple(d[key])
+        return cls(**d)
+
+
+def _scanner_design(camera_width: int) -> Projector:
+    """The projector's pattern design: 1280 x 800 px, periods 1280 (absolute), 160, 20 px, steps 4, 4, 8.
+
+    A camera narrower than 640 px sees each projector pixel on fewer camera pixels: the finest
+    period grows as the camera shrinks (at 160 px: 80 px; ratios kept geometric), so each period
+    spans as many camera pixels.
+    """
+    scale = camera_width / 640.0
+    fine = round(20.0 / min(scale, 1.0), 1)  # one decimal: readable file names
+    mid = float(np.sqrt(1280.0 * fine))
+    return Projector(1280, 800, FringeDesign(("x",), (1280.0, round(mid, 1), fine), (4, 4, 8), 127.5, 100.0))
+
+
+def _presets() -> dict:
+    """``scanner-mild``: the ``mild`` camera, projector k1 = -0.05. ``scanner-rough``: the ``rough``
+    camera, projector k1 = -0.25, k2 = 0.08, p1 = p2 = 0.002 plus a 1 projector px smooth field,
+    gamma 2.2 not pre-compensated, a 5 um plate bow, 10 urad of tilt, albedo varying by 30 %."""
+    out = {}
+    mild = ScannerSettings(name="scanner-mild", projector=ProjectorSettings(dist=(-0.05, 0.0, 0.0, 0.0, 0.0)),
+                           plate_albedo_variation=0.1, plate_tilt_urad=(5.0, -3.0), plate_bow_um=1.0,
+                           ambient=0.02)
+    rough = ScannerSettings(name="scanner-rough",
+                            projector=ProjectorSettings(dist=(-0.25, 0.08, 0.002, 0.002, 0.0), field_amplitude_px=1.0,
+                                                        gamma=1.1, black=0.004, blur_px=0.8, blur_per_mm=0.03),
+                            plate_albedo_variation=0.3, plate_tilt_urad=(10.0, -7.0), plate_bow_um=5.0,
+                            plate_z_error_um=0.3, ambient=0.05, exposure=0.85)
+    out["scanner-mild"] = ("mild", mild)
+    out["scanner-rough"] = ("rough", rough)
+    return out
+
+
+SCANNER_PRESETS = _presets()
+
+
+def scanner_preset(name: str, width: int | None = None, height: int | None = None,
+                   heights: int = 21) -> tuple[Rig, SimSettings, ScannerSettings]:
+    """A scanner preset: the camera preset's rig and settings with ``[projector]`` and ``[height]``.
+
+    Parameters
+    ----------
+    name : {"scanner-mild", "scanner-rough"}
+    width, height : int, optional
+        Another camera size, same field of view (:func:`ptpcore.simulate.scale_rig`).
+    heights : int
+        Plate heights of the sweep, evenly over the LCD sweep's z range (default 21).
+    """
+    try:
+        camera_preset, scanner = SCANNER_PRESETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown scanner preset '{name}' (choose from {', '.join(SCANNER_PRESETS)})") from None
+    rig, sim = preset(camera_preset)
+    if width is not None or height is not None:
+        rig, sim = scale_rig(rig, sim, width or rig.camera.width, height)
+    z = np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), int(heights))
+    rig = replace(rig, projector=_scanner_design(rig.camera.width),
+                  height=HeightSweep(tuple(float(v) for v in z)))
+    # ptp-dataset/2: the projector and height tables make it so.
+    return rig, sim, scanner
+
+
+class ScannerRig:
+    """A seeded virtual scanner: camera (a :class:`VirtualRig`) plus projector, rendering its frames.
+
+    Parameters
+    ----------
+    rig : Rig
+        With ``projector`` and ``height`` (:func:`scanner_preset`).
+    sim : SimSettings
+        The camera's settings.
+    scanner : ScannerSettings
+    seed : int
+        The camera's seed (its lens field, stage, noise) and the scanner's own streams.
+    """
+
+    def __init__(self, rig: Rig, sim: SimSettings, scanner: ScannerSettings, seed: int = 0):
+        if rig.projector is None or rig.height is None:
+            raise ConfigError("the rig has no [projector] and [height]: use scanner_preset()")
+        self.rig, self.sim, self.scanner, self.seed = rig, sim, scanner, int(seed)
+        # The camera of the LCD sweep (same lens, pose and seed: the same rays), with the scanner's exposure
+        # and ambient light.
+        self.camera = VirtualRig(rig, replace(sim, exposure=scanner.exposure, ambient=scanner.ambient), seed)
+        self.width_scale = rig.camera.width / 640.0
+        p = scanner.projector
+        pw, ph = rig.projector.width, rig.projector.height
+        self.K = np.array([[p.focal_px, 0.0, (pw - 1) / 2 + p.principal_offset_px[0]],
+                           [0.0, p.focal_px, (ph - 1) / 2 + p.principal_offset_px[1]], [0.0, 0.0, 1.0]])
+        self.dist = np.asarray(p.dist, float)
+        cam_c, r_cam = self.camera.centre, self.camera.R
+        self.centre = cam_c + np.asarray(p.position_mm, float)
+        # Aim: the projector's axis through the camera axis's point at Z = aim_z.
+        axis_cam = r_cam.T @ np.array([0.0, 0.0, 1.0])
+        target = cam_c + axis_cam * (p.aim_z_mm - cam_c[2]) / axis_cam[2]
+        self.R = _look_at(target - self.centre)  # world -> projector
+        rng = np.random.default_rng([self.seed, 40])
+        self._modes = [(rng.uniform(0.6, 2.2, 2) * 2 * np.pi / np.array([pw, ph]), rng.uniform(0, 2 * np.pi, 2),
+                        rng.normal(size=2)) for _ in range(4)]
+        norm = sum(np.hypot(*m[2]) for m in self._modes)
+        self._field_scale = p.field_amplitude_px / norm if norm > 0 else 0.0
+        self._albedo_modes = [(rng.uniform(0.02, 0.08, 2), rng.uniform(0, 2 * np.pi, 2)) for _ in range(3)]
+        zr = np.asarray(rig.height.z_mm, float)
+        self.plate_z_true = zr + rng.normal(0.0, scanner.plate_z_error_um * 1e-3, zr.size)
+        self.plate_centre = np.array([(rig.lcd.width - 1) / 2 * rig.lcd.pitch_mm[0],
+                                      (rig.lcd.height - 1) / 2 * rig.lcd.pitch_mm[1]])
+        self.plate_half = np.array([rig.lcd.width * rig.lcd.pitch_mm[0], rig.lcd.height * rig.lcd.pitch_mm[1]]) / 2
+        ss = scanner.supersample
+        max_blur = max(self.blur_sigma(z) for z in zr)
+        self.margin = int(np.ceil(4.0 * max_blur)) + 1
+        self.camera.margin = self.margin  # the camera's _expose crops this margin
+        h, w = rig.camera.shape
+        m = self.margin
+        offs = (np.arange(ss) + 0.5) / ss - 0.5
+        self._sub_r = (np.arange(h + 2 * m)[:, None] + offs[None, :]).ravel() - m
+        self._sub_c = (np.arange(w + 2 * m)[:, None] + offs[None, :]).ravel() - m
+        self._geo_cache: tuple | None = None
+
+    # ---- projector geometry -----------------------------------------------------------------
+    def field(self, ub: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The smooth non-parametric displacement (projector px) at Brown image points."""
+        dx = np.zeros(np.broadcast(ub, vb).shape)
+        dy = np.zeros_like(dx)
+        for k, ph, amp in self._modes:
+            dx += amp[0] * np.sin(k[0] * ub + ph[0]) * np.cos(k[1] * vb + ph[1])
+            dy += amp[1] * np.cos(k[0] * ub + ph[1]) * np.sin(k[1] * vb + ph[0])
+        return dx * self._field_scale, dy * self._field_scale
+
+    def project(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Projector pixel ``(u_p, v_p)`` that lights world points ``p`` (..., 3) (mm)."""
+        q = (np.asarray(p, float) - self.centre) @ self.R.T
+        x, y = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        ub = self.K[0, 0] * xd + self.K[0, 2]
+        vb = self.K[1, 1] * yd + self.K[1, 2]
+        fx, fy = self.field(ub, vb)
+        return ub + fx, vb + fy
+
+    # ---- truth ------------------------------------------------------------------------------
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every camera pixel centre's ray: origin, direction (H, W, 3), world mm."""
+        h, w = self.rig.camera.shape
+        rows, cols = np.mgrid[0:h, 0:w].astype(float)
+        return self.camera.rays(cols, rows)
+
+    def true_up(self, z, rays=None) -> np.ndarray:
+        """True ``u_p`` (projector px) each camera pixel's centre ray sees on the plane ``Z = z``.
+
+        Parameters
+        ----------
+        z : float or (H, W) array, mm
+        rays : (origin, direction), optional
+            :meth:`pixel_rays`, when the caller has them.
+
+        Returns
+        -------
+        (H, W) float64
+        """
+        o, d = self.pixel_rays() if rays is None else rays
+        t = (np.asarray(z, float) - o[..., 2]) / d[..., 2]
+        return self.project(o + t[..., None] * d)[0]
+
+    def true_z(self, up: np.ndarray, z_lo: float = -20.0, z_hi: float = 60.0) -> np.ndarray:
+        """The height (mm) at which each pixel's centre ray meets projector coordinate ``up`` (H, W).
+
+        ``u_p`` is monotonic in z along a ray over the scanner's volume: 60 bisection steps
+        (machine precision). NaN where ``up`` is NaN or outside the ray's range of u_p.
+        """
+        up = np.asarray(up, float)
+        rays = self.pixel_rays()
+        lo = np.full(up.shape, z_lo)
+        hi = np.full(up.shape, z_hi)
+        u_lo, u_hi = self.true_up(lo, rays), self.true_up(hi, rays)
+        rising = u_hi > u_lo
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            above = (self.true_up(mid, rays) > up) == rising
+            hi = np.where(above, mid, hi)
+            lo = np.where(above, lo, mid)
+        z = 0.5 * (lo + hi)
+        inside = (np.minimum(u_lo, u_hi) <= up) & (up <= np.maximum(u_lo, u_hi))
+        return np.where(inside, z, np.nan)
+
+    def plate_up(self, k: int) -> np.ndarray:
+        """True ``u_p`` (H, W) each camera pixel's centre ray sees on the plate at sweep height ``k``
+        (its true height, tilt and bow): the truth of the height sweep's samples."""
+        o, d = self.pixel_rays()
+        return self.project(self.plate_point(o, d, k))[0]
+
+    def plate_point(self, o: np.ndarray, d: np.ndarray, k: int) -> np.ndarray:
+        """Where rays meet the plate at sweep height ``k``: its true height, tilt and bow (world mm)."""
+        z0 = self.plate_z_true[k]
+        z = np.full(o.shape[:-1], z0)
+        for _ in range(4):  # the plate's departure from Z = z0 is microns: a few fixed-point steps
+            t = (z - o[..., 2]) / d[..., 2]
+            x, y = o[..., 0] + t * d[..., 0], o[..., 1] + t * d[..., 1]
+            z = z0 + self.plate_shape(x, y)
+        t = (z - o[..., 2]) / d[..., 2]
+        return o + t[..., None] * d
+
+    def plate_shape(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The plate's departure from its nominal plane (mm): tilt plus a bow, at world X, Y."""
+        s = self.scanner
+        dx, dy = x - self.plate_centre[0], y - self.plate_centre[1]
+        r2 = (dx / self.plate_half[0]) ** 2 + (dy / self.plate_half[1]) ** 2
+        return 1e-6 * (s.plate_tilt_urad[0] * dx + s.plate_tilt_urad[1] * dy) + 1e-3 * s.plate_bow_um * (1 - r2)
+
+    def albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The plate's smooth albedo (0..1) at world X, Y."""
+        a = np.zeros(np.broadcast(x, y).shape)
+        for k, ph in self._albedo_modes:
+            a += np.sin(k[0] * x + ph[0]) * np.cos(k[1] * y + ph[1])
+        return 0.9 * (1 + self.scanner.plate_albedo_variation * a / len(self._albedo_modes))
+
+    # ---- rendering ----------------------------------------------------------------------------
+    def blur_sigma(self, z: float) -> float:
+        """Defocus (camera px) of the projected fringes seen at height ``z``."""
+        p = self.scanner.projector
+        return self.width_scale * (p.blur_px + p.blur_per_mm * abs(z - p.focus_z_mm))
+
+    def _geometry(self, key, surface) -> dict:
+        """Sub-pixel samples of one surface: projector coordinates, irradiance factor; cached per surface."""
+        if self._geo_cache is not None and self._geo_cache[0] == key:
+            return self._geo_cache[1]
+        o, d = self.camera.rays(self._sub_c[None, :], self._sub_r[:, None])
+        p, gain = surface(o, d)
+        up, vp = self.project(p)
+        lit = np.isfinite(up) & np.isfinite(vp) & (gain > 0)
+        pw, ph = self.rig.projector.width, self.rig.projector.height
+        lit &= (up >= -0.5) & (up < pw - 0.5) & (vp >= -0.5) & (vp < ph - 0.5)
+        geo = {"up": np.where(lit, up, 0.0), "vp": np.where(lit, vp, 0.0), "gain": np.where(lit, gain, 0.0)}
+        self._geo_cache = (key, geo)
+        return geo
+
+    def _plate_surface(self, k: int):
+        def surface(o, d):
+            p = self.plate_point(o, d, k)
+            to_proj = self.centre - p
+            # Lambertian: the plate's normal is -Z (toward the scanner), to within its microradians
+            cos_i = -to_proj[..., 2] / np.linalg.norm(to_proj, axis=-1)
+            return p, self.albedo(p[..., 0], p[..., 1]) * np.maximum(cos_i, 0.0)
+        return surface
+
+    def _object_surface(self, obj: ScanObject):
+        def surface(o, d):
+            t, nrm = obj.intersect(o, d)
+            hit = np.isfinite(t)
+            p = o + np.where(hit, t, 0.0)[..., None] * d
+            to_proj = self.centre - p
+            dist = np.linalg.norm(to_proj, axis=-1)
+            cos_i = np.einsum("...i,...i", nrm, to_proj) / dist
+            lit = hit & (cos_i > 0) & ~_shadowed(obj, p, to_proj / dist[..., None])
+            p = np.where(hit[..., None], p, np.nan)
+            return p, np.where(lit, obj.albedo * cos_i, 0.0)
+        return surface
+
+    def _frame(self, geo: dict, direction: str, period: float, step: int, n_steps: int, blur: float,
+               noise_key: tuple) -> np.ndarray:
+        """One camera frame of a projector pattern on a surface (:meth:`_geometry`)."""
+        f = self.rig.projector.fringes
+        coord = geo["up"] if direction == "x" else geo["vp"]
+        g = np.clip(fringe_values(coord, f, direction, period, step, n_steps, 0.0), 0, 255)
+        if f.gamma != 1.0:
+            g = 255.0 * (g / 255.0) ** (1.0 / f.gamma)
+        p = self.scanner.projector
+        lum = p.black + (1 - p.black) * (g / 255.0) ** p.gamma
+        h, w = self.rig.camera.shape
+        m, ss = self.margin, self.scanner.supersample
+        irr = (lum * geo["gain"]).reshape(h + 2 * m, ss, w + 2 * m, ss).mean(axis=(1, 3))
+        return self.camera._expose(irr, blur, noise_key)
+
+    def height_frames(self, k: int):
+        """Yield ``((dir, level, period, step, N), image)`` of the plate at sweep height ``k``."""
+        geo = self._geometry(("plate", k), self._plate_surface(k))
+        blur = self.blur_sigma(self.plate_z_true[k])
+        f = self.rig.projector.fringes
+        for d, j, t, n, big_n in f.frames():
+            yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
+                                                   (20, k, "xy".index(d), _period_key(t), n))
+
+    def scan_frames(self, obj: ScanObject, scan_id: int = 0):
+        """Yield ``((dir, level, period, step, N), image)`` of an object (defocus at its middle height)."""
+        geo = self._geometry(("object", obj, scan_id), self._object_surface(obj))
+        z_mid = float(np.mean([c[2] for c in obj.centres])) if obj.centres else float(obj.point[2])
+        blur = self.blur_sigma(z_mid)
+        for d, j, t, n, big_n in self.rig.projector.fringes.frames():
+            yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
+                                                   (21, scan_id, "xy".index(d), _period_key(t), n))
+
+    def scan_truth(self, obj: ScanObject) -> dict:
+        """Per camera pixel centre: the true point on the object (NaN off it) and whether it is lit."""
+        o, d = self.pixel_rays()
+        t, nrm = obj.intersect(o, d)
+        hit = np.isfinite(t)
+        p = o + np.where(hit, t, 0.0)[..., None] * d
+        to_proj = self.centre - p
+        dist = np.linalg.norm(to_proj, axis=-1)
+        lit = hit & (np.einsum("...i,...i", nrm, to_proj) > 0) & ~_shadowed(obj, p, to_proj / dist[..., None])
+        p = np.where(hit[..., None], p, np.nan)
+        return {"xyz": p, "hit": hit, "lit": lit}
+
+    def settings_json(self) -> str:
+        return json.dumps({"seed": self.seed, "scanner": asdict(self.scanner)})
+
+
+class HeightSweepSource:
+    """The height sweep rendered on demand (a frame source for :func:`ptpcore.run.scanner.decode_projector`)."""
+
+    def __init__(self, sr: ScannerRig):
+        self.scanner_rig = sr
+        self.rig = sr.rig.height_rig()
+
+    def frames(self, k: int):
+        return self.scanner_rig.height_frames(k)
+
+
+class ScanSource:
+    """One object's scan rendered on demand (a frame source; its rig has one position)."""
+
+    def __init__(self, sr: ScannerRig, obj: ScanObject, scan_id: int = 0):
+        self.scanner_rig, self.obj, self.scan_id = sr, obj, scan_id
+        self.rig = projector_rig(sr.rig.camera, sr.rig.projector, (0.0,), "{dir}_T{period}_n{step:02d}.png")
+
+    def frames(self, k: int):
+        return self.scanner_rig.scan_frames(self.obj, self.scan_id)
+
+
+def _shadowed(obj: ScanObject, p: np.ndarray, to_proj: np.ndarray) -> np.ndarray:
+    """Points of a ball bar that its other ball hides from the projector (a single sphere or a plane
+    shadows nothing that its own shading does not already darken)."""
+    if obj.kind != "ballbar":
+        return np.zeros(p.shape[:-1], bool)
+    t, _ = obj.intersect(p + 1e-6 * to_proj, to_proj)
+    return np.isfinite(t)
+
+
+def _look_at(axis: np.ndarray) -> np.ndarray:
+    """World -> projector rotation whose z axis is ``axis`` and whose x axis stays along world X."""
+    z = axis / np.linalg.norm(axis)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def default_objects(rig: Rig) -> dict:
+    """The scans :func:`simulate_scanner_dataset` renders: a sphere, a ball bar and a tilted plane
+    in the middle of the volume, sized against its diagonal (VDI/VDE 2634-2 suggests 0.1 to 0.2 of it)."""
+    cx = (rig.lcd.width - 1) / 2 * rig.lcd.pitch_mm[0]
+    cy = (rig.lcd.height - 1) / 2 * rig.lcd.pitch_mm[1]
+    z0, z1 = min(rig.height.z_mm), max(rig.height.z_mm)
+    zm = 0.5 * (z0 + z1)
+    tilt = np.radians(20.0)
+    return {
+        "sphere": ScanObject("sphere", ((cx + 5.0, cy - 4.0, zm + 5.0),), 12.5),
+        "ballbar": ScanObject("ballbar", ((cx - 30.0, cy - 10.0, zm - 4.0), (cx + 28.0, cy + 12.0, zm + 8.0)), 9.0),
+        "plane": ScanObject("plane", point=(cx, cy, zm), normal=(np.sin(tilt), 0.0, -np.cos(tilt)), size=90.0),
+    }
+
+
+def _write_scanner_truth(path: Path, sr: ScannerRig) -> None:
+    def fill(f) -> None:
+        f.attrs["format"] = "ptp-scanner-truth/1"
+        f.attrs["settings"] = sr.settings_json()
+        f["plate_z_true"] = sr.plate_z_true
+        f["projector_K"] = sr.K
+        f["projector_dist"] = sr.dist
+        f["projector_R_proj_world"] = sr.R
+        f["projector_centre"] = sr.centre
+        # What each pixel sees on the real plate (tilt, bow, height error): the samples' truth.
+        f.create_dataset("u_plate", data=np.stack([sr.plate_up(k) for k in range(sr.plate_z_true.size)]),
+                         compression="gzip", compression_opts=1)
+
+    write_hdf5_atomic(path, fill)
+
+
+def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, image_ext: str = ".png") -> Path:
+    """Render one object scan folder (``ptp-scan/1``, one view) with its ``truth.h5``.
+
+    Returns
+    -------
+    Path of the scan folder.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    template = "{dir}_T{period}_n{step:02d}" + image_ext
+    spec = ScanSpec(sr.rig.camera, sr.rig.projector, template)
+    for (d, _j, t, n, big_n), img in sr.scan_frames(obj, scan_id):
+        _write_image(out / template.format(dir=d, period=format_period(t), step=n), img, image_ext)
+    truth = sr.scan_truth(obj)
+
+    def fill(f) -> None:
+        f.attrs["format"] = "ptp-scan-truth/1"
+        f.attrs["object"] = obj.to_json()
+        f.attrs["settings"] = sr.settings_json()
+        f.create_dataset("xyz", data=truth["xyz"], compression="gzip", compression_opts=1)
+        f["hit"] = truth["hit"].astype(np.uint8)
+        f["lit"] = truth["lit"].astype(np.uint8)
+
+    write_hdf5_atomic(out / SCAN_TRUTH_FILE, fill)
+    write_text_atomic(out / "scan.toml", scan_to_toml(spec))  # last: a folder without it is incomplete
+    return out
+
+
+def simulate_scanner_dataset(out_dir, rig: Rig, sim: SimSettings, scanner: ScannerSettings, seed: int = 0,
+                             objects: dict | None = None, progress: Callable[[float, str], None] | None = None,
+                             image_ext: str = ".png") -> Path:
+    """A ``ptp-dataset/2`` with the LCD sweep, the plate's height sweep and object scans, with truth.
+
+    Writes ``rig.toml`` (``[projector]``, ``[height]``), the LCD sweep's frames and ``truth.h5``
+    (:func:`ptpcore.simulate.simulate_dataset`), the height sweep's frames, ``scanner_truth.h5``
+    (the projector, the plate's true heights, the true ``u_p`` each pixel sees on it), and ``scans/NAME/``, one
+    ``ptp-scan/1`` folder per object (default :func:`default_objects`), each with its ``truth.h5``.
+
+    Returns
+    -------
+    Path of the dataset folder.
+    """
+    from ptpcore.simulate.virtual_rig import simulate_dataset
+
+    out = Path(out_dir)
+    lcd_rig = replace(rig, projector=None, height=None)
+
+    def lcd_progress(frac, msg):
+        if progress:
+            progress(0.5 * frac, msg)
+
+    simulate_dataset(out, lcd_rig, sim, seed, progress=lcd_progress, image_ext=image_ext)
+    (out / "rig.toml").unlink()  # written again last, with the height sweep
+    if Path(rig.height.template).suffix != image_ext:
+        rig = replace(rig, height=replace(rig.height, template=str(Path(rig.height.template).with_suffix(image_ext))))
+    sr = ScannerRig(rig, sim, scanner, seed)
+    h_rig = rig.height_rig()
+    k_total = len(rig.height.z_mm)
+    for k in range(k_total):
+        if progress:
+            progress(0.5 + 0.4 * k / k_total, f"rendering plate height {k} (0 … {k_total - 1})")
+        for (d, _j, t, n, big_n), img in sr.height_frames(k):
+            _write_image(out / h_rig.image_name(k, d, t, n, big_n), img, image_ext)
+    _write_scanner_truth(out / SCANNER_TRUTH_FILE, sr)
+    objects = default_objects(rig) if objects is None else objects
+    for i, (name, obj) in enumerate(objects.items()):
+        if progress:
+            progress(0.9 + 0.1 * i / max(len(objects), 1), f"rendering scan {name}")
+        simulate_scan(out / "scans" / name, sr, obj, i, image_ext)
+    save_rig(rig, out / "rig.toml")
+    if progress:
+        progress(1.0, "simulation done")
+    return out
+
+
+def load_scanner(dataset_dir) -> ScannerRig:
+    """The simulated scanner of a dataset folder (its ``rig.toml``, ``truth.h5`` and ``scanner_truth.h5``):
+    exact truth at any height (:meth:`ScannerRig.true_up`, :meth:`ScannerRig.true_z`)."""
+    from ptpcore.rig.rigfile import load_rig
+    from ptpcore.simulate.virtual_rig import load_truth
+
+    folder = Path(dataset_dir)
+    rig = load_rig(folder)
+    _truth, sim, seed = load_truth(folder)
+    with h5py.File(folder / SCANNER_TRUTH_FILE, "r") as f:
+        d = json.loads(f.attrs["settings"])
+    sc = d["scanner"]
+    proj = ProjectorSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in sc.pop("projector").items()})
+    scanner = ScannerSettings(projector=proj, **{k: tuple(v) if isinstance(v, list) else v for k, v in sc.items()})
+    return ScannerRig(rig, sim, scanner, d["seed"])
+
+
+def load_scan_truth(scan_dir) -> tuple[ScanObject, dict]:
+    """A simulated scan's object and per-pixel truth (``xyz`` (H, W, 3) mm, ``hit``, ``lit`` (H, W) bool)."""
+    with h5py.File(Path(scan_dir) / SCAN_TRUTH_FILE, "r") as f:
+        obj = ScanObject.from_json(f.attrs["object"])
+        truth = {"xyz": f["xyz"][()], "hit": f["hit"][()].astype(bool), "lit": f["lit"][()].astype(bool)}
+    return obj, truth
