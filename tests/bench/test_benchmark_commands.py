@@ -54,13 +54,13 @@ def test_decode_stages_benchmark_runs_on_a_tiny_dataset(tmp_path):
     decode_stages = pytest.importorskip("benchmarks.decode_stages")
     import ptpcore.run.pipeline as pipeline
 
-    rig = synth.make_rig(0.02, 3, steps=(4, 4, 8))  # 160 x 128 px, 3 positions
+    rig = synth.make_rig(0.005, 2, steps=(4, 4, 8))  # 80 x 64 px, 2 positions (the first warms up)
     data = synth.write_dataset(tmp_path / "tiny", rig)
     before = pipeline.wrapped_phase
-    res = decode_stages.measure(data, [0, 1, 2], "gzip")
+    res = decode_stages.measure(data, [0, 1], "gzip")
     assert pipeline.wrapped_phase is before
-    assert res["positions"] == 2 and res["frames"] == 32 and res["file_mb_per_position"] > 0
+    assert res["positions"] == 1 and res["frames"] == 32 and res["file_mb_per_position"] > 0
     stages = res["stages"]
     for label in ("N-step sums (wrapped_phase)", "spatial check (spatial_outliers)", "the file (gzip)"):
         assert stages[label][1] > 0 and stages[label][0] >= 0
-    assert stages["spatial check (spatial_outliers)"][1] == 4  # two positions, two directions
+    assert stages["spatial check (spatial_outliers)"][1] == 2  # one position, two directions

@@ -23,12 +23,17 @@ def small_dataset(tmp_path_factory):
     return simulate_dataset(tmp_path_factory.mktemp("ds") / "ds", rig, settings, seed=4)
 
 
+@pytest.fixture(scope="module")
+def in_memory(small_dataset):
+    """The small dataset decoded into memory (no file)."""
+    return decode_dataset(DatasetSource(small_dataset)).decoded
+
+
 @pytest.mark.parametrize("compression", ["gzip", "none"])
-def test_the_file_holds_the_decoded_maps_with_the_filters_asked_for(small_dataset, tmp_path, compression):
+def test_the_file_holds_the_decoded_maps_with_the_filters_asked_for(small_dataset, in_memory, tmp_path, compression):
     """The file (written in the background, position by position) holds the very values of the decode
     kept in memory, under HDF5's built-in filters: shuffle + deflate, or none."""
-    source = DatasetSource(small_dataset)
-    want = decode_dataset(source).decoded
+    want = in_memory
     out = tmp_path / f"{compression}.decoded.h5"
     assert main(["decode", str(small_dataset), "--out", str(out), "--compression", compression, "-q"]) == 0
     got = load_decoded(out)
