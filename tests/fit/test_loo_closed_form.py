@@ -54,8 +54,8 @@ def _refit_without(s, k, own, interior):
                      s.cv_bin, s.level_bias, s.footprint, cross_validate=False, own=False)
     run.fit_and_cross_validate_fine(lambda f, m: None)
     coef = smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm, variance=False)[0]
-    noise = _CLOSED_FORM(s, k, own, interior)[1]  # the samples' noise estimates, as before issue 33
-    return coef, noise
+    _coef, noise, kept = _CLOSED_FORM(s, k, own, interior)  # the samples' noise and corrections, as before
+    return coef, noise, kept
 
 
 @pytest.fixture(scope="module")
