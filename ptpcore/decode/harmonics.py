@@ -91,8 +91,7 @@ def _pair_noise(stack: np.ndarray, bins: list[int], m: int) -> dict:
     """:func:`harmonic_noise_samples`' maps of a band of sampled rows: ``stack`` (N, rows, 2 m) holds the
     first pixels of the pairs, then their neighbours."""
     n = stack.shape[0]
-    delta = 2.0 * np.pi * np.arange(n) / n
-    x = {hh: np.tensordot(np.exp(-1j * hh * delta), stack, axes=(0, 0)) for hh in [1, *bins]}
+    x = {hh: _dft_bin(stack, hh) for hh in [1, *bins]}
     x1 = x[1]
     amp1 = np.abs(x1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -110,6 +109,27 @@ def _pair_noise(stack: np.ndarray, bins: list[int], m: int) -> dict:
     bg = stack.mean(axis=0)
     return {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": acc / (2.0 * n * len(bins)), "harmonic": harm,
             "modulation": (2.0 / n) * amp1[:, p]}
+
+
+def _dft_bin(stack: np.ndarray, hh: int) -> np.ndarray:
+    """Bin ``hh`` of the DFT over the N frames, ``sum_n exp(-i hh 2 pi n / N) frame_n``, (...) complex128.
+
+    Real and imaginary parts are summed apart, frame by frame, in real arithmetic: a complex
+    ``tensordot`` first converts the whole real stack to complex and hands it to BLAS, which took
+    0.45 CPU-s for the three bins of a 5 MP position's sampled pairs (issue 33), 15x their arithmetic.
+    """
+    n = stack.shape[0]
+    angle = 2.0 * np.pi * hh * np.arange(n) / n
+    cos, sin = np.cos(angle), np.sin(angle)
+    re = stack[0] * cos[0]
+    im = stack[0] * sin[0]
+    for k in range(1, n):
+        re += stack[k] * cos[k]
+        im += stack[k] * sin[k]
+    out = np.empty(re.shape, np.complex128)
+    out.real = re
+    out.imag = -im
+    return out
 
 
 def coherent_harmonic(frames, harmonic: int = 2, block: int = 8) -> dict:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import threading
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -16,13 +17,16 @@ import numpy as np
 
 from ptpcore import __version__
 from ptpcore.atomic import atomic_path
-from ptpcore.io.h5chunks import write_compressed
+from ptpcore.io.h5chunks import GZIP_LEVEL, write_compressed
 
-__all__ = ["DECODED_FORMAT", "Decoded", "DecodedWriter", "decoded_writer", "save_decoded", "load_decoded"]
+__all__ = ["DECODED_FORMAT", "COMPRESSIONS", "Decoded", "DecodedWriter", "BackgroundWriter", "decoded_writer",
+           "save_decoded", "load_decoded"]
 
 DECODED_FORMAT = "ptp-decoded/1"
 
-_OPTS = dict(compression="gzip", compression_opts=1, shuffle=True)
+COMPRESSIONS = {"gzip": dict(compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True), "none": {}}
+"""The ``ptp-decoded/1`` file's HDF5 filters by name: ``gzip`` (HDF5's shuffle + deflate at level
+:data:`ptpcore.io.h5chunks.GZIP_LEVEL`), ``none`` (no filter). Both are built into every HDF5 reader."""
 
 _CHUNK_PIXELS = 1 << 18
 """About this many pixels per chunk (1 MB of float32): a chunk holds whole rows of one position."""
@@ -66,7 +70,8 @@ def save_decoded(path, dec: Decoded) -> None:
 
 
 @contextlib.contextmanager
-def decoded_writer(path, positions, z_mm, shape, reason_bits: dict, rig_toml: str) -> Iterator["DecodedWriter"]:
+def decoded_writer(path, positions, z_mm, shape, reason_bits: dict, rig_toml: str,
+                   compression: str = "none") -> Iterator["DecodedWriter"]:
     """A ``ptp-decoded/1`` file written one position at a time, atomically.
 
     A big sensor's positions never need to be in memory together (5 MP x 21 positions
@@ -82,11 +87,16 @@ def decoded_writer(path, positions, z_mm, shape, reason_bits: dict, rig_toml: st
     shape : (H, W)
     reason_bits : dict of str -> int
     rig_toml : str
+    compression : str
+        A key of :data:`COMPRESSIONS`.
 
     Yields
     ------
     DecodedWriter
     """
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+    opts = COMPRESSIONS[compression]
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = DECODED_FORMAT
         f.attrs["software"] = f"ptpcore {__version__}"
@@ -99,8 +109,8 @@ def decoded_writer(path, positions, z_mm, shape, reason_bits: dict, rig_toml: st
         for name, per_dir, fill in (("u", False, np.nan), ("v", False, np.nan), ("modulation", True, 0.0),
                                     ("background", True, 0.0)):
             dims, chunks = ((k, 2, h, w), (1, 1, rows, w)) if per_dir else ((k, h, w), (1, rows, w))
-            f.create_dataset(name, dims, np.float32, chunks=chunks, fillvalue=fill, **_OPTS)
-        r = f.create_dataset("reasons", (k, 2, h, w), np.uint16, chunks=(1, 1, rows, w), fillvalue=0, **_OPTS)
+            f.create_dataset(name, dims, np.float32, chunks=chunks, fillvalue=fill, **opts)
+        r = f.create_dataset("reasons", (k, 2, h, w), np.uint16, chunks=(1, 1, rows, w), fillvalue=0, **opts)
         for key, bit in reason_bits.items():
             r.attrs[key] = np.uint16(bit)
         yield DecodedWriter(f)
@@ -119,6 +129,55 @@ class DecodedWriter:
         for name, values in (("u", u), ("v", v), ("modulation", modulation), ("background", background),
                              ("reasons", reasons)):
             write_compressed(f[name], i, values)
+
+
+class BackgroundWriter:
+    """A sink's ``write(i, *maps)`` on a thread of its own, so that the next position decodes meanwhile.
+
+    At most one position is in flight: :meth:`write` hands the maps over and returns at once, after
+    waiting for the previous position's write to end (one position's maps beside the decoder's, 140 MB
+    at 5 MP). The maps must not change after they are handed over. An error of the writing thread is
+    raised by the next :meth:`write` or by :meth:`close`, which waits for the last write.
+
+    Parameters
+    ----------
+    sink : object with ``write(i, u, v, modulation, background, reasons)``
+    """
+
+    def __init__(self, sink):
+        self.sink = sink
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def _run(self, args) -> None:
+        try:
+            self.sink.write(*args)
+        except BaseException as exc:  # noqa: BLE001 - handed to the decoding thread
+            self._error = exc
+
+    def _wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def write(self, i: int, u, v, modulation, background, reasons) -> None:
+        """Write position ``i`` in the background (see :meth:`DecodedWriter.write`)."""
+        self._wait()
+        self._thread = threading.Thread(target=self._run, args=((i, u, v, modulation, background, reasons),),
+                                        name="ptp-decoded-writer", daemon=True)
+        self._thread.start()
+
+    def close(self, quiet: bool = False) -> None:
+        """Wait for the last write; raise its error if it failed (not when ``quiet``: another error is
+        on its way and the file will not be kept)."""
+        try:
+            self._wait()
+        except BaseException:
+            if not quiet:
+                raise
 
 
 def load_decoded(path) -> Decoded:

@@ -35,8 +35,9 @@ def chunk_shape(shape: tuple, itemsize: int) -> tuple:
     return (1,) * (len(shape) - 2) + (rows, w)
 
 
-def _encoded(data: np.ndarray, chunks: tuple, start: tuple) -> bytes:
-    """One chunk as HDF5's shuffle + deflate filters would store it (edge chunks zero-padded to full size)."""
+def _encoded(data: np.ndarray, chunks: tuple, start: tuple, deflate: bool = True) -> bytes:
+    """One chunk as HDF5's shuffle + deflate filters would store it, or without ``deflate`` as HDF5 stores
+    a chunk without filters (its raw bytes); edge chunks zero-padded to full size."""
     src = data[tuple(slice(s, s + c) for s, c in zip(start, chunks))]
     if src.shape == chunks:
         block = np.ascontiguousarray(src)
@@ -44,6 +45,8 @@ def _encoded(data: np.ndarray, chunks: tuple, start: tuple) -> bytes:
         block = np.zeros(chunks, data.dtype)
         block[tuple(slice(0, n) for n in src.shape)] = src
     raw = block.reshape(-1).view(np.uint8)
+    if not deflate:
+        return raw.tobytes()
     if data.dtype.itemsize > 1:  # the shuffle filter: byte 0 of every element, then byte 1, ...
         raw = np.ascontiguousarray(raw.reshape(-1, data.dtype.itemsize).T)
     return zlib.compress(raw, GZIP_LEVEL)
@@ -76,12 +79,15 @@ def create_compressed(group, name: str, data):
     return dset
 
 
-def _write_chunks(dset, data: np.ndarray, chunks: tuple, lead: tuple) -> None:
-    """Every chunk of ``data`` compressed on the tile pool, in batches, stored at ``lead + its start``."""
+def _write_chunks(dset, data: np.ndarray, chunks: tuple, lead: tuple, deflate: bool = True) -> None:
+    """Every chunk of ``data`` compressed on the tile pool (or as raw bytes without ``deflate``), in
+    batches, stored at ``lead + its start``."""
     starts = list(itertools.product(*(range(0, n, c) for n, c in zip(data.shape, chunks))))
     for b in range(0, len(starts), BATCH):
         batch = starts[b:b + BATCH]
-        for start, payload in zip(batch, map_in_order(lambda s: _encoded(data, chunks, s), batch)):
+        payloads = map_in_order(lambda s: _encoded(data, chunks, s, deflate), batch) if deflate else \
+            (_encoded(data, chunks, s, False) for s in batch)
+        for start, payload in zip(batch, payloads):
             dset.id.write_direct_chunk(lead + start, payload)
 
 
@@ -90,7 +96,9 @@ def write_compressed(dset, index: int, data) -> None:
 
     For a dataset written one leading index at a time (a position of a ``ptp-decoded/1``
     file): chunked ``(1, ...)`` along its first axis, gzip at :data:`GZIP_LEVEL` with the
-    shuffle filter. Any other dataset is written the plain way.
+    shuffle filter, or without any filter (each chunk's bytes stored as they are, one HDF5
+    call a chunk: a whole position in one call held the GIL for its whole write). Any other
+    dataset is written the plain way.
 
     Parameters
     ----------
@@ -101,10 +109,10 @@ def write_compressed(dset, index: int, data) -> None:
         Shape ``dset.shape[1:]``, converted to ``dset.dtype``.
     """
     data = np.ascontiguousarray(data, dtype=dset.dtype)
-    ours = (dset.chunks is not None and dset.chunks[0] == 1 and dset.compression == "gzip"
-            and dset.compression_opts == GZIP_LEVEL and dset.shuffle and not dset.fletcher32
-            and dset.scaleoffset is None and data.ndim >= 2)
-    if not ours or data.shape != dset.shape[1:]:
+    plain = dset.chunks is not None and dset.chunks[0] == 1 and not dset.fletcher32 and dset.scaleoffset is None
+    deflate = dset.compression == "gzip" and dset.compression_opts == GZIP_LEVEL and dset.shuffle
+    raw = dset.compression is None and not dset.shuffle
+    if not (plain and (deflate or raw) and data.ndim >= 2) or data.shape != dset.shape[1:]:
         dset[index] = data
         return
-    _write_chunks(dset, data, dset.chunks[1:], (index,))
+    _write_chunks(dset, data, dset.chunks[1:], (index,), deflate)

@@ -108,7 +108,8 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     progress : callable, optional
     uncertainty : bool
         The full sigma maps and the real leave-one-out
-        (:func:`ptpcore.fit.smooth.uncertainty.uncertainty_maps`, ~1.8x the fit's time);
+        (:func:`ptpcore.fit.smooth.uncertainty.uncertainty_maps`: about 3.5x the rest of the fit's CPU
+        time at 2 MP x 21, most of it the leave-one-out's smoothing, once per position);
         off for fits judged only by their predictions (auto's candidates): noise-only sigma, NaN LOO.
     global_fit : PinholeFit, optional
         :func:`smooth_global_fit` of these samples, positions, ``level_bias``, ``global_points`` and

@@ -223,13 +223,14 @@ def corrected_samples(samples: SampleStack, rig: Rig, axis: int, s: int, e: int,
 
 
 def global_residuals(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, rays: GlobalRays,
-                     level_bias: bool = False, footprint: bool = False):
+                     level_bias: bool = False, footprint: bool = False, corrected: bool = False):
     """Rows ``[r0, r1)`` of the chosen positions: validity, sample sigma, weights and residuals to the global model.
 
     Returns
     -------
     valid : (K, n) bool ; sigma : (K, n) float64 (NaN where invalid) ; wts : (K, n) float64
-    (0 where invalid or off the global model) ; resid : (rx, ry) (K, n) float64, mm
+    (0 where invalid or off the global model) ; resid : (rx, ry) (K, n) float64, mm ;
+    with ``corrected`` also the corrected samples themselves (:func:`corrected_samples`, X and Y)
     """
     w = samples.shape[1]
     s, e = r0 * w, r1 * w
@@ -239,6 +240,6 @@ def global_residuals(samples: SampleStack, rig: Rig, sel, z, r0: int, r1: int, r
     g = [r[r0 - lo:r1 - lo].reshape(-1) for r in near]
     wts[:, ~(np.isfinite(g[0]) & np.isfinite(g[1]))] = 0.0
     fb = footprint_bias(near, rig, z, mod, bg, r0 - lo, r1 - lo) if footprint else None
-    resid = [corrected_samples(samples, rig, a, s, e, sel, z, level_bias, fb) - (g0[None] + gs[None] * z[:, None])
-             for a, (g0, gs) in enumerate(((g[0], g[2]), (g[1], g[3])))]
-    return valid, sig, wts, resid
+    values = [corrected_samples(samples, rig, a, s, e, sel, z, level_bias, fb) for a in (0, 1)]
+    resid = [v - (g0[None] + gs[None] * z[:, None]) for v, (g0, gs) in zip(values, ((g[0], g[2]), (g[1], g[3])))]
+    return (valid, sig, wts, resid, values) if corrected else (valid, sig, wts, resid)
