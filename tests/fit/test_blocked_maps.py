@@ -11,7 +11,7 @@ import pytest
 
 from ptpcore.fit import fit_lut, poly_sigma_maps, predicted_poly_sigma, sample_sigma_from_noise
 from ptpcore.fit import smooth as smooth_mod
-from ptpcore.fit.smooth import (blocks as smooth_blocks, global_model, leave_one_out, noise as smooth_noise,
+from ptpcore.fit.smooth import (blocks as smooth_blocks, global_model, noise as smooth_noise,
                                 pixel_fits, smoothing, uncertainty as smooth_uncertainty)
 from ptpcore.fit.smooth import sigma_scale
 from ptpcore.store import FileRows
@@ -110,17 +110,6 @@ def test_smooth_lut_memory_layout_keeps_its_bits(rough_rig, monkeypatch):
     assert info.scale_px == ref_info.scale_px
     np.testing.assert_allclose(info.cv_rms_mm, ref_info.cv_rms_mm, rtol=1e-12)
     assert info.excess_sigma_mm == pytest.approx(ref_info.excess_sigma_mm, rel=1e-9, abs=1e-15)
-
-
-def test_smooth_lut_own_noise_in_a_file_keeps_its_bits(rough_rig, monkeypatch):
-    """The leave-one-out's per-sample noise estimates (one pass over the samples, ``_OwnNoise``)
-    give the same LUT from a temporary file as from memory, LOO and sigma maps included."""
-    vr, samples = rough_rig
-    ref, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
-    monkeypatch.setattr(leave_one_out, "OWN_NOISE_BYTES", 0)
-    got, _ = smooth_mod.fit_smooth_lut(samples, vr.rig, 2, cv_bin=2)
-    for name in _LUT_MAPS:
-        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
 
 
 def test_row_spill_round_trip():

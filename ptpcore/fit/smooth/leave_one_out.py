@@ -1,9 +1,12 @@
 """Step 6 of the smooth fit: the real leave-one-position-out, and the model error it reveals.
 
-For every calibration position the smooth LUT is fitted again without it (:func:`leave_one_out`)
+For every calibration position the smooth LUT is made again without it (:func:`leave_one_out`)
 and compared with that position's samples; the residuals' excess over the noise
 (:func:`model_error`, each sample's noise from its pixel's own fit, ``r_own^2 / (1 - h)``) is the
-model error the sigma maps carry. The per-pixel sums wait in :mod:`ptpcore.store` row stores.
+model error the sigma maps carry. Every pixel's fit without a position comes in closed form from
+its fit through all of them (:func:`downdated_fits`, :class:`OwnFits`: one pass over the samples
+instead of one per position); only the smoothing is redone. The per-pixel sums wait in
+:mod:`ptpcore.store` row stores.
 """
 
 from __future__ import annotations
@@ -16,12 +19,12 @@ from ptpcore.fit.sigma import model_variance_map
 from ptpcore.fit.smooth.blocks import row_blocks, run_blocks
 from ptpcore.fit.smooth.global_model import GlobalRays, corrected_samples, footprint_bias, global_residuals
 from ptpcore.fit.smooth.noise import noise_rows
-from ptpcore.fit.smooth.pixel_fits import SmoothPass, smoothed_coefficients, weighted_poly_fits
+from ptpcore.fit.smooth.pixel_fits import PixelFits, smoothed_coefficients, weighted_poly_fits
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
-from ptpcore.store import position_store, release_free_memory, row_store
+from ptpcore.store import release_free_memory, row_store
 
-__all__ = ["LooSetup", "LooSums", "ModelError", "OwnNoise", "leave_one_out", "model_error"]
+__all__ = ["LooSetup", "LooSums", "ModelError", "OwnFits", "downdated_fits", "leave_one_out", "model_error"]
 
 
 @dataclass
@@ -70,13 +73,17 @@ class ModelError:
 def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -> tuple[dict, ModelError]:
     """Leave-one-position-out of the smooth LUT, and the model error its residuals reveal.
 
-    For every calibration position ``k`` the smooth LUT is fitted again
-    without it (the global model, the normalisation in z and the smoothing
-    scale kept; every pixel's fit, its weights and the smoothing redone) and
-    its prediction at ``z_k`` compared with position ``k``'s corrected samples.
-    No sample of position ``k`` reaches that prediction, at any pixel, so a
-    per-position error common to all pixels (stage reading, a smooth pattern)
-    is not smoothed into it.
+    For every calibration position ``k`` the smooth LUT is made again without it (the global
+    model, the normalisation in z and the smoothing scale kept; every pixel's fit, its weights and
+    the smoothing redone) and its prediction at ``z_k`` compared with position ``k``'s corrected
+    samples. No sample of position ``k`` reaches that prediction, at any pixel, so a per-position
+    error common to all pixels (stage reading, a smooth pattern) is not smoothed into it.
+
+    Every pixel's fit without ``k`` is a linear least-squares fit with one sample less: it comes in
+    closed form from the pixel's fit through all positions (:func:`downdated_fits`, METHOD.md
+    section 5), from one pass over the samples (:class:`OwnFits`) and position ``k``'s samples;
+    only the smoothing (the same weights the refit would use, ``1 / var`` of the fit without ``k``)
+    is done again for each ``k``.
 
     Parameters
     ----------
@@ -85,7 +92,7 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
         The smooth LUT's valid pixels.
     sums : LooSums
         Holds ``fit_var``, the LUT's predicted variance from the sample noise (and stage readings),
-        RMS over the calibrated range (mm^2); gets the refits' residual sums.
+        RMS over the calibrated range (mm^2); gets the left-out fits' residual sums.
     report : callable ``(fraction, message)``
 
     Returns
@@ -98,17 +105,18 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     k_all = s.z.size
     # The left-out fit has K-1 positions: its noise variance grows by about K / (K - 1).
     grow = k_all / max(k_all - 1, 1)
-    report(0.0, "estimating each sample's noise from its pixel's own fit")
-    own_noise = _own_noise_all(s, [k for k in range(k_all) if s.z.min() < s.z[k] < s.z.max()])
+    report(0.0, "fitting every pixel through all calibration positions")
+    own = OwnFits.from_samples(s)
     for k in range(k_all):
         report(k / k_all, f"leaving calibration position {k + 1} of {k_all} out")
-        coef = _refit_without(s, k)
         # Only interior positions measure the model error: the LUT is used inside its calibrated
         # range, and the fit without an end position extrapolates to it.
         interior = s.z.min() < s.z[k] < s.z.max()
-        _accumulate_left_out(s, k, coef, valid, sums, grow, interior, own_noise)
-        del coef
-        release_free_memory()  # each refit left ~50 MB resident at 5 MP (3.2 -> 3.6 GB over 21 refits)
+        coef, own_noise = _fit_without(s, k, own, interior)
+        _accumulate_left_out(s, k, coef, valid, sums, grow, own_noise)
+        del coef, own_noise
+        release_free_memory()  # each left-out fit's maps (~50 MB resident at 5 MP otherwise)
+    own = None
     loo = {}
     for a in "xy":
         with np.errstate(all="ignore"):
@@ -116,26 +124,149 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     return loo, model_error(sums, s.scale)
 
 
-def _refit_without(s: LooSetup, k: int) -> dict:
-    """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) fitted without calibration position ``k``."""
-    keep = np.arange(s.z.size) != k
-    run = SmoothPass(s.samples, s.rig, s.sel[keep], s.z[keep], s.z_norm, s.rays, s.degree, [s.scale],
-                     s.cv_bin, s.level_bias, s.footprint, cross_validate=False, own=False)
-    run.fit_and_cross_validate_fine(lambda f, m: None)
-    return smoothed_coefficients(run.fits, s.scale, run.b, s.rays, *s.z_norm, variance=False)[0]
+def downdated_fits(coefs, cov: np.ndarray, n: np.ndarray, weight: np.ndarray, values, powers: np.ndarray):
+    """Every pixel's weighted least-squares fit without one of its samples, from the fit with it.
+
+    With ``A`` a pixel's normal matrix, ``p`` the left-out sample's powers of ``t``, ``w`` its weight,
+    ``u = A^-1 p`` and ``h = w p'u`` its leverage, the fit without the sample is (Sherman-Morrison)
+    ``c - u w r / (1 - h)``, ``r`` the sample's residual to ``c``, and its inverse normal matrix is
+    ``A^-1 + w u u' / (1 - h)``: no refit (METHOD.md section 5's ``r / (1 - h)``).
+
+    Parameters
+    ----------
+    coefs : list of (D+1, P) float64
+        The fits through every sample (X and Y; :func:`weighted_poly_fits`).
+    cov : (D+1, D+1, P) float64
+        Their inverse normal matrix (``weighted_poly_fits(..., full=True)``).
+    n : (P,) int
+        Samples the fits used.
+    weight : (P,) float64
+        The left-out sample's weight (0 where the pixel did not use it: its fit stays).
+    values : list of (P,) float64
+        The left-out sample's values, X and Y (anything where ``weight == 0``).
+    powers : (D+1,) float64
+        ``t**j`` of the left-out sample.
+
+    Returns
+    -------
+    coefs : list of (D+1, P) float64
+    var : (D+1, P) float64
+        The diagonal of the new inverse normal matrix. Both NaN where fewer than D+1 samples
+        remain, as :func:`weighted_poly_fits` leaves them.
+    resid : list of (P,) float64
+        The left-out sample's residuals ``r`` to the fits through every sample.
+    lev : (P,) float64
+        Its leverage ``h`` (0 where unused).
+    """
+    d1 = powers.size
+    u = np.einsum("ijp,j->ip", cov, powers)
+    lev = weight * np.einsum("i,ijp,j->p", powers, cov, powers)
+    drop = weight > 0
+    gone = drop & (n - 1 < d1)
+    with np.errstate(all="ignore"):
+        gain = np.where(drop, weight / (1.0 - lev), 0.0)
+        out, resid = [], []
+        for c, y in zip(coefs, values):
+            r = y - np.einsum("j,jp->p", powers, c)
+            out.append(np.where(gone, np.nan, c - u * np.where(drop, gain * r, 0.0)))
+            resid.append(r)
+        var = np.where(gone, np.nan, cov[np.arange(d1), np.arange(d1)] + gain * u * u)
+    return out, var, resid, lev
+
+
+class OwnFits:
+    """Every pixel's own weighted fit of its residuals to the global model through all calibration
+    positions (:func:`weighted_poly_fits`): X and Y coefficients ``(2, D+1, H, W)``, the inverse
+    normal matrix ``(D+1, D+1, H, W)`` (row stores: files at 5-12 MP) and the samples used ``(H, W)``.
+
+    Made once, in one pass over the samples (:meth:`from_samples`); every left-out fit comes from it
+    (:func:`downdated_fits`).
+    """
+
+    def __init__(self, shape, d1: int):
+        h, w = shape
+        self.coefs = row_store((2, d1, h, w))
+        self.cov = row_store((d1, d1, h, w))
+        self.n = np.zeros((h, w), np.int32)
+
+    @classmethod
+    def from_samples(cls, s: LooSetup) -> "OwnFits":
+        h, w = s.samples.shape
+        own = cls((h, w), s.degree + 1)
+        t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
+
+        def block(r0, r1):
+            _valid, _sig, wts, resid = global_residuals(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays,
+                                                        s.level_bias, s.footprint)
+            coefs, _v, n, cov = weighted_poly_fits(t_all, resid, wts, s.degree, full=True)
+            own.put(r0, r1, coefs, cov, n)
+
+        run_blocks(block, row_blocks(h, w))
+        return own
+
+    def put(self, r0: int, r1: int, coefs, cov: np.ndarray, n: np.ndarray) -> None:
+        """Rows ``[r0, r1)``: ``coefs`` X and Y (D+1, P), ``cov`` (D+1, D+1, P), ``n`` (P,)."""
+        rows, w = r1 - r0, self.n.shape[1]
+        d1 = cov.shape[0]
+        self.coefs[:, :, r0:r1] = np.stack(coefs).reshape(2, d1, rows, w)
+        self.cov[:, :, r0:r1] = cov.reshape(d1, d1, rows, w)
+        self.n[r0:r1] = n.reshape(rows, w)
+
+    def rows(self, r0: int, r1: int):
+        """Rows ``[r0, r1)`` as :func:`downdated_fits` takes them: ``[cx, cy]`` (D+1, P), cov
+        (D+1, D+1, P), n (P,)."""
+        c = self.coefs.row_block(r0, r1)
+        d1 = c.shape[1]
+        c = c.reshape(2, d1, -1)
+        return [c[0], c[1]], self.cov.row_block(r0, r1).reshape(d1, d1, -1), self.n[r0:r1].reshape(-1)
+
+
+def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
+    """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) without calibration position ``k``, and
+    for an ``interior`` position its samples' noise estimates ``r_own^2 / (1 - h)`` ((2, H, W) row store,
+    X and Y; NaN where the pixel has no freedom left or did not use the sample), else None.
+
+    Every pixel's fit without ``k`` comes in closed form (:func:`downdated_fits`) from its fit
+    through all positions (``own``) and position ``k``'s samples; then it is smoothed as the LUT is.
+    """
+    h, w = s.samples.shape
+    d1 = s.degree + 1
+    pos, zk = s.sel[k:k + 1], s.z[k:k + 1]
+    powers = ((s.z[k] - s.z_norm[0]) / s.z_norm[1]) ** np.arange(d1)
+    fits = PixelFits.empty((h, w), d1, own=False)
+    noise = row_store((2, h, w)) if interior else None
+
+    def block(r0, r1):
+        _valid, _sig, wts, resid = global_residuals(s.samples, s.rig, pos, zk, r0, r1, s.rays, s.level_bias,
+                                                    s.footprint)
+        coefs, cov, n = own.rows(r0, r1)
+        c, var, r_own, lev = downdated_fits(coefs, cov, n, wts[0], [resid[0][0], resid[1][0]], powers)
+        rows = r1 - r0
+        fits.fit[:, :, r0:r1] = np.stack(c).reshape(2, d1, rows, w)
+        fits.var[:, r0:r1] = var.reshape(d1, rows, w)
+        if noise is not None:
+            # As the model error has always estimated a sample's noise: from the fit with it.
+            use = (wts[0] > 0) & (n > d1) & (lev < 1.0 - 1e-9)
+            with np.errstate(all="ignore"):
+                noise[:, r0:r1] = np.stack([np.where(use, r * r / (1.0 - lev), np.nan)
+                                            for r in r_own]).reshape(2, rows, w)
+
+    run_blocks(block, row_blocks(h, w))
+    coef = smoothed_coefficients(fits, s.scale, s.cv_bin, s.rays, *s.z_norm, variance=False)[0]
+    return coef, noise
 
 
 def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
-                         interior: bool, own_noise: "OwnNoise") -> None:
+                         own_noise) -> None:
     """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
 
-    ``loo_sq`` and ``count`` (the leave-one-out map) always. For an ``interior`` position also, per
-    sample, ``x = r^2 - r_own^2 / (1 - h) - grow fit_var`` (:func:`model_error`) into ``excess`` and
-    ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the sample's residual
-    against its pixel's own weighted fit through all calibration positions and ``h`` its leverage
-    there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever the noise
-    model's scale (``own_noise``, :func:`_own_noise_all`); ``grow`` scales ``fit_var`` to a fit
-    with one position less.
+    ``loo_sq`` and ``count`` (the leave-one-out map) always. For an interior position (``own_noise``
+    given) also, per sample, ``x = r^2 - r_own^2 / (1 - h) - grow fit_var`` (:func:`model_error`)
+    into ``excess`` and ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the
+    sample's residual against its pixel's own weighted fit through all calibration positions and
+    ``h`` its leverage there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever
+    the noise model's scale (``own_noise``, (2, H, W) from :func:`_fit_without`); ``grow`` scales
+    ``fit_var`` to a fit with one position less.
     """
     h, w = s.samples.shape
     pos = [int(s.sel[k])]
@@ -150,7 +281,7 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
         if s.footprint:  # the rays' rows are read only for it
             near, lo = s.rays.window(r0, r1)
             fb = footprint_bias(near, s.rig, zk, mod, bg, r0 - lo, r1 - lo)
-        own = own_noise.get(k, a0, a1) if interior else None
+        own = own_noise.row_block(r0, r1).reshape(2, -1) if own_noise is not None else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
             r = corrected_samples(s.samples, s.rig, i_axis, a0, a1, pos, zk, s.level_bias, fb)[0] - pred
@@ -176,9 +307,9 @@ class LooSums:
     ``n_model`` ((H, W) int32, in memory).
 
     The sums are one row store (:func:`ptpcore.store.row_store`): above
-    :data:`ptpcore.store.SPILL_PIXELS` they wait in a temporary file while the refits run, and each
-    refit's residuals are added row block by row block: at 5 MP they are 310 MB that each refit's own
-    maps would otherwise sit on top of.
+    :data:`ptpcore.store.SPILL_PIXELS` they wait in a temporary file while the left-out fits run, and
+    each one's residuals are added row block by row block: at 5 MP they are 310 MB that each left-out
+    fit's own maps would otherwise sit on top of.
     """
 
     NAMES = ("loo_sq", "excess", "excess_sq", "fit_var")
@@ -208,60 +339,6 @@ class LooSums:
     def get(self, name: str, axis: str) -> np.ndarray:
         """One whole ``(H, W)`` sum (read into memory when spilled)."""
         return self._sums.plane(self._index(name, axis))
-
-
-class OwnNoise:
-    """``r_own^2 / (1 - h)`` of the calibration samples, X and Y, per position: ``(2, K, H * W)``
-    float64, in memory up to :data:`OWN_NOISE_BYTES`, else in a temporary file
-    (:func:`ptpcore.store.position_store`: 1.7 GB at 5 MP x 21 positions)."""
-
-    def __init__(self, k: int, shape):
-        h, w = shape
-        self.w = w
-        self.store = position_store(k, shape, {"x": np.float64, "y": np.float64}, {"x": np.nan, "y": np.nan},
-                                    on_disk=2 * k * h * w * 8 > OWN_NOISE_BYTES)
-
-    def put(self, axis: int, k: int, r0: int, r1: int, values: np.ndarray) -> None:
-        """Rows ``[r0, r1)`` of position ``k``, axis 0 (X) or 1 (Y): ``((r1 - r0) * W,)`` values."""
-        self.store.write_rows("xy"[axis], k, r0, values.reshape(r1 - r0, self.w))
-
-    def get(self, k: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels ``[start, stop)`` (flat) of position ``k``: the X and Y values."""
-        return self.store.read("x", start, stop, [k])[0], self.store.read("y", start, stop, [k])[0]
-
-
-OWN_NOISE_BYTES = 1 << 28
-"""Above this size (256 MiB) :class:`OwnNoise` goes to a temporary file."""
-
-
-def _own_noise_all(s: LooSetup, positions) -> OwnNoise:
-    """``r_own^2 / (1 - h)`` of every sample of calibration ``positions`` (indices into ``s.z``),
-    X and Y; NaN where the pixel has no fit of its own with freedom left, or the sample is not used.
-
-    Every pixel's own fit through all calibration positions is the same whichever position is
-    left out, so it is made once, block by block (the row blocks :func:`_accumulate_left_out`
-    reads them by), for all positions: one pass over the samples instead of one per position.
-    """
-    h, w = s.samples.shape
-    store = OwnNoise(s.z.size, (h, w))
-    t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
-
-    def block(r0, r1):
-        _valid, _sig, wts, resid = global_residuals(s.samples, s.rig, s.sel, s.z, r0, r1, s.rays, s.level_bias,
-                                                    s.footprint)
-        coefs, _v, n, cov = weighted_poly_fits(t_all, resid, wts, s.degree, full=True)
-        for k in positions:
-            powers = t_all[k] ** np.arange(s.degree + 1)
-            lev = wts[k] * np.einsum("i,ijp,j->p", powers, cov, powers)
-            use = (wts[k] > 0) & (n > s.degree + 1) & (lev < 1.0 - 1e-9)
-            for axis, (c, rv) in enumerate(zip(coefs, resid)):
-                with np.errstate(all="ignore"):
-                    r_own = rv[k] - np.einsum("j,jp->p", powers, c)
-                    store.put(axis, k, r0, r1, np.where(use, r_own * r_own / (1.0 - lev), np.nan))
-
-    if positions:
-        run_blocks(block, row_blocks(h, w))
-    return store
 
 
 def model_error(sums: "LooSums", smoothing_scale_px: float = 0.0) -> ModelError:

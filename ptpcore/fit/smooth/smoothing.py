@@ -15,8 +15,8 @@ import numpy as np
 from ptpcore.fit.smooth.blocks import row_blocks
 
 __all__ = ["CV_PIXELS", "BIN_BAND_PIXELS", "bin_factor", "final_bin_side", "local_linear_smooth",
-           "local_linear_grid", "bin_sums", "binned_points", "binned_sigma", "smooth_on_bins", "upsample_bins",
-           "upsample_cubic"]
+           "local_linear_grid", "LocalLinearFit", "bin_sums", "binned_points", "binned_sigma", "smooth_on_bins",
+           "SharedWeightSmoother", "upsample_bins", "upsample_cubic"]
 
 
 CV_PIXELS = 320_000
@@ -96,60 +96,86 @@ def local_linear_grid(values: np.ndarray, weights: np.ndarray, sigma: float, xc:
     out : (n, h, w) the fitted value at every grid point, NaN without support
     var : (h, w) or None
     """
-    h, w = weights.shape
-    xg = xc[None, :]
-    yg = yc[:, None]
-    x = xg if xb is None else xb
-    y = yg if yb is None else yb
-    blocks = row_blocks(h, w)
+    fit = LocalLinearFit(weights, sigma, xc, yc, xb, yb)
+    out = fit.apply(values)
+    return out, (fit.variance(np.isfinite(out[0])) if with_variance else None)
 
-    def raw(filt, wv):
+
+class LocalLinearFit:
+    """:func:`local_linear_grid` for one set of weights, applied to any number of value maps.
+
+    The weights' Gaussian moments and every grid point's 3 x 3 system are made once
+    (:meth:`apply` then costs three filters a map): maps that share their weights (the
+    global model's leak variance smooths 4 maps per parameter direction with two weight maps)
+    need not pay for them again. The same arithmetic as one :func:`local_linear_grid` call.
+    """
+
+    def __init__(self, weights: np.ndarray, sigma: float, xc: np.ndarray, yc: np.ndarray, xb=None, yb=None):
+        h, w = weights.shape
+        self.weights, self.sigma = weights, sigma
+        self.xg, self.yg = xc[None, :], yc[:, None]
+        self.x = self.xg if xb is None else xb
+        self.y = self.yg if yb is None else yb
+        self.blocks = row_blocks(h, w)
+        mom = self._raw(self._g, weights)
+        s0 = self.s0 = mom[0]
+        s0_max = max(float(s0.max()), 1e-300)
+        row = self.row = np.empty((3, h, w))
+        good = self.good = np.empty((h, w), bool)
+        for r0, r1 in self.blocks:
+            a = _local_moments(*[m[r0:r1] for m in mom], self.xg, self.yg[r0:r1])
+            (c0, c1, c2), det = _first_row_of_inverse(*a)
+            row[0, r0:r1], row[1, r0:r1], row[2, r0:r1] = c0, c1, c2
+            s0b = s0[r0:r1]
+            good[r0:r1] = (s0b > 1e-12 * s0_max) & (np.abs(det) > 1e-12 * np.maximum(s0b, 1e-300) ** 3)
+        del mom[1:]
+        self.weak = ~good & (s0 > 0)
+        self.any_good = bool(good.any())
+
+    def _g(self, arr: np.ndarray) -> np.ndarray:
+        return _gauss(arr, self.sigma)
+
+    def _raw(self, filt, wv):
+        x, y = self.x, self.y
         return [filt(wv), filt(wv * x), filt(wv * y), filt(wv * x * x), filt(wv * x * y), filt(wv * y * y)]
 
-    g = lambda arr: _gauss(arr, sigma)  # noqa: E731
-    mom = raw(g, weights)
-    s0 = mom[0]
-    s0_max = max(float(s0.max()), 1e-300)
-    row = np.empty((3, h, w))
-    good = np.empty((h, w), bool)
-    for r0, r1 in blocks:
-        a = _local_moments(*[m[r0:r1] for m in mom], xg, yg[r0:r1])
-        (c0, c1, c2), det = _first_row_of_inverse(*a)
-        row[0, r0:r1], row[1, r0:r1], row[2, r0:r1] = c0, c1, c2
-        s0b = s0[r0:r1]
-        good[r0:r1] = (s0b > 1e-12 * s0_max) & (np.abs(det) > 1e-12 * np.maximum(s0b, 1e-300) ** 3)
-    del mom[1:], a
-    weak = ~good & (s0 > 0)
-    any_good = bool(good.any())
-    out = np.full(values.shape, np.nan)
-    for i, v in enumerate(values):
-        wv = weights * v
-        t0 = g(wv)
-        if any_good:
-            t1 = g(wv * x)
-            t2 = g(wv * y)
-            for r0, r1 in blocks:
-                tb = t0[r0:r1]
-                with np.errstate(invalid="ignore", over="ignore"):  # rows of singular systems: not used
-                    est = (row[0, r0:r1] * tb + row[1, r0:r1] * (t1[r0:r1] - xg * tb)
-                           + row[2, r0:r1] * (t2[r0:r1] - yg[r0:r1] * tb))
-                out[i, r0:r1] = np.where(good[r0:r1], est, np.nan)
-            del t1, t2
-        # Locally constant estimate where the linear system is singular.
-        if weak.any():
-            out[i][weak] = t0[weak] / s0[weak]
-        del wv, t0
-    var = None
-    if with_variance:
+    def apply(self, values: np.ndarray) -> np.ndarray:
+        """The fitted value of each ``(n, h, w)`` map at every grid point, NaN without support."""
+        xg, yg, row, good, weak, s0 = self.xg, self.yg, self.row, self.good, self.weak, self.s0
+        out = np.full(values.shape, np.nan)
+        for i, v in enumerate(values):
+            wv = self.weights * v
+            t0 = self._g(wv)
+            if self.any_good:
+                t1 = self._g(wv * self.x)
+                t2 = self._g(wv * self.y)
+                for r0, r1 in self.blocks:
+                    tb = t0[r0:r1]
+                    with np.errstate(invalid="ignore", over="ignore"):  # rows of singular systems: not used
+                        est = (row[0, r0:r1] * tb + row[1, r0:r1] * (t1[r0:r1] - xg * tb)
+                               + row[2, r0:r1] * (t2[r0:r1] - yg[r0:r1] * tb))
+                    out[i, r0:r1] = np.where(good[r0:r1], est, np.nan)
+                del t1, t2
+            # Locally constant estimate where the linear system is singular.
+            if weak.any():
+                out[i][weak] = t0[weak] / s0[weak]
+            del wv, t0
+        return out
+
+    def variance(self, supported: np.ndarray) -> np.ndarray:
+        """The fitted value's variance if the weights are inverse variances, (h, w), NaN where not
+        ``supported`` (the fitted values' finite points)."""
+        h, w = self.s0.shape
+        xg, yg, row, good, weak, s0, sigma = self.xg, self.yg, self.row, self.good, self.weak, self.s0, self.sigma
         var = np.full((h, w), np.nan)
         # var(value_q) = 1 / w_q gives var = (A^-1 B A^-1)[0, 0], B the same
         # moments under G^2, and G_s^2 = G_{s/sqrt2} / (4 pi s^2).
         g2 = lambda arr: _gauss(arr, sigma / np.sqrt(2.0)) / (4 * np.pi * sigma ** 2)  # noqa: E731
-        if any_good or weak.any():
-            b = raw(g2, weights) if any_good else [g2(weights)]
-            for r0, r1 in blocks:
+        if self.any_good or weak.any():
+            b = self._raw(g2, self.weights) if self.any_good else [g2(self.weights)]
+            for r0, r1 in self.blocks:
                 gb = good[r0:r1]
-                if any_good and gb.any():
+                if self.any_good and gb.any():
                     b00, b01, b02, b11, b12, b22 = _local_moments(*[m[r0:r1] for m in b], xg, yg[r0:r1])
                     r_0, r_1, r_2 = row[0, r0:r1], row[1, r0:r1], row[2, r0:r1]
                     with np.errstate(invalid="ignore", over="ignore"):
@@ -160,8 +186,7 @@ def local_linear_grid(values: np.ndarray, weights: np.ndarray, sigma: float, xc:
                 if wb.any():
                     var[r0:r1][wb] = b[0][r0:r1][wb] / s0[r0:r1][wb] ** 2
             del b
-        var = np.where(np.isfinite(out[0]), var, np.nan)
-    return out, var
+        return np.where(supported, var, np.nan)
 
 
 def local_linear_smooth(values: np.ndarray, weights: np.ndarray, scale_px: float,
@@ -229,32 +254,53 @@ def binned_points(weights: np.ndarray, values: np.ndarray, b: int, r0: int = 0, 
     and the centroid products of the whole image (five float64 maps: 480 MB at 12 MP, the
     smooth LUT's peak in the global model's leak variance).
     """
-    h, w = weights.shape
     stacked = values.ndim == 3
     vals = values if stacked else values[None]
-    hc, wc = -(-h // b), -(-w // b)
-    wsum, wx, wy = np.empty((hc, wc)), np.empty((hc, wc)), np.empty((hc, wc))
-    binned = np.empty((len(vals), hc, wc))
-    cols = np.arange(w, dtype=float)[None, :]
+    wsum, inv, xbar, ybar = _binned_weights(weights, b, r0)
+    with np.errstate(invalid="ignore"):
+        mean = _binned_sums(weights, vals, b, unweighted_zero) * inv
+    return wsum, (mean if stacked else mean[0]), xbar, ybar
+
+
+def _bands(h: int, w: int, b: int):
+    """Bands ``(s0, s1, c0, c1)`` of whole bins' rows (:data:`BIN_BAND_PIXELS`): pixel rows and bin rows."""
     band = b * max(1, BIN_BAND_PIXELS // (b * w))
     for s0 in range(0, h, band):
         s1 = min(h, s0 + band)
-        c0, c1 = s0 // b, -(-s1 // b)
+        yield s0, s1, s0 // b, -(-s1 // b)
+
+
+def _binned_weights(weights, b: int, r0: int = 0):
+    """The bins' summed weights ``(hc, wc)``, their inverse (0 where empty) and weighted centroids
+    (column, row in pixels; the bin centre where empty) (:func:`binned_points`)."""
+    h, w = weights.shape
+    hc, wc = -(-h // b), -(-w // b)
+    wsum, wx, wy = np.empty((hc, wc)), np.empty((hc, wc)), np.empty((hc, wc))
+    cols = np.arange(w, dtype=float)[None, :]
+    for s0, s1, c0, c1 in _bands(h, w, b):
         wt = weights[s0:s1]
         wsum[c0:c1] = bin_sums(wt, b)
-        for i, v in enumerate(vals):  # one map at a time
-            v = v[s0:s1]
-            binned[i, c0:c1] = bin_sums(wt * (np.where(wt > 0, v, 0.0) if unweighted_zero else v), b)
         wx[c0:c1] = bin_sums(wt * cols, b)
         wy[c0:c1] = bin_sums(wt * np.arange(r0 + s0, r0 + s1, dtype=float)[:, None], b)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(wsum > 0, 1.0 / wsum, 0.0)
-        mean = binned * inv
         cx = np.arange(wc) * b + (b - 1) / 2.0
         cy = r0 + np.arange(hc) * b + (b - 1) / 2.0
         xbar = np.where(wsum > 0, wx * inv, cx[None, :])
         ybar = np.where(wsum > 0, wy * inv, cy[:, None])
-    return wsum, (mean if stacked else mean[0]), xbar, ybar
+    return wsum, inv, xbar, ybar
+
+
+def _binned_sums(weights, vals: np.ndarray, b: int, unweighted_zero: bool) -> np.ndarray:
+    """``sum w v`` over each bin of each ``(n, h, w)`` map, ``(n, hc, wc)``, band by band (:func:`binned_points`)."""
+    h, w = weights.shape
+    binned = np.empty((len(vals), -(-h // b), -(-w // b)))
+    for s0, s1, c0, c1 in _bands(h, w, b):
+        wt = weights[s0:s1]
+        for i, v in enumerate(vals):  # one map at a time
+            v = v[s0:s1]
+            binned[i, c0:c1] = bin_sums(wt * (np.where(wt > 0, v, 0.0) if unweighted_zero else v), b)
+    return binned
 
 
 def binned_sigma(scale_px: float, b: int, interpolated: bool) -> float:
@@ -302,6 +348,38 @@ def smooth_on_bins(values: np.ndarray, weights: np.ndarray, scale_px: float, b: 
         var = upsample_bins(var_c, b, h, w)
         var[~np.isfinite(maps[0])] = np.nan
     return out, var
+
+
+class SharedWeightSmoother:
+    """:func:`smooth_on_bins` without the variance, for many ``(h, w)`` maps that share one weight map.
+
+    On bins (``b`` > 1) the weights' bins and the local fits' systems (:class:`LocalLinearFit`) are
+    made once, so each map costs its own binning, three filters and the interpolation back: the
+    global model's leak variance smooths two maps per parameter direction and axis with the same two
+    weight maps. Map by map the same arithmetic as :func:`smooth_on_bins`. Per pixel (``b`` = 1)
+    nothing is kept (the systems would be four whole-image maps: 380 MB at 12 MP). ``scale_px`` > 0.
+    """
+
+    def __init__(self, weights, scale_px: float, b: int):
+        self.weights, self.scale, self.b = weights, scale_px, b
+        self.shape = weights.shape
+        if b == 1:
+            return
+        wsum, self.inv, xbar, ybar = _binned_weights(weights, b)
+        hc, wc = wsum.shape
+        cx = (np.arange(wc) * b + (b - 1) / 2.0) / scale_px
+        cy = (np.arange(hc) * b + (b - 1) / 2.0) / scale_px
+        self.fit = LocalLinearFit(wsum, binned_sigma(scale_px, b, True), cx, cy, xbar / scale_px, ybar / scale_px)
+
+    def smooth(self, values: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``values`` (h, w) smoothed into ``out`` (h, w) float64 (may be ``values`` itself)."""
+        if self.b == 1:
+            return smooth_on_bins(values, self.weights, self.scale, 1, False, out=out)[0]
+        h, w = self.shape
+        with np.errstate(invalid="ignore"):
+            mean = _binned_sums(self.weights, values[None], self.b, True) * self.inv
+        out[...] = upsample_bins(self.fit.apply(mean)[0], self.b, h, w)
+        return out
 
 
 def upsample_bins(coarse: np.ndarray, b: int, h: int, w: int) -> np.ndarray:

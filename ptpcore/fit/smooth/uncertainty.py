@@ -13,12 +13,12 @@ import numpy as np
 
 from ptpcore.fit.sigma import _normalised_heights, model_variance_map, predicted_poly_sigma_flat
 from ptpcore.io.lutfile import _group_by_pattern
-from ptpcore.store import read_block
+from ptpcore.store import read_block, row_store
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks
 from ptpcore.fit.smooth.leave_one_out import LooSetup, LooSums, ModelError, leave_one_out
 from ptpcore.fit.smooth.noise import noise_rows, sigma_scale, stage_leverage
 from ptpcore.fit.smooth.pixel_fits import PixelFits, range_moments
-from ptpcore.fit.smooth.smoothing import final_bin_side, smooth_on_bins, upsample_cubic
+from ptpcore.fit.smooth.smoothing import SharedWeightSmoother, final_bin_side, upsample_cubic
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.pinhole.camera import PinholeModel
@@ -146,12 +146,15 @@ def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min
         return out
     zc, zs = z_norm
     fb = final_bin_side(b, scale)
-    def moments(r0, r1):  # of the pixels' calibrated ranges, rows [r0, r1) (not held whole: 120 MB at 5 MP)
+    # Every direction and axis smooths with the same two weight maps: their bins and the local fits'
+    # systems are made once (SharedWeightSmoother), not once per direction and axis (issue 33); the
+    # pixels' range moments once too (a row store: 120 MB at 5 MP not held).
+    smoothers = [SharedWeightSmoother(weights.plane_rows(j), scale, fb) for j in range(2)]
+    mom = row_store((3, h, w))
+    for r0, r1 in row_blocks(h, w):
         with np.errstate(all="ignore"):
-            return range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
-                                 ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
-
-    weights = [weights.plane_rows(j) for j in range(2)]  # read band by band where they are used (files)
+            mom[:, r0:r1] = range_moments(((pz_min[r0:r1] - zc) / zs).astype(np.float64),
+                                          ((pz_max[r0:r1] - zc) / zs).astype(np.float64), 2)
     lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
     # The change of a pinhole's rays is smooth over the image: computed on a grid of every
     # LEAK_GRID_PX-th pixel and interpolated (cubic).
@@ -168,20 +171,20 @@ def global_leak_variance(gfit, weights: np.ndarray, scale: float, b: int, pz_min
         for a, (i0, i1) in zip("xy", ((0, 2), (1, 3))):
             # The change as coefficients in t, d0 + d1 zc and d1 zs, made in place (the changes
             # d0, d1 and the products beside them were the 12 MP wizard's peak, 380 MB).
-            c = np.empty((2, 1, h, w))  # [coefficient j][map]
-            upsample_cubic(moved[i0] - base[i0], step, h, w, out=c[0, 0])
-            upsample_cubic(moved[i1] - base[i1], step, h, w, out=c[1, 0])
+            c = np.empty((2, h, w))  # [coefficient j]
+            upsample_cubic(moved[i0] - base[i0], step, h, w, out=c[0])
+            upsample_cubic(moved[i1] - base[i1], step, h, w, out=c[1])
             for r0, r1 in row_blocks(h, w):
-                c[0, 0, r0:r1] += c[1, 0, r0:r1] * zc
-            c[1, 0] *= zs
+                c[0, r0:r1] += c[1, r0:r1] * zc
+            c[1] *= zs
             for j in range(2):
                 smoothed = np.nan_to_num(c[j])
-                c[j] -= smooth_on_bins(smoothed, weights[j], scale, fb, False, out=smoothed)[0]
+                c[j] -= smoothers[j].smooth(smoothed, out=smoothed)
                 del smoothed
             for r0, r1 in row_blocks(h, w):
-                mom = moments(r0, r1)
-                l0, l1 = c[0, 0, r0:r1], c[1, 0, r0:r1]
-                out[a][r0:r1] += np.nan_to_num(l0 ** 2 * mom[0] + 2 * l0 * l1 * mom[1] + l1 ** 2 * mom[2])
+                m = mom.row_block(r0, r1)
+                l0, l1 = c[0, r0:r1], c[1, r0:r1]
+                out[a][r0:r1] += np.nan_to_num(l0 ** 2 * m[0] + 2 * l0 * l1 * m[1] + l1 ** 2 * m[2])
             del c
     return out
 
