@@ -65,8 +65,12 @@ def _whole_image_smooth_sigma(fits, zc, zs, degree, noise_scale):
         mom = pixel_fits.range_moments(((fits.pz_min - zc) / zs).astype(np.float64),
                                         ((fits.pz_max - zc) / zs).astype(np.float64), 2 * degree)
         smooth_diag = np.einsum("jhw,jhw->hw", fits.var, mom[2 * np.arange(d1)])
-        s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
-        s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+        if fits.cov_off is not None:  # the smoothed coefficients' covariances (issue 30)
+            i, j = np.triu_indices(d1, 1)
+            s2 = smooth_diag + 2 * np.einsum("phw,phw->hw", np.asarray(fits.cov_off), mom[i + j])
+        else:
+            s2 = fits.own_var * np.where(fits.own_diag > 0, smooth_diag / fits.own_diag, np.nan)
+        s2 = np.where(np.isfinite(s2) & (s2 >= 0), s2, smooth_diag)
     return (np.sqrt(s2) * noise_scale).astype(np.float32)
 
 
@@ -81,11 +85,15 @@ def test_smooth_sigma_maps_in_row_blocks_are_bit_identical(monkeypatch):
     fits.own_var[:] = rng.uniform(0.0, 1.0, (h, w))
     fits.own_diag[:] = rng.uniform(-0.1, 1.0, (h, w))  # some <= 0: the uncorrelated form
     fits.var[:, :3] = np.nan
+    fits.cov_off[:] = rng.uniform(-0.8, 0.3, fits.cov_off.shape)  # some pixels' sums negative: the diagonal form
+    fits.cov_off[:, 5:7] = np.nan
     monkeypatch.setattr(smooth_blocks, "BLOCK_PIXELS", 512)
-    got = smooth_uncertainty.smooth_sigma_maps(fits, 30.0, 30.0, degree, 1.3, {})
-    want = _whole_image_smooth_sigma(fits, 30.0, 30.0, degree, 1.3)
-    np.testing.assert_array_equal(got["x"], want)
-    np.testing.assert_array_equal(got["y"], want)
+    for cov_off in (fits.cov_off, None):  # with the smoothed covariances, and the ratio form without them
+        fits.cov_off = cov_off
+        got = smooth_uncertainty.smooth_sigma_maps(fits, 30.0, 30.0, degree, 1.3, {})
+        want = _whole_image_smooth_sigma(fits, 30.0, 30.0, degree, 1.3)
+        np.testing.assert_array_equal(got["x"], want)
+        np.testing.assert_array_equal(got["y"], want)
 
 
 _LUT_MAPS = ("x", "y", "valid", "n_positions", "pixel_z_min", "pixel_z_max", "rms_x", "rms_y", "loo_x", "loo_y",

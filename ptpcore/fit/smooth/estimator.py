@@ -231,7 +231,7 @@ def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float) 
     variance maps it reads are released."""
     fits.load("own_var", "own_diag")
     noise = smooth_sigma_maps(fits, *z_norm, degree, noise_scale, {})["x"]
-    fits.var = fits.own_var = fits.own_diag = None
+    fits.var = fits.own_var = fits.own_diag = fits.cov_off = None
     return noise
 
 

@@ -18,8 +18,9 @@ import numpy as np
 
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks, sample_blocks
 from ptpcore.fit.smooth.global_model import corrected_samples, footprint_bias, global_residuals
+from ptpcore.fit.smooth.noise import residual_dof_variance
 from ptpcore.fit.smooth.smoothing import (bin_factor, bin_sums, binned_points, binned_sigma, final_bin_side,
-                                          local_linear_grid, smooth_on_bins)
+                                          local_linear_grid, smooth_on_bins, smoothed_covariance)
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import load, park, read_block, row_store
@@ -110,10 +111,15 @@ class PixelFits:
     pz_min, pz_max : (H, W) float32, mm
         The pixel's calibrated range.
     mean_var : (H, W) float64, mm^2
-        Mean predicted sample variance (for :func:`sigma_scale_from`).
+        Predicted sample variance per residual degree of freedom of the plain degree-2 fit
+        (:func:`ptpcore.fit.smooth.noise.residual_dof_variance`, for :func:`sigma_scale_from`).
     own_var, own_diag : (H, W) float64
         The fit's variance averaged over the pixel's own range, with the
         covariances and with the coefficients taken as uncorrelated.
+    cov_off : (P, H, W) float64
+        The coefficients' covariances per unit sample variance, pairs ``(i, j)``, ``i < j``, in the
+        order of ``numpy.triu_indices(D + 1, 1)``; after :func:`smoothed_coefficients`, those of the
+        smoothed coefficients (:func:`ptpcore.fit.smooth.smoothing.smoothed_covariance`).
     """
 
     fit: np.ndarray
@@ -124,6 +130,7 @@ class PixelFits:
     mean_var: np.ndarray
     own_var: np.ndarray
     own_diag: np.ndarray
+    cov_off: np.ndarray | None = None
 
     @classmethod
     def empty(cls, shape, d1: int, own: bool = True) -> "PixelFits":
@@ -131,9 +138,11 @@ class PixelFits:
         (:func:`ptpcore.store.row_store`: files at 5-12 MP, written by row ranges; :meth:`load` brings
         them back). Without ``own``, ``mean_var``, ``own_var`` and ``own_diag`` are None (not computed)."""
         h, w = shape
+        pairs = d1 * (d1 - 1) // 2
         return cls(row_store((2, d1, h, w)), row_store((d1, h, w)), np.empty((h, w), np.int32),
                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w)) if own else None,
-                   row_store((h, w)) if own else None, row_store((h, w)) if own else None)
+                   row_store((h, w)) if own else None, row_store((h, w)) if own else None,
+                   row_store((pairs, h, w)) if own and pairs else None)
 
     def park(self, name: str) -> None:
         """Send map ``name`` to a row store until :meth:`load` (a file above :data:`ptpcore.store.SPILL_PIXELS`)."""
@@ -236,8 +245,8 @@ class SmoothPass:
         f.var[:, r0:r1] = v.reshape(d1, rows, w)
         if not self.own:
             return
-        with np.errstate(all="ignore"):
-            f.mean_var[r0:r1] = nanmean0(sig * sig).reshape(rows, w)
+        # For the noise scale (sigma_scale_from), which the plain degree-2 fit's residuals calibrate.
+        f.mean_var[r0:r1] = residual_dof_variance(self.t, valid, sig, 2).reshape(rows, w)
         # The pixel's own fit's variance, averaged over its own calibrated
         # range, with the covariances (a pixel seen at a few positions at
         # one end of the range has strongly correlated coefficients).
@@ -247,6 +256,9 @@ class SmoothPass:
         idx = np.add.outer(np.arange(d1), np.arange(d1))
         f.own_var[r0:r1] = np.einsum("ijp,ijp->p", cov, mom[idx]).reshape(rows, w)
         f.own_diag[r0:r1] = np.einsum("jp,jp->p", v, mom[2 * np.arange(d1)]).reshape(rows, w)
+        if f.cov_off is not None:
+            iu, ju = np.triu_indices(d1, 1)
+            f.cov_off[:, r0:r1] = cov[iu, ju].reshape(len(iu), rows, w)
 
     def _fold_statistics(self, st: dict, test, s0: int, s1: int, wts, rx, ry) -> None:
         """One fold's training fit and test statistics at rows ``s0:s1`` of its maps ``st``."""
@@ -405,6 +417,8 @@ def smoothed_coefficients(fits: PixelFits, scale: float, b: int, rays, zc: float
     fit, var = fits.fit, fits.var
     d1, h, w = fit.shape[1:]
     fb = final_bin_side(b, scale)
+    if variance and fits.cov_off is not None:
+        _smooth_covariances(fits, scale, fb)
     for j in range(d1):
         vj = var.plane(j)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -424,6 +438,24 @@ def smoothed_coefficients(fits: PixelFits, scale: float, b: int, rays, zc: float
             coef[a][0, r0:r1] += g0 + gs * zc
             coef[a][1, r0:r1] += gs * zs
     return coef, rays
+
+
+def _coefficient_weights(fits: PixelFits, j: int) -> np.ndarray:
+    """Coefficient ``j``'s smoothing weights ``1 / var_j``, (H, W) float64, 0 where a pixel has no fit."""
+    vj = fits.var.plane(j)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(fits.fit[:, j]).all(axis=0) & (vj > 0), 1.0 / vj, 0.0)
+
+
+def _smooth_covariances(fits: PixelFits, scale: float, fb: int) -> None:
+    """``fits.cov_off`` replaced by the smoothed coefficients' covariances (each coefficient map smoothed
+    with its own weights, :func:`smoothed_covariance`), pair by pair; before the variances are."""
+    d1, h = fits.var.shape[0], fits.var.shape[1]
+    for p, (i, j) in enumerate(zip(*np.triu_indices(d1, 1))):
+        wi, wj = _coefficient_weights(fits, i), _coefficient_weights(fits, j)
+        cross = np.nan_to_num(wi * wj * fits.cov_off.plane(p))
+        fits.cov_off[p, 0:h] = smoothed_covariance(wi, wj, cross, scale, fb)
+        del wi, wj, cross
 
 
 def smoothing_weights(fits: "PixelFits", n: int):

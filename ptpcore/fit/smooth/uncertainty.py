@@ -193,17 +193,17 @@ def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_
                       stage_var: dict) -> dict:
     """Predicted 1-sigma maps (mm, float32 (H, W) per axis) of the smooth LUT.
 
-    RMS over the calibrated range (uniform in t) of the smoothed correction's
-    noise propagated from the phase noise. The model error beyond it
-    (smoothing bias) is estimated by cross-validation and reported in
-    SmoothInfo.excess_sigma_mm, not folded into the map: the fold fits use half
-    the positions, so it is an upper bound. Smoothing averages neighbouring
-    pixels' coefficients, each map on its own: its variance reduction is
-    measured on the uncorrelated form and applied to the pixel's own exact
-    variance over its calibrated range.
+    RMS over the calibrated range (uniform in t) of the smoothed correction's noise propagated from
+    the phase noise: ``sum_ij m_(i+j) cov_ij`` with the smoothed coefficients' variances
+    (``fits.var``) and covariances (``fits.cov_off``, :func:`smoothed_covariance`: each coefficient
+    map is smoothed with its own weights) and ``m`` the range's moments of ``t``. Without the
+    covariances (an old caller), the pixel's own ratio of full to diagonal variance scales the
+    smoothed diagonal: that form under-predicted 1.5-2.7x (issue 30). The model error beyond the
+    noise is the leave-one-out's (:func:`uncertainty_maps`).
     """
     d1 = degree + 1
     h, w = fits.pz_min.shape
+    pairs = np.triu_indices(d1, 1)
     sig1 = np.empty((h, w), np.float32)
     for r0, r1 in row_blocks(h, w):  # row blocks: the moments are (2D+1) float64 maps
         with np.errstate(all="ignore"):
@@ -211,10 +211,14 @@ def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_
                                 ((fits.pz_max[r0:r1] - zc) / zs).astype(np.float64), 2 * degree)
             var = fits.var.row_block(r0, r1)
             smooth_diag = np.einsum("jhw,jhw->hw", var, mom[2 * np.arange(d1)])
-            own_diag = fits.own_diag[r0:r1]
-            s2 = fits.own_var[r0:r1] * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
-            # Pixels without a fit of their own (filled in by the smoothing): the uncorrelated form.
-            s2 = np.where(np.isfinite(s2), s2, smooth_diag)
+            if fits.cov_off is not None:
+                cov = fits.cov_off.row_block(r0, r1)
+                s2 = smooth_diag + 2 * np.einsum("phw,phw->hw", cov, mom[pairs[0] + pairs[1]])
+            else:
+                own_diag = fits.own_diag[r0:r1]
+                s2 = fits.own_var[r0:r1] * np.where(own_diag > 0, smooth_diag / own_diag, np.nan)
+            # Where the covariances are not known (no support), the uncorrelated form.
+            s2 = np.where(np.isfinite(s2) & (s2 >= 0), s2, smooth_diag)
         sig1[r0:r1] = np.sqrt(s2) * noise_scale
     sig = {"x": sig1, "y": sig1.copy()}
     for a, sv in stage_var.items():
