@@ -265,6 +265,7 @@ def u_map(rng, hm: HeightMap) -> np.ndarray:
 
 
 def run_height_map(tool: str, path: Path, u, env=None):
+    h, w = np.shape(u)
     upath = path.with_suffix(".u.f64")
     np.asarray(u, "<f8").tofile(upath)
     out = path.with_suffix(".hout.bin")
@@ -273,11 +274,11 @@ def run_height_map(tool: str, path: Path, u, env=None):
     if res.returncode != 0:
         return None, f"{' '.join(cmd)} exited {res.returncode}: {res.stderr.strip()}"
     raw = out.read_bytes()
-    n = H * W
-    z = np.frombuffer(raw[:8 * n], "<f8").reshape(H, W)
-    dz = np.frombuffer(raw[8 * n:16 * n], "<f8").reshape(H, W)
-    flags = np.frombuffer(raw[16 * n:17 * n], np.uint8).reshape(H, W)
-    sigma = np.frombuffer(raw[17 * n:], "<f8").reshape(H, W)
+    n = h * w
+    z = np.frombuffer(raw[:8 * n], "<f8").reshape(h, w)
+    dz = np.frombuffer(raw[8 * n:16 * n], "<f8").reshape(h, w)
+    flags = np.frombuffer(raw[16 * n:17 * n], np.uint8).reshape(h, w)
+    sigma = np.frombuffer(raw[17 * n:], "<f8").reshape(h, w)
     return (z, dz, flags, sigma), None
 
 
@@ -318,6 +319,45 @@ def check_height_design(tool: str, path: Path, hm: HeightMap) -> None:
     ok = ok and all(k in got and float(got[k]) == float(v) for k, v in nums.items())
     ok = ok and [float(v) for v in got.get("periods_px", "").split()] == [float(v) for v in d["periods_px"]]
     check(ok, f"height-info of {path.name}: C {got!r} {res.stderr.strip()!r}, Python {want!r} {nums!r}")
+
+
+def compare_fitted_height(tool: str, asan_tool: str) -> None:
+    """A height map fitted to a simulated sweep (scanner-mild, 64 x 48, 5 plate heights), read in C at the
+    sweep's own decoded u_p: C = Python, and every sample the map was fitted to is in its pixel's range
+    (its extreme samples on the float32 bounds included)."""
+    from ptpcore.fit.height import fit_height_map
+    from ptpcore.run.scanner import decode_projector
+    from ptpcore.simulate.scanner import HeightSweepSource, ScannerRig, scanner_preset
+
+    rig, sim, sc = scanner_preset("scanner-mild", 64, heights=5)
+    dec = decode_projector(HeightSweepSource(ScannerRig(rig, sim, sc, seed=2)))
+    hm = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, design=rig.projector.design_attrs)
+    hm.camera_noise = (dec.noise.read_var, dec.noise.gain)
+    h, w = hm.shape
+    f32 = np.float32
+    zero = np.zeros((h, w), f32)
+    lut = Lut("poly", 1, 20.0, 20.0, 0.0, 40.0, np.stack([np.full((h, w), 100.0), np.full((h, w), 2.0)]),
+              np.stack([np.full((h, w), 50.0), np.full((h, w), -1.0)]), None, np.ones((h, w), bool),
+              np.full((h, w), 9, np.uint16), zero, zero + f32(40.0), zero, zero, zero, zero, height=hm)
+    path = OUT / "height-fitted.lut.h5"
+    save_lut(lut, path)
+    hm = load_lut(path).height
+    n_values = n_same = n_samples = n_in = 0
+    for k in range(dec.u.shape[0]):
+        u = dec.u[k].astype(float)
+        res, err = run_height_map(asan_tool if k == 0 else tool, path, u, env=ASAN_ENV if k == 0 else None)
+        check(err is None, f"fitted map, height {k}: {err}")
+        if res is None:
+            continue
+        n, same = compare_height(f"fitted map, height {k}", hm, res, u)
+        n_values, n_same = n_values + n, n_same + same
+        sample = hm.valid & np.isfinite(u)
+        n_samples += int(sample.sum())
+        n_in += int((res[2][sample] & 2).astype(bool).sum())
+    check(n_in == n_samples, f"fitted map: {n_samples - n_in} of the sweep's own samples out of range in C")
+    check(n_values > 1000, f"fitted map: only {n_values} values compared")
+    print(f"ok  fitted  C = Python on a simulated sweep's own u_p ({n_values} values, {n_same} bit-identical;"
+          f" {n_in} of {n_samples} samples in range, degree {hm.degree})", flush=True)
 
 
 def compare_heights(tool: str, asan_tool: str) -> Path:
@@ -361,6 +401,7 @@ def compare_heights(tool: str, asan_tool: str) -> Path:
         check(n_values > 500, f"{name}: only {n_values} finite values compared")
         print(f"ok  {name:7s} C = Python: Z to {TOL_MM:g} mm, dZ/du to {TOL_SLOPE:g} ({n_values} values,"
               f" {n_same} bit-identical, flags identical, design equal)", flush=True)
+    compare_fitted_height(tool, asan_tool)
     # A LUT without /height: the height functions say so.
     for args in (["height-info", str(OUT / "poly2.lut.h5")], ["height-pixel", str(OUT / "poly2.lut.h5"), "1", "1", "5"]):
         res = subprocess.run([asan_tool, *args], capture_output=True, text=True, env=ASAN_ENV)
