@@ -14,11 +14,12 @@ import pytest
 from gui_helpers import run_job
 
 from ptp_studio.layoutcheck import check_page
-from ptp_studio.pages.export import LUT_NAME, quality_png
+from ptp_studio.pages.export import LUT_NAME, SESSION_NAME, quality_png
 from ptpcore.io.heightmap import HeightMap
 from ptpcore.io.lutfile import Lut, load_lut
 from ptpcore.rig.rigfile import Projector
 from ptpcore.run.scanner import calibrate_height, reconstruct
+from ptpcore.run.session import load_session
 from ptpcore.simulate.scanner import ScannerRig, default_objects, scanner_preset, simulate_scan, simulate_scanner_dataset
 
 HEIGHT_ARRAYS = ("u_center", "u_scale", "p", "q", "valid", "u_min", "u_max", "rms_z", "loo_z", "sigma_z", "n_positions")
@@ -127,6 +128,7 @@ def test_calibrate_fits_shows_and_exports_the_height_map(wizard, qtbot, scanner_
     ex.set_folder(tmp_path / "out")
     assert run_job(qtbot, ex.export()) == "finished"
     _same_height_map(load_lut(tmp_path / "out" / LUT_NAME).height, hm)
+    _same_height_map(load_session(tmp_path / "out" / SESSION_NAME).lut.height, hm)  # the session file too
     assert (tmp_path / "out" / quality_png("sigma_z")).is_file()
     assert not check_page(ex, wizard).problems
     # reconstruct a scan folder into a cloud file: the engine's points, with their sigma_z
