@@ -68,6 +68,8 @@ def test_the_height_map_is_shown_and_exported(wizard, qtbot, tmp_path):
     assert cal.heatmap.value_text(row, col) == "no height map at this pixel"
     ex = wizard.page_by_key["export"]
     assert ex.cloud_panel.use_scan.isVisibleTo(ex)  # a scan folder can be reconstructed with this LUT
+    ex.on_enter()
+    assert f"height map /height (degree 1, {100 * hm.valid.mean():.1f} % of pixels)" in ex.summary.text()
     ex.set_folder(tmp_path / "out")
     assert run_job(qtbot, ex.export()) == "finished"
     _same_height_map(load_lut(tmp_path / "out" / LUT_NAME).height, hm)
