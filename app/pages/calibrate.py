@@ -12,6 +12,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QGroupBox, QHBoxLayout, QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget,
                                QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
+from ptpcore.errors import ConfigError, DatasetError, FileFormatError
 from ptpcore.fit import describe_lut
 from ptpcore.rig import lut_stage_z, position_label
 from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
@@ -538,17 +539,23 @@ class CalibratePage(StudioPage):
                 drift = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
                 if drift is not None:
                     lut.provenance["drift"] = drift.to_json()
+            height_error = None
             if height_folder is not None:  # the scanner's height sweep: its map into the LUT's /height, as ptp calibrate
-                lut.height = calibrate_height(height_folder, options=options,
-                                              progress=lambda f, m: ctx.progress(f, f"height sweep: {m}"))
+                try:
+                    lut.height = calibrate_height(height_folder, options=options,
+                                                  progress=lambda f, m: ctx.progress(f, f"height sweep: {m}"))
+                except (ConfigError, DatasetError, FileFormatError) as exc:
+                    # The XY LUT stands on its own: kept, and the page says why it has no height map.
+                    height_error = str(exc)
             # What the page shows, computed here: on the GUI thread it would freeze the window (issue 15).
             ctx.progress(0.995, "computing the quality maps and residuals")
-            return lut, drift, lut_view(lut, res.samples, positions, drift)
+            return lut, drift, lut_view(lut, res.samples, positions, drift), height_error
 
         self.model.release_decoded()  # 617 MB of phase maps at 5 MP, not needed by the fit
         what = "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT"
         job = Job(work, what + (" and the height map" if height_folder is not None else ""))
-        job.finished.connect(lambda out: gen == self.model.generation and self._fitted(*out, positions, fit))
+        job.finished.connect(lambda out: gen == self.model.generation
+                             and self._fitted(*out[:3], positions, fit, height_error=out[3]))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
 
@@ -561,11 +568,13 @@ class CalibratePage(StudioPage):
             cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
         return cached[3]
 
-    def _fitted(self, lut, drift, view: LutView, positions, fit: dict) -> None:
+    def _fitted(self, lut, drift, view: LutView, positions, fit: dict, height_error: str | None = None) -> None:
         self.fitted = dict(fit)
         self.drift = (lut, drift) if drift is not None else None
         self._view = view
         self.model.set_lut(lut, positions)
+        if height_error is not None:
+            self.jobs.show_warning(f"The LUT is fitted, but not the scanner's height map: {height_error}")
 
     def lut_settings(self) -> dict:
         """The settings of the LUT the session holds (as it was fitted or opened), else the controls'.

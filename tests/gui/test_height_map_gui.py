@@ -146,6 +146,29 @@ def test_calibrate_fits_shows_and_exports_the_height_map(wizard, qtbot, scanner_
     np.testing.assert_allclose(back["sigma_z"], want.sigma_z, rtol=1e-6)
 
 
+@pytest.mark.slow
+def test_a_broken_height_sweep_keeps_the_lut_and_says_why(wizard, qtbot, scanner_dataset, tmp_path):
+    """A height frame missing: the XY LUT is fitted and kept, the page warns, naming the file."""
+    import shutil
+
+    folder = tmp_path / "ds"
+    shutil.copytree(scanner_dataset, folder, ignore=shutil.ignore_patterns("scans"))
+    frame = sorted((folder / "h002").glob("*.png"))[3]
+    frame.unlink()
+    wizard.page_by_key["rig"].import_folder(folder)
+    wizard.go_to("acquire")
+    assert run_job(qtbot, wizard.page_by_key["acquire"].start()) == "finished"
+    wizard.go_to("calibrate")
+    cal = wizard.page_by_key["calibrate"]
+    cal.configure("poly", 1, "all")
+    assert run_job(qtbot, cal.fit()) == "finished"
+    lut = wizard.model.session.lut
+    assert lut is not None and lut.height is None and lut.valid.any()
+    warning = cal.jobs.warning.text()
+    assert warning.startswith("The LUT is fitted, but not the scanner's height map") and frame.name in warning
+    assert "Height map" not in cal.stats.text()
+
+
 def test_a_simulated_session_has_no_height_sweep(wizard):
     """The tour's simulated rig has no height sweep: the job fits no height map, no σ Z button."""
     from ptp_studio.pages.calibrate import height_sweep_folder
