@@ -12,6 +12,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QGroupBox, QHBoxLayout, QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget,
                                QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
+from ptpcore.errors import ConfigError, DatasetError, FileFormatError
 from ptpcore.fit import describe_lut
 from ptpcore.rig import lut_stage_z, position_label
 from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
@@ -21,6 +22,7 @@ from ptpcore.fit.sigma import sigma_parts
 from ptpcore.evaluate import ScaledMap, pixel_series, prepare_display, reason_text
 from ptpcore.evaluate.residuals import residual_field
 from ptpcore.run.pipeline import repeat_drift
+from ptpcore.run.scanner import calibrate_height
 
 from ..widgets.maps import HeatmapPanel, axis_label
 from ..widgets.residuals import ResidualPanel
@@ -28,7 +30,8 @@ from ..widgets.stagepose import StagePosePanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map"]
+__all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map",
+           "height_sweep_folder", "height_text"]
 
 MODELS = {"auto": "Auto (best held out)", "poly": "Polynomial", "pchip": "PCHIP (table)",
           "linear": "Linear (table)", "smooth": "Smooth (across pixels)"}
@@ -40,9 +43,13 @@ MODEL_NOTES = {"auto": "Auto: the model best at held-out positions",
 DEGREE_MODELS = ("poly", "smooth")
 SIGMA_TIP = ("Predicted 1σ uncertainty of the LUT: the propagated noise and the model's own error (estimated"
              " from held-out positions) in quadrature; the statistics line gives both parts")
+SIGMA_Z_TIP = ("The scanner's height map (u_p → Z, from the height sweep): predicted 1σ of its Z, the noise of"
+               " the decoded projector coordinate and the map's own error in quadrature; blank where the pixel has"
+               " no height map")
 OPTIONAL_MAPS = {"sigma_x": SIGMA_TIP, "sigma_y": SIGMA_TIP,
                  "drift": "|repeat − sweep| per pixel at the position captured again after the sweep"
-                          " ([stage] repeat_z_mm)"}
+                          " ([stage] repeat_z_mm)",
+                 "sigma_z": SIGMA_Z_TIP}
 CORRECTION_MODELS = ("smooth", "auto")  # the fits that apply the level-bias and footprint corrections
 
 
@@ -66,7 +73,30 @@ def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
         **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (phase noise and stage)",
                           um(getattr(lut, f"sigma_{a}")), "µm", "viridis", False)
            for a in "xy" if getattr(lut, f"sigma_{a}", None) is not None},
+        **({"sigma_z": ("Height map: predicted 1σ of Z from the projector coordinate u_p", um(lut.height.sigma_z),
+                        "µm", "viridis", False)} if getattr(lut, "height", None) is not None else {}),
     }
+
+
+def height_sweep_folder(session):
+    """The dataset folder whose height sweep the Calibrate job fits (``[projector]`` and ``[height]`` in its
+    rig.toml, METHOD.md section 9), or None: a simulated session has no height sweep."""
+    rig = session.rig
+    if session.source_kind not in ("folder", "live") or session.dataset_folder is None:
+        return None
+    return session.dataset_folder if rig.projector is not None and rig.height is not None else None
+
+
+def height_text(lut) -> str:
+    """The height map in one sentence (degree, coverage, median sigma_z); empty without ``/height``."""
+    hm = getattr(lut, "height", None)
+    if hm is None:
+        return ""
+    v = hm.valid
+    sigma = f", median predicted 1σ of Z {1e3 * float(np.nanmedian(hm.sigma_z[v])):.1f} µm" if v.any() else ""
+    chosen = f", chosen by {hm.chosen_by}" if hm.chosen_by else ""
+    return (f" <b>Height map</b> (projector u_p → Z): rational of degree {hm.degree}{chosen};"
+            f" {int(v.sum())} of {v.size} pixels covered ({100 * v.mean():.1f} %){sigma}.")
 
 
 def choice_of(lut) -> ModelChoice | None:
@@ -194,7 +224,7 @@ def _stats_text(lut, maps: dict, fitted_samples) -> str:
         text += " Predicted 1σ (median) " + ", ".join(_sigma_text(lut, a, v) for a in "xy") + "."
     for line in describe_corrections(fitted_samples.corrections if fitted_samples is not None else {}):
         text += f" {line[0].upper()}{line[1:]}."
-    return text + robust_text(lut) + drift_text(lut)
+    return text + height_text(lut) + robust_text(lut) + drift_text(lut)
 
 
 def _sigma_text(lut, axis: str, where) -> str:
@@ -332,8 +362,9 @@ class CalibratePage(StudioPage):
         grid.setSpacing(3)
         self.map_buttons = QButtonGroup(self)
         self.map_buttons.setExclusive(True)
-        self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y", "drift"]
-        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions", "validity", "σ X", "σ Y", "drift"]
+        self._map_keys = ["rms_x", "rms_y", "loo_x", "loo_y", "n_positions", "valid", "sigma_x", "sigma_y", "drift",
+                          "sigma_z"]
+        labels = ["RMS X", "RMS Y", "LOO X", "LOO Y", "positions", "validity", "σ X", "σ Y", "drift", "σ Z"]
         for i, (key, lab) in enumerate(zip(self._map_keys, labels)):
             b = QPushButton(lab)
             b.setCheckable(True)
@@ -492,6 +523,7 @@ class CalibratePage(StudioPage):
         gen = self.model.generation
         source = s.make_source() if rig.stage.repeat_z_mm else None
         options = s.decode_options
+        height_folder = height_sweep_folder(s)
 
         def work(ctx):
             # The cover glass, flatness and (refine) stage pose leave the samples before the fit; the
@@ -507,13 +539,23 @@ class CalibratePage(StudioPage):
                 drift = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
                 if drift is not None:
                     lut.provenance["drift"] = drift.to_json()
+            height_error = None
+            if height_folder is not None:  # the scanner's height sweep: its map into the LUT's /height, as ptp calibrate
+                try:
+                    lut.height = calibrate_height(height_folder, options=options,
+                                                  progress=lambda f, m: ctx.progress(f, f"height sweep: {m}"))
+                except (ConfigError, DatasetError, FileFormatError) as exc:
+                    # The XY LUT stands on its own: kept, and the page says why it has no height map.
+                    height_error = str(exc)
             # What the page shows, computed here: on the GUI thread it would freeze the window (issue 15).
             ctx.progress(0.995, "computing the quality maps and residuals")
-            return lut, drift, lut_view(lut, res.samples, positions, drift)
+            return lut, drift, lut_view(lut, res.samples, positions, drift), height_error
 
         self.model.release_decoded()  # 617 MB of phase maps at 5 MP, not needed by the fit
-        job = Job(work, "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT")
-        job.finished.connect(lambda out: gen == self.model.generation and self._fitted(*out, positions, fit))
+        what = "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT"
+        job = Job(work, what + (" and the height map" if height_folder is not None else ""))
+        job.finished.connect(lambda out: gen == self.model.generation
+                             and self._fitted(*out[:3], positions, fit, height_error=out[3]))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
 
@@ -526,11 +568,13 @@ class CalibratePage(StudioPage):
             cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
         return cached[3]
 
-    def _fitted(self, lut, drift, view: LutView, positions, fit: dict) -> None:
+    def _fitted(self, lut, drift, view: LutView, positions, fit: dict, height_error: str | None = None) -> None:
         self.fitted = dict(fit)
         self.drift = (lut, drift) if drift is not None else None
         self._view = view
         self.model.set_lut(lut, positions)
+        if height_error is not None:
+            self.jobs.show_warning(f"The LUT is fitted, but not the scanner's height map: {height_error}")
 
     def lut_settings(self) -> dict:
         """The settings of the LUT the session holds (as it was fitted or opened), else the controls'.
@@ -560,7 +604,7 @@ class CalibratePage(StudioPage):
         self._view = None  # shown: the page keeps its parts, not the view
         self.maps = view.maps
         self.displays = view.displays
-        for key in ("sigma_x", "sigma_y", "drift"):
+        for key in OPTIONAL_MAPS:
             self.map_buttons.button(self._map_keys.index(key)).setVisible(key in self.maps)
         if self.current_map not in self.maps:
             self.map_buttons.button(0).setChecked(True)
@@ -610,8 +654,11 @@ class CalibratePage(StudioPage):
         title, data, unit, cmap, integer = self.maps[key]
         samples = self.model.session.samples
 
-        def value_text(row, col, data=data, unit=unit):
+        def value_text(row, col, data=data, unit=unit, key=key):
             v = data[row, col]
+            hm = getattr(self.model.session.lut, "height", None)
+            if key == "sigma_z" and hm is not None and not hm.valid[row, col]:
+                return "no height map at this pixel"
             if self.model.session.lut is not None and not self.model.session.lut.valid[row, col]:
                 n = int((samples.reasons[:, row, col] == 0).sum()) if samples is not None else 0
                 return f"no LUT ({n} valid samples; too few for this model)"

@@ -174,7 +174,11 @@ class ExportPage(StudioPage):
         if lut is not None:
             self.summary.setText(f"LUT: {describe_lut(lut)}, {lut.shape[1]}x{lut.shape[0]} px, "
                                  f"{100 * lut.valid.mean():.1f} % of pixels valid, z {lut.z_min:g} … {lut.z_max:g} mm."
-                                 f" Source: {s.describe_source()}.")
+                                 f" Source: {s.describe_source()}."
+                                 + (f" With the scanner's height map /height (degree {lut.height.degree},"
+                                    f" {100 * lut.height.valid.mean():.1f} % of pixels): a scan folder can be"
+                                    " reconstructed in the point-cloud tab."
+                                    if getattr(lut, "height", None) is not None else ""))
 
     # ---- export ----------------------------------------------------------------------
     def set_folder(self, folder) -> None:

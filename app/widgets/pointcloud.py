@@ -1,4 +1,5 @@
-"""Use the LUT: a height map (or one height) through the LUT into a point cloud, shown and saved.
+"""Use the LUT: a height map (or one height) through the LUT into a point cloud, shown and saved; with the
+scanner's height map (``/height``), a scan folder (``ptp-scan/1``) reconstructed as ``ptp reconstruct`` does.
 
 The Export page holds one :class:`PointCloudPanel`. The engine does the work
 (``Lut.points``, ``read_height_map``, ``write_point_cloud``) on a worker
@@ -18,6 +19,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QDoubleSpinBox, QFileDia
                                QHBoxLayout, QLabel, QLineEdit, QPushButton, QRadioButton, QStackedWidget)
 
 from ptpcore.io.pointcloud import PointCloud, read_height_map, write_point_cloud
+from ptpcore.run.scanner import reconstruct
 
 from ..worker import Job
 from .jobpanel import JobPanel
@@ -86,9 +88,14 @@ class PointCloudPanel(QGroupBox):
 
         self.use_constant = QRadioButton("One height for every pixel")
         self.use_file = QRadioButton("Height map file (32-bit float TIFF or .npy, mm, NaN = none)")
+        self.use_scan = QRadioButton("Scan folder (ptp-scan/1): heights from the projector")
+        self.use_scan.setToolTip("Reconstruct a scan as ptp reconstruct does: u_p decoded per pixel, Z from the LUT's"
+                                 " height map (/height), X and Y from the LUT; pixels outside either map's calibrated"
+                                 " range have no point (a scan of several views: the first). Shown when the LUT has a height map.")
         group = QButtonGroup(self)
         group.addButton(self.use_constant)
         group.addButton(self.use_file)
+        group.addButton(self.use_scan)
         self.use_constant.setChecked(True)
         self.height = QDoubleSpinBox()
         self.height.setRange(-1e5, 1e5)
@@ -106,8 +113,19 @@ class PointCloudPanel(QGroupBox):
         row.addWidget(self.height_file, 1)
         row.addWidget(browse)
         grid.addLayout(row, 1, 1)
+        self.scan_folder = QLineEdit()
+        self.scan_folder.setPlaceholderText("scan folder with scan.toml")
+        self.scan_folder.textEdited.connect(lambda _t: self.use_scan.setChecked(True))
+        self.scan_browse = QPushButton("Browse…")
+        self.scan_browse.clicked.connect(self._browse_scan)
+        scan_row = QHBoxLayout()
+        scan_row.addWidget(self.scan_folder, 1)
+        scan_row.addWidget(self.scan_browse)
+        grid.addWidget(self.use_scan, 2, 0)
+        grid.addLayout(scan_row, 2, 1)
+        self._scan_widgets = (self.use_scan, self.scan_folder, self.scan_browse)
         self.extrapolate = QCheckBox("Keep pixels outside their calibrated z range (flagged as extrapolated)")
-        grid.addWidget(self.extrapolate, 2, 0, 1, 2)
+        grid.addWidget(self.extrapolate, 3, 0, 1, 2)
 
         buttons = QHBoxLayout()
         self.apply_button = QPushButton("Apply the LUT")
@@ -119,10 +137,10 @@ class PointCloudPanel(QGroupBox):
         buttons.addWidget(self.save_button)
         self.jobs = JobPanel(self)
         buttons.addWidget(self.jobs, 1)
-        grid.addLayout(buttons, 3, 0, 1, 2)
+        grid.addLayout(buttons, 4, 0, 1, 2)
         self.summary = QLabel("no point cloud yet")
         self.summary.setWordWrap(True)
-        grid.addWidget(self.summary, 4, 0, 1, 2)
+        grid.addWidget(self.summary, 5, 0, 1, 2)
 
         self.plot = pg.PlotWidget(background="w")
         self.plot.setMinimumHeight(220)
@@ -150,9 +168,19 @@ class PointCloudPanel(QGroupBox):
         self.view = QStackedWidget()
         self.view.addWidget(self.placeholder)
         self.view.addWidget(self.plot)
-        grid.addWidget(self.view, 5, 0, 1, 2)
-        grid.setRowStretch(5, 1)
+        grid.addWidget(self.view, 6, 0, 1, 2)
+        grid.setRowStretch(6, 1)
         self._show_placeholder()
+        self._show_scan_choice()
+
+    def _show_scan_choice(self) -> None:
+        """The scan source only for a LUT with a height map."""
+        lut = self._lut()
+        has = lut is not None and getattr(lut, "height", None) is not None
+        for w in self._scan_widgets:
+            w.setVisible(has)
+        if not has and self.use_scan.isChecked():
+            self.use_constant.setChecked(True)
 
     def _show_placeholder(self) -> None:
         """No cloud: say what the view will show and how to make it (with the LUT's z range when there is one)."""
@@ -174,6 +202,15 @@ class PointCloudPanel(QGroupBox):
             self.height_file.setText(path)
             self.use_file.setChecked(True)
 
+    def _browse_scan(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Scan folder (scan.toml)", str(self._folder()))
+        if folder:
+            self.set_scan_folder(folder)
+
+    def set_scan_folder(self, path) -> None:
+        self.scan_folder.setText(str(path))
+        self.use_scan.setChecked(True)
+
     def set_constant(self, z_mm: float) -> None:
         self.height.setValue(z_mm)
         self.use_constant.setChecked(True)
@@ -193,6 +230,7 @@ class PointCloudPanel(QGroupBox):
         if lut is not None:
             self.height.setValue(0.5 * (lut.z_min + lut.z_max))
         self._show_placeholder()
+        self._show_scan_choice()
         self.cloudChanged.emit(None)
 
     # ---- jobs ------------------------------------------------------------------------------
@@ -204,6 +242,8 @@ class PointCloudPanel(QGroupBox):
             self.jobs.show_error("There is no LUT yet: fit one on the Calibrate page.")
             return None
         extrapolate = self.extrapolate.isChecked()
+        if self.use_scan.isChecked():
+            return self._reconstruct(lut)
         if self.use_file.isChecked():
             source = self.height_file.text().strip()
             if not source:
@@ -225,6 +265,25 @@ class PointCloudPanel(QGroupBox):
             return cloud, top_view(cloud)
 
         job = Job(run, "applying the LUT")
+        job.finished.connect(self._show)
+        return self.jobs.run(job)
+
+    def _reconstruct(self, lut) -> Job | None:
+        """The scan folder through the LUT's height map and the LUT (``ptp reconstruct``): its first view shown."""
+        folder = self.scan_folder.text().strip()
+        if not folder:
+            self.jobs.show_error("Choose a scan folder (with scan.toml), or another source of heights.")
+            return None
+
+        def run(ctx):
+            views = reconstruct(folder, lut, progress=ctx.progress)
+            cloud = views[0].cloud
+            if cloud.n_points == 0:
+                raise ValueError(f"{folder}: no point ({cloud.summary()})")
+            ctx.progress(0.95, "drawing the top view")
+            return cloud, top_view(cloud)
+
+        job = Job(run, "reconstructing the scan")
         job.finished.connect(self._show)
         return self.jobs.run(job)
 

@@ -17,7 +17,13 @@ from ptpcore.io.h5chunks import create_compressed
 __all__ = ["HeightMap", "HeightEvaluation", "write_height_group", "read_height_group"]
 
 RANGE_EPS_PX = 1e-6
-"""Slack (projector px) of the calibrated ``u_p`` range: a value on its edge is inside."""
+RANGE_REL = 2.0 ** -23
+"""``u_p`` is in a pixel's range when ``u_min - tol <= u_p <= u_max + tol``, ``tol = 1e-6 px + |bound| 2**-23``.
+
+The bounds are stored as float32 (1000.3 px is kept as 1000.29998779): the relative part (two
+float32 half-steps) keeps a value on the calibrated edge inside; the comparison is made in float64,
+as the XY LUT's (``ptpcore.io.lutfile.RANGE_REL``). The C reader (readers/c/ptplut.c) uses the same rule.
+"""
 
 
 @dataclass
@@ -112,9 +118,11 @@ class HeightMap:
         u = np.asarray(u, dtype=float)
         if u.shape != self.shape:
             raise ValueError(f"u_p must be a {self.shape} map, got shape {u.shape}")
+        lo = np.asarray(self.u_min, np.float64)
+        hi = np.asarray(self.u_max, np.float64)
         with np.errstate(invalid="ignore"):
-            in_range = (self.valid & np.isfinite(u) & (u >= self.u_min - RANGE_EPS_PX)
-                        & (u <= self.u_max + RANGE_EPS_PX))
+            in_range = (self.valid & np.isfinite(u) & (u >= lo - (RANGE_EPS_PX + np.abs(lo) * RANGE_REL))
+                        & (u <= hi + (RANGE_EPS_PX + np.abs(hi) * RANGE_REL)))
         s = np.where(in_range, (u - self.u_center) / self.u_scale, 0.0)
         num = np.zeros(self.shape)
         dnum = np.zeros(self.shape)
@@ -184,11 +192,16 @@ def read_height_group(rd, shape: tuple[int, int]) -> HeightMap:
         val = np.asarray(rd.group["height"].attrs[key])
         if val.ndim != 1 or val.size < 1 or val.dtype.kind not in "fiu" or not np.all(np.isfinite(val)):
             raise rd.fail(f"attribute {key!r} of {rd.name('height')} must be a list of numbers, got {val!r}"[:200])
+        if key == "steps" and np.any(val != np.round(val)):
+            raise rd.fail(f"attribute 'steps' of {rd.name('height')} must hold whole numbers, got {val!r}"[:200])
         design[key] = [float(v) for v in val] if key == "periods_px" else [int(v) for v in val]
+    if len(design["periods_px"]) != len(design["steps"]):
+        raise rd.fail(f"attributes 'periods_px' and 'steps' of {rd.name('height')} differ in length"
+                      f" ({len(design['periods_px'])} and {len(design['steps'])})")
     hm = HeightMap(
         degree=degree, direction=direction,
         u_center=rd.array("height/u_center", 2), u_scale=rd.array("height/u_scale", 2),
-        p=rd.array("height/p", 3), q=rd.array("height/q", 3), valid=rd.array("height/valid", 2).astype(bool),
+        p=rd.array("height/p", 3), q=rd.array("height/q", 3), valid=rd.array("height/valid", 2),
         u_min=rd.array("height/quality/u_min", 2), u_max=rd.array("height/quality/u_max", 2),
         rms_z=rd.array("height/quality/rms_z", 2), loo_z=rd.array("height/quality/loo_z", 2),
         sigma_z=rd.array("height/quality/sigma_z", 2), n_positions=rd.array("height/quality/n_positions", 2),
@@ -222,7 +235,9 @@ def _check_height(rd, hm: HeightMap, shape: tuple[int, int]) -> None:
         raise rd.fail(f"{rd.name('height/p')} has shape {hm.p.shape}, expected {(hm.degree + 1, *shape)}")
     if hm.q.shape != (1, *shape):
         raise rd.fail(f"{rd.name('height/q')} has shape {hm.q.shape}, expected {(1, *shape)}")
-    v = hm.valid
+    if np.any((hm.valid != 0) & (hm.valid != 1)):
+        raise rd.fail(f"{rd.name('height/valid')} must hold only 0 and 1")
+    v = hm.valid = hm.valid.astype(bool)
     for name, arr in (("p", hm.p[:, v]), ("q", hm.q[:, v]), ("u_center", hm.u_center[v]),
                       ("u_scale", hm.u_scale[v])):
         if not np.all(np.isfinite(arr)):

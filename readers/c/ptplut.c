@@ -15,6 +15,12 @@
  *    between neighbouring nodes; pchip with scipy's PchipInterpolator slopes
  *    (weighted harmonic mean inside, its three-point end slopes, a run of two
  *    nodes linear) and its cubic Hermite coefficients.
+ *
+ * The optional height map (/height) follows ptpcore's read_height_group and
+ * HeightMap.evaluate the same way: Horner's rule with its derivative in
+ * s = (u_p - u_center) / u_scale, the rational's quotient rule, in the same
+ * order of operations; range u_min - tol <= u_p <= u_max + tol in double,
+ * tol = 1e-6 px + |bound| * 2^-23.
  */
 #include "ptplut.h"
 
@@ -29,8 +35,13 @@
 
 #include <hdf5.h>
 
+struct hmap;
+static void free_hmap(struct hmap *h);
+
 #define RANGE_EPS 1e-9
 #define RANGE_REL 0x1p-23
+#define HEIGHT_RANGE_EPS 1e-6 /* projector px */
+#define MAX_LIST 4096         /* entries of periods_px / steps */
 #define MAX_DEGREE 5
 
 struct ptplut {
@@ -42,6 +53,20 @@ struct ptplut {
     unsigned char *valid;      /* [height][width], 0 or 1 */
     double *lo, *hi;           /* per-pixel range bounds, eps included */
     double *sigma_x, *sigma_y; /* optional */
+    struct hmap *hmap;         /* optional /height */
+};
+
+/* The height map (/height): per-pixel arrays [height][width], p [degree + 1][height][width]. */
+struct hmap {
+    ptplut_height_info info;
+    char *direction, *chosen_by, *unwrap; /* owned strings behind info */
+    double *periods;
+    int *steps;
+    double *u_center, *u_scale, *p, *q;
+    unsigned char *valid;
+    double *u_min, *u_max;     /* as stored (float32 values) */
+    double *lo, *hi;           /* range bounds, tol included */
+    double *sigma_z;
 };
 
 /* --------------------------------------------------------------------------- errors */
@@ -75,6 +100,7 @@ const char *ptplut_status_name(int status)
     case PTPLUT_ERR_FORMAT: return "format";
     case PTPLUT_ERR_CONTENT: return "content";
     case PTPLUT_ERR_MEMORY: return "memory";
+    case PTPLUT_ERR_NO_HEIGHT: return "no height";
     default: return "unknown";
     }
 }
@@ -496,6 +522,267 @@ done:
     return status;
 }
 
+/* --------------------------------------------------------------------------- the height map */
+
+static void free_hmap(struct hmap *h)
+{
+    if (!h) return;
+    free(h->direction);
+    free(h->chosen_by);
+    free(h->unwrap);
+    free(h->periods);
+    free(h->steps);
+    free(h->u_center);
+    free(h->u_scale);
+    free(h->p);
+    free(h->q);
+    free(h->valid);
+    free(h->u_min);
+    free(h->u_max);
+    free(h->lo);
+    free(h->hi);
+    free(h->sigma_z);
+    free(h);
+}
+
+/* A list attribute of numbers (rank 1, at least one entry, finite), read as double. */
+static int read_list_attr(ctx_t *c, hid_t obj, const char *name, double **out, int *count)
+{
+    hid_t attr = -1, type = -1, space = -1;
+    int status = PTPLUT_OK;
+    *out = NULL;
+    htri_t exists = H5Aexists(obj, name);
+    if (exists <= 0)
+        return fail(c, exists < 0 ? PTPLUT_ERR_OPEN : PTPLUT_ERR_CONTENT, "missing attribute '%s' of /height", name);
+    if ((attr = H5Aopen(obj, name, H5P_DEFAULT)) < 0 || (type = H5Aget_type(attr)) < 0
+        || (space = H5Aget_space(attr)) < 0) {
+        status = fail(c, PTPLUT_ERR_OPEN, "attribute '%s' of /height unreadable", name);
+        goto done;
+    }
+    H5T_class_t cls = H5Tget_class(type);
+    hssize_t n = H5Sget_simple_extent_npoints(space);
+    if ((cls != H5T_INTEGER && cls != H5T_FLOAT) || H5Sget_simple_extent_type(space) != H5S_SIMPLE
+        || H5Sget_simple_extent_ndims(space) != 1 || n < 1 || n > MAX_LIST) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "attribute '%s' of /height must be a list of 1 to %d numbers", name,
+                      MAX_LIST);
+        goto done;
+    }
+    if (!(*out = malloc((size_t)n * sizeof **out))) {
+        status = fail(c, PTPLUT_ERR_MEMORY, "out of memory");
+        goto done;
+    }
+    if (H5Aread(attr, H5T_NATIVE_DOUBLE, *out) < 0) {
+        status = fail(c, PTPLUT_ERR_OPEN, "attribute '%s' of /height unreadable", name);
+        goto done;
+    }
+    for (hssize_t i = 0; i < n; i++)
+        if (!isfinite((*out)[i])) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "attribute '%s' of /height must be a list of numbers", name);
+            goto done;
+        }
+    *count = (int)n;
+done:
+    if (status != PTPLUT_OK) {
+        free(*out);
+        *out = NULL;
+    }
+    if (space >= 0) H5Sclose(space);
+    if (type >= 0) H5Tclose(type);
+    if (attr >= 0) H5Aclose(attr);
+    return status;
+}
+
+/* An optional numeric attribute: *out stays `absent` when the file lacks it. */
+static int read_optional_number(ctx_t *c, hid_t obj, const char *name, int integer, double absent, double *out)
+{
+    *out = absent;
+    htri_t exists = H5Aexists(obj, name);
+    if (exists < 0) return fail(c, PTPLUT_ERR_OPEN, "attributes of /height unreadable (truncated or damaged?)");
+    return exists ? read_number_attr(c, obj, "/height", name, integer, out) : PTPLUT_OK;
+}
+
+/* The /height attributes: model, pattern design, camera noise (as ptpcore's read_height_group). */
+static int read_height_attrs(ctx_t *c, hid_t g, struct hmap *h)
+{
+    ptplut_height_info *in = &h->info;
+    char *kind = NULL, *prov = NULL;
+    double v, *steps = NULL;
+    int status, n_steps = 0;
+    if ((status = read_text_attr(c, g, "/height", "kind", 1, &kind)) != PTPLUT_OK) goto done;
+    if (strcmp(kind, "rational") != 0) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "attribute 'kind' of /height is '%.40s', expected 'rational'", kind);
+        goto done;
+    }
+    if ((status = read_number_attr(c, g, "/height", "degree", 1, &v)) != PTPLUT_OK) goto done;
+    if (v < 1 || v > MAX_DEGREE) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "attribute 'degree' of /height must be 1 to %d, got %g", MAX_DEGREE, v);
+        goto done;
+    }
+    in->degree = (int)v;
+    if ((status = read_text_attr(c, g, "/height", "direction", 1, &h->direction)) != PTPLUT_OK) goto done;
+    if (strcmp(h->direction, "x") != 0 && strcmp(h->direction, "y") != 0) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "attribute 'direction' of /height must be 'x' or 'y', got '%.40s'",
+                      h->direction);
+        goto done;
+    }
+    in->direction = h->direction[0];
+    if ((status = read_number_attr(c, g, "/height", "width", 1, &v)) != PTPLUT_OK) goto done;
+    in->width = (int)v;
+    if ((status = read_number_attr(c, g, "/height", "height", 1, &v)) != PTPLUT_OK) goto done;
+    in->height = (int)v;
+    if ((status = read_list_attr(c, g, "periods_px", &h->periods, &in->n_periods)) != PTPLUT_OK
+        || (status = read_list_attr(c, g, "steps", &steps, &n_steps)) != PTPLUT_OK)
+        goto done;
+    if (n_steps != in->n_periods) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "attributes 'periods_px' and 'steps' of /height differ in length"
+                      " (%d and %d)", in->n_periods, n_steps);
+        goto done;
+    }
+    if (!(h->steps = malloc((size_t)n_steps * sizeof *h->steps))) {
+        status = fail(c, PTPLUT_ERR_MEMORY, "out of memory");
+        goto done;
+    }
+    for (int i = 0; i < n_steps; i++) {
+        if (steps[i] != floor(steps[i]) || fabs(steps[i]) > (double)INT_MAX) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "attribute 'steps' of /height must hold whole numbers, got %g",
+                          steps[i]);
+            goto done;
+        }
+        h->steps[i] = (int)steps[i];
+    }
+    in->periods_px = h->periods;
+    in->steps = h->steps;
+    if ((status = read_optional_number(c, g, "phase_origin_rad", 0, NAN, &in->phase_origin_rad)) != PTPLUT_OK
+        || (status = read_optional_number(c, g, "shift_sign", 1, 0.0, &v)) != PTPLUT_OK)
+        goto done;
+    in->shift_sign = (int)v;
+    if ((status = read_text_attr(c, g, "/height", "unwrap", 0, &h->unwrap)) != PTPLUT_OK
+        || (status = read_text_attr(c, g, "/height", "chosen_by", 1, &h->chosen_by)) != PTPLUT_OK
+        || (status = read_text_attr(c, g, "/height", "provenance", 0, &prov)) != PTPLUT_OK
+        || (status = read_optional_number(c, g, "offset", 0, NAN, &in->offset)) != PTPLUT_OK
+        || (status = read_optional_number(c, g, "amplitude", 0, NAN, &in->amplitude)) != PTPLUT_OK
+        || (status = read_optional_number(c, g, "gamma", 0, NAN, &in->gamma)) != PTPLUT_OK)
+        goto done;
+    in->unwrap = h->unwrap;
+    in->chosen_by = h->chosen_by;
+    in->camera_noise_read_var = in->camera_noise_gain = NAN;
+    if ((status = read_optional_number(c, g, "camera_noise_read_var", 0, NAN, &in->camera_noise_read_var))
+        != PTPLUT_OK)
+        goto done;
+    if (!isnan(in->camera_noise_read_var)) {  /* the gain goes with it (read only then, as in Python) */
+        if ((status = read_number_attr(c, g, "/height", "camera_noise_gain", 0, &in->camera_noise_gain)) != PTPLUT_OK)
+            goto done;
+        if (in->camera_noise_read_var < 0 || in->camera_noise_gain < 0)
+            status = fail(c, PTPLUT_ERR_CONTENT, "attributes 'camera_noise_read_var' and 'camera_noise_gain' of"
+                          " /height must not be negative");
+    }
+done:
+    free(kind);
+    free(prov);
+    free(steps);
+    return status;
+}
+
+/* The /height datasets, checked as ptpcore's _check_height: shapes against the camera; where the
+ * map is valid, finite coefficients and normalisation, u_scale > 0 and |q_1| < 1. */
+static int read_height_arrays(ctx_t *c, hid_t file, const ptplut *lut, struct hmap *h)
+{
+    const long long hh = lut->height, ww = lut->width;
+    const size_t hw = (size_t)hh * (size_t)ww;
+    const long long shape2[2] = {hh, ww}, shape_p[3] = {h->info.degree + 1, hh, ww}, shape_q[3] = {1, hh, ww};
+    double *valid = NULL;
+    int status;
+    if ((status = read_dataset(c, file, "/height/u_center", 2, shape2, NUM_FLOAT | NUM_INT, &h->u_center, NULL, NULL))
+            != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/u_scale", 2, shape2, NUM_FLOAT | NUM_INT, &h->u_scale, NULL, NULL))
+            != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/p", 3, shape_p, NUM_FLOAT | NUM_INT, &h->p, NULL, NULL))
+            != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/q", 3, shape_q, NUM_FLOAT | NUM_INT, &h->q, NULL, NULL))
+            != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/valid", 2, shape2, NUM_FLOAT | NUM_INT, &valid, NULL, NULL))
+            != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/quality/u_min", 2, shape2, NUM_FLOAT | NUM_INT, &h->u_min, NULL,
+                                  NULL)) != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/quality/u_max", 2, shape2, NUM_FLOAT | NUM_INT, &h->u_max, NULL,
+                                  NULL)) != PTPLUT_OK
+        || (status = read_dataset(c, file, "/height/quality/sigma_z", 2, shape2, NUM_FLOAT | NUM_INT, &h->sigma_z,
+                                  NULL, NULL)) != PTPLUT_OK)
+        goto done;
+    static const char *const others[] = {"/height/quality/rms_z", "/height/quality/loo_z",
+                                         "/height/quality/n_positions"};
+    for (size_t i = 0; i < sizeof others / sizeof *others; i++)
+        if ((status = read_dataset(c, file, others[i], 2, shape2, NUM_FLOAT | NUM_INT, NULL, NULL, NULL)) != PTPLUT_OK)
+            goto done;
+    if (!(h->valid = malloc(hw)) || !(h->lo = malloc(hw * sizeof *h->lo)) || !(h->hi = malloc(hw * sizeof *h->hi))) {
+        status = fail(c, PTPLUT_ERR_MEMORY, "out of memory");
+        goto done;
+    }
+    for (size_t px = 0; px < hw; px++) {
+        if (valid[px] != 0.0 && valid[px] != 1.0) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "/height/valid must hold only 0 and 1");
+            goto done;
+        }
+        h->valid[px] = valid[px] == 1.0;
+        /* The rule of ptpcore's HeightMap.evaluate, in double. */
+        h->lo[px] = h->u_min[px] - (HEIGHT_RANGE_EPS + fabs(h->u_min[px]) * RANGE_REL);
+        h->hi[px] = h->u_max[px] + (HEIGHT_RANGE_EPS + fabs(h->u_max[px]) * RANGE_REL);
+        if (!h->valid[px]) continue;
+        int finite = isfinite(h->q[px]) && isfinite(h->u_center[px]) && isfinite(h->u_scale[px]);
+        for (int i = 0; i <= h->info.degree; i++) finite &= isfinite(h->p[(size_t)i * hw + px]) != 0;
+        if (!finite) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "/height/p, q, u_center or u_scale holds NaN or infinite values"
+                          " at valid pixels");
+            goto done;
+        }
+        if (!(h->u_scale[px] > 0)) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "/height/u_scale must be positive at valid pixels");
+            goto done;
+        }
+        if (!(fabs(h->q[px]) < 1.0)) {
+            status = fail(c, PTPLUT_ERR_CONTENT, "/height/q: the denominator 1 + q_1 s vanishes within a valid"
+                          " pixel's range (|q_1| >= 1)");
+            goto done;
+        }
+    }
+done:
+    free(valid);
+    return status;
+}
+
+static int read_height(ctx_t *c, hid_t file, ptplut *lut)
+{
+    hid_t g = -1;
+    int status;
+    struct hmap *h = calloc(1, sizeof *h);
+    if (!h) return fail(c, PTPLUT_ERR_MEMORY, "out of memory");
+    H5O_info_t oinfo;
+    if ((g = H5Oopen(file, "/height", H5P_DEFAULT)) < 0
+#if H5_VERSION_GE(1, 12, 0)
+        || H5Oget_info3(g, &oinfo, H5O_INFO_BASIC) < 0
+#else
+        || H5Oget_info(g, &oinfo) < 0
+#endif
+    ) {
+        status = fail(c, PTPLUT_ERR_OPEN, "/height unreadable (truncated or damaged?)");
+        goto done;
+    }
+    if (oinfo.type != H5O_TYPE_GROUP) {
+        status = fail(c, PTPLUT_ERR_CONTENT, "/height is not a group");
+        goto done;
+    }
+    if ((status = read_height_attrs(c, g, h)) != PTPLUT_OK) goto done;
+    status = read_height_arrays(c, file, lut, h);
+done:
+    if (g >= 0) H5Oclose(g);
+    if (status != PTPLUT_OK) {
+        free_hmap(h);
+        return status;
+    }
+    lut->hmap = h;
+    return PTPLUT_OK;
+}
+
 int ptplut_open(const char *path, ptplut **out, char *msg, size_t msg_size)
 {
     ctx_t c = {path ? path : "(null)", msg, msg_size};
@@ -534,7 +821,8 @@ int ptplut_open(const char *path, ptplut **out, char *msg, size_t msg_size)
     }
     if ((status = check_format(&c, file)) != PTPLUT_OK) goto done;
     if ((status = read_model(&c, file, lut)) != PTPLUT_OK) goto done;
-    status = read_tables(&c, file, lut);
+    if ((status = read_tables(&c, file, lut)) != PTPLUT_OK) goto done;
+    if (has_link(file, "/height")) status = read_height(&c, file, lut);
 done:
     if (file >= 0) H5Fclose(file);
     if (fapl >= 0) H5Pclose(fapl);
@@ -558,6 +846,7 @@ void ptplut_close(ptplut *lut)
     free(lut->hi);
     free(lut->sigma_x);
     free(lut->sigma_y);
+    free_hmap(lut->hmap);
     free(lut);
 }
 
@@ -704,5 +993,86 @@ int ptplut_sigma(const ptplut *lut, int row, int col, int *has, double *sigma_x,
     *has = lut->sigma_x != NULL;
     *sigma_x = *has ? lut->sigma_x[p] : NAN;
     *sigma_y = *has ? lut->sigma_y[p] : NAN;
+    return PTPLUT_OK;
+}
+
+/* --------------------------------------------------------------------------- height-map evaluation */
+
+int ptplut_has_height(const ptplut *lut) { return lut && lut->hmap; }
+
+int ptplut_height_design(const ptplut *lut, ptplut_height_info *info)
+{
+    if (!lut || !info) return PTPLUT_ERR_ARGUMENT;
+    if (!lut->hmap) return PTPLUT_ERR_NO_HEIGHT;
+    *info = lut->hmap->info;
+    return PTPLUT_OK;
+}
+
+/* Z and dZ/du_p of pixel px at u, exactly as HeightMap.evaluate: Horner's rule with the derivative,
+ * the same operations in the same order. */
+static unsigned height_pixel(const struct hmap *h, size_t hw, size_t px, double u, double *z, double *dz_du)
+{
+    unsigned f = 0;
+    if (h->valid[px]) {
+        f |= PTPLUT_HEIGHT_VALID;
+        if (isfinite(u) && u >= h->lo[px] && u <= h->hi[px]) f |= PTPLUT_HEIGHT_IN_RANGE;
+    }
+    if (!(f & PTPLUT_HEIGHT_IN_RANGE)) {
+        *z = NAN;
+        if (dz_du) *dz_du = NAN;
+        return f;
+    }
+    const double s = (u - h->u_center[px]) / h->u_scale[px];
+    double num = 0.0, dnum = 0.0;
+    for (int i = h->info.degree; i >= 0; i--) {
+        dnum = dnum * s + num;
+        num = num * s + h->p[(size_t)i * hw + px];
+    }
+    const double q = h->q[px], den = 1.0 + q * s;
+    *z = num / den;
+    if (dz_du) *dz_du = (dnum * den - num * q) / (den * den) / h->u_scale[px];
+    return f;
+}
+
+int ptplut_height_eval(const ptplut *lut, int row, int col, double u_p, double *z, double *dz_du,
+                       unsigned *flags)
+{
+    if (!lut || !z) return PTPLUT_ERR_ARGUMENT;
+    *z = NAN;
+    if (dz_du) *dz_du = NAN;
+    if (flags) *flags = 0;
+    if (!lut->hmap) return PTPLUT_ERR_NO_HEIGHT;
+    if (row < 0 || row >= lut->height || col < 0 || col >= lut->width) return PTPLUT_ERR_ARGUMENT;
+    const size_t hw = (size_t)lut->width * (size_t)lut->height;
+    unsigned f = height_pixel(lut->hmap, hw, (size_t)row * (size_t)lut->width + (size_t)col, u_p, z, dz_du);
+    if (flags) *flags = f;
+    return PTPLUT_OK;
+}
+
+int ptplut_height_eval_map(const ptplut *lut, const double *u_p, double *z, double *dz_du, unsigned char *flags)
+{
+    if (!lut || !u_p || !z) return PTPLUT_ERR_ARGUMENT;
+    if (!lut->hmap) return PTPLUT_ERR_NO_HEIGHT;
+    const size_t hw = (size_t)lut->width * (size_t)lut->height;
+    for (size_t px = 0; px < hw; px++) {
+        unsigned f = height_pixel(lut->hmap, hw, px, u_p[px], z + px, dz_du ? dz_du + px : NULL);
+        if (flags) flags[px] = (unsigned char)f;
+    }
+    return PTPLUT_OK;
+}
+
+int ptplut_height_quality(const ptplut *lut, int row, int col, double *u_min, double *u_max, double *sigma_z)
+{
+    if (!lut || !u_min || !u_max || !sigma_z) return PTPLUT_ERR_ARGUMENT;
+    *u_min = *u_max = *sigma_z = NAN;
+    if (!lut->hmap) return PTPLUT_ERR_NO_HEIGHT;
+    if (row < 0 || row >= lut->height || col < 0 || col >= lut->width) return PTPLUT_ERR_ARGUMENT;
+    const struct hmap *h = lut->hmap;
+    size_t px = (size_t)row * (size_t)lut->width + (size_t)col;
+    if (h->valid[px]) {
+        *u_min = h->u_min[px];
+        *u_max = h->u_max[px];
+        *sigma_z = h->sigma_z[px];
+    }
     return PTPLUT_OK;
 }

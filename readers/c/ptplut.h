@@ -20,6 +20,11 @@
  *     ptplut_eval_map(lut, z_map, 1, 0, xs, ys, fl);          (z_map, xs, ys: height * width doubles)
  *     ptplut_close(lut);
  *
+ * A LUT with the scanner's height map (/height) also answers Z from the decoded projector
+ * coordinate u_p: ptplut_has_height, ptplut_height_eval(lut, row, col, u_p, &z, &dz_du, &flags),
+ * ptplut_height_eval_map, ptplut_height_quality, and ptplut_height_design (the projector's
+ * pattern design, to decode u_p as the calibration did).
+ *
  * Every function returns PTPLUT_OK or an error code; none aborts or exits.
  * A LUT, once opened, is read-only: evaluating it from several threads is safe.
  */
@@ -41,7 +46,8 @@ enum {
     PTPLUT_ERR_OPEN = 2,      /* missing or unreadable file, not HDF5, truncated or damaged */
     PTPLUT_ERR_FORMAT = 3,    /* an HDF5 file, but not ptp-lut/1 (another format or version) */
     PTPLUT_ERR_CONTENT = 4,   /* ptp-lut/1, but a dataset or attribute is missing, misshapen or wrong */
-    PTPLUT_ERR_MEMORY = 5     /* out of memory */
+    PTPLUT_ERR_MEMORY = 5,    /* out of memory */
+    PTPLUT_ERR_NO_HEIGHT = 6  /* a height-map function on a LUT without /height */
 };
 
 /* Models (the /model "kind" attribute). */
@@ -85,6 +91,59 @@ int ptplut_eval_map(const ptplut *lut, const double *z, int z_is_map, int extrap
 /* The optional predicted 1-sigma uncertainty maps (/quality/sigma_x, sigma_y), mm.
  * Returns PTPLUT_OK with *has = 1 and the values, or *has = 0 if the file has none. */
 int ptplut_sigma(const ptplut *lut, int row, int col, int *has, double *sigma_x, double *sigma_y);
+
+/* --------------------------------------------------------------------------------------------
+ * The scanner's height map (optional /height, METHOD.md section 9): per camera pixel
+ *     Z = (p_0 + p_1 s + ... + p_D s^D) / (1 + q_1 s),  s = (u_p - u_center) / u_scale,
+ * u_p the projector coordinate the scanner decodes (projector px), Z in mm. Never extrapolated:
+ * u_p is in range when u_min - tol <= u_p <= u_max + tol in double, tol = 1e-6 px + |bound| * 2^-23
+ * (the bounds are float32 in the file), as ptpcore's HeightMap.evaluate. (ptplut_height above is the
+ * camera's height in pixels; the height map's functions are ptplut_height_*.) */
+
+/* Per-pixel flags of a height-map evaluation (the same bits as an XY evaluation's). */
+#define PTPLUT_HEIGHT_VALID 1u     /* the pixel has a usable height map (/height/valid) */
+#define PTPLUT_HEIGHT_IN_RANGE 2u  /* valid, u_p finite and within the pixel's calibrated range */
+
+/* The height map's model and the projector's pattern design, so a scanner decodes u_p as the
+ * calibration did (the /height attributes). Pointers stay valid until ptplut_close. Attributes the
+ * file lacks (the Python writer stores them all) are NaN, 0 or NULL as noted. */
+typedef struct {
+    int degree;                   /* D, the numerator's degree (1 to 5) */
+    char direction;               /* 'x': the map reads u_p; 'y': v_p */
+    const char *chosen_by;        /* how the degree was chosen */
+    int width, height;            /* the projector's pixels: the range of u_p (and v_p) */
+    int n_periods;                /* entries of periods_px and steps */
+    const double *periods_px;     /* fringe periods, projector px, coarsest first */
+    const int *steps;             /* phase steps per period */
+    double phase_origin_rad;      /* NaN if absent */
+    int shift_sign;               /* +1 or -1; 0 if absent */
+    const char *unwrap;           /* "periods" or "heterodyne"; NULL if absent */
+    double offset, amplitude;     /* the patterns' grey levels (NaN if absent) */
+    double gamma;                 /* the display gamma the patterns were pre-compensated for (NaN if absent) */
+    double camera_noise_read_var; /* the sweep's camera noise, var = read_var + gain * level: DN^2 (NaN if absent) */
+    double camera_noise_gain;     /* DN (NaN if absent) */
+} ptplut_height_info;
+
+/* 1 if the LUT has a height map (/height), 0 if not. */
+int ptplut_has_height(const ptplut *lut);
+
+/* The height map's model and design; PTPLUT_ERR_NO_HEIGHT without /height. */
+int ptplut_height_design(const ptplut *lut, ptplut_height_info *info);
+
+/* Z (mm) and dZ/du_p (mm per projector px) of pixel (row, col) at its decoded u_p.
+ * flags gets PTPLUT_HEIGHT_VALID and PTPLUT_HEIGHT_IN_RANGE; z and dz_du are NaN unless
+ * in range (never extrapolated). dz_du and flags may be NULL. */
+int ptplut_height_eval(const ptplut *lut, int row, int col, double u_p, double *z, double *dz_du,
+                       unsigned *flags);
+
+/* The same for every pixel: u_p, z, dz_du are height * width doubles, row-major (NaN = no u_p);
+ * flags height * width bytes. dz_du and flags may be NULL. */
+int ptplut_height_eval_map(const ptplut *lut, const double *u_p, double *z, double *dz_du,
+                           unsigned char *flags);
+
+/* The pixel's calibrated u_p range (/height/quality/u_min, u_max, projector px) and the map's
+ * predicted 1-sigma of Z (/height/quality/sigma_z, mm): NaN where the pixel has no map. */
+int ptplut_height_quality(const ptplut *lut, int row, int col, double *u_min, double *u_max, double *sigma_z);
 
 /* A short name of a status code ("ok", "open", "format", ...). */
 const char *ptplut_status_name(int status);

@@ -9,7 +9,12 @@ Usage: python test_reader.py ./ptplut_tool ./ptplut_tool_asan
    NaN where Python has NaN, and the valid / in-range flags are identical,
    at heights below, above, on and between the nodes, in NaN gaps, within
    1e-9 mm of the range bounds, and NaN.
-2. Runs damaged and foreign files through the AddressSanitizer build: every one
+2. Writes LUTs with the scanner's height map (/height, rational of degree 1 to 5, invalid
+   pixels) and evaluates it in C (``ptplut_height_eval_map`` and ``ptplut_height_eval``) and
+   with ``HeightMap.evaluate`` at u_p inside, on and just beyond each pixel's calibrated range,
+   NaN and infinite: Z to 1e-9 mm, dZ/du_p to 1e-12 mm/px, NaN and flags identical; the pattern
+   design attributes read in C equal Python's.
+3. Runs damaged and foreign files through the AddressSanitizer build: every one
    ends with exit status 1 and one "ptplut: STATUS: FILE: message" line, never a
    crash or a sanitizer report; the Python reader refuses the same files.
 
@@ -33,8 +38,11 @@ sys.path.insert(0, str(ROOT))
 
 from ptpcore.errors import FileFormatError  # noqa: E402
 from ptpcore import Lut, load_lut, save_lut  # noqa: E402
+from ptpcore.io.heightmap import HeightMap  # noqa: E402
+from ptpcore.rig.rigfile import Projector  # noqa: E402
 
 TOL_MM = 1e-9
+TOL_SLOPE = 1e-12  # mm per projector px
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "test-output"
 FAILURES: list[str] = []
@@ -217,6 +225,192 @@ def compare_kinds(tool: str, asan_tool: str) -> None:
         print(f"ok  {name:7s} C = Python to {TOL_MM:g} mm ({n_values} values, flags identical)", flush=True)
 
 
+# --------------------------------------------------------------------------- the height map
+
+def make_height_map(rng, degree: int) -> HeightMap:
+    """A rational map per pixel: Z ~ 20 mm over u_p ranges of 10 to 120 projector px, |q_1| < 0.4."""
+    centre = rng.uniform(100.0, 1200.0, (H, W))
+    scale = rng.uniform(5.0, 60.0, (H, W))
+    valid = rng.random((H, W)) > 0.15
+    p = rng.normal(0, 1, (degree + 1, H, W)) * np.array([5.0, 20.0, 0.3, 0.05, 0.01, 0.003])[:degree + 1, None, None]
+    p[0] += 20.0
+    q = rng.uniform(-0.4, 0.4, (1, H, W))
+    p[:, ~valid] = np.nan
+    q[:, ~valid] = np.nan
+    f32 = np.float32
+    design = {**Projector().design_attrs, "phase_origin_rad": 0.25, "shift_sign": -1, "unwrap": "heterodyne"}
+    return HeightMap(
+        degree=degree, direction="x", u_center=centre, u_scale=scale, p=p, q=q, valid=valid,
+        u_min=np.where(valid, centre - scale, np.nan).astype(f32), u_max=np.where(valid, centre + scale, np.nan).astype(f32),
+        rms_z=np.full((H, W), 0.01, f32), loo_z=np.full((H, W), 0.012, f32),
+        sigma_z=np.where(valid, rng.uniform(0.005, 0.05, (H, W)), np.nan).astype(f32),
+        n_positions=np.where(valid, 21, 0).astype(np.uint16), design=design, chosen_by="held-out positions",
+        provenance={"degree_choice": {"1": 0.01}}, camera_noise=(4.5, 0.02))
+
+
+def u_map(rng, hm: HeightMap) -> np.ndarray:
+    """u_p inside each pixel's range, on its float32 and float64 edges, within and just beyond the
+    slack (1e-6 px + |bound| 2^-23), far outside, NaN and infinite."""
+    lo, hi = hm.u_min.astype(float), hm.u_max.astype(float)
+    tol_lo = 1e-6 + np.abs(lo) * 2.0 ** -23
+    tol_hi = 1e-6 + np.abs(hi) * 2.0 ** -23
+    t = rng.uniform(0, 1, (H, W))
+    choices = [lo + t * (hi - lo), lo, hi, hm.u_center - hm.u_scale, hm.u_center + hm.u_scale,
+               lo - 0.5 * tol_lo, hi + 0.5 * tol_hi, lo - tol_lo, hi + tol_hi, lo - 2 * tol_lo, hi + 2 * tol_hi,
+               lo - 1e-3, hi + 1e-3, lo - 50.0, hi + 50.0, np.full((H, W), np.nan), np.full((H, W), np.inf),
+               np.full((H, W), -np.inf), np.nextafter(lo - tol_lo, -np.inf), np.nextafter(hi + tol_hi, np.inf)]
+    pick = rng.integers(0, len(choices), (H, W))
+    pick[rng.random((H, W)) < 0.4] = 0  # plenty of values inside
+    return np.choose(pick, choices)
+
+
+def run_height_map(tool: str, path: Path, u, env=None):
+    h, w = np.shape(u)
+    upath = path.with_suffix(".u.f64")
+    np.asarray(u, "<f8").tofile(upath)
+    out = path.with_suffix(".hout.bin")
+    cmd = [tool, "height-map", str(path), str(upath), str(out)]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        return None, f"{' '.join(cmd)} exited {res.returncode}: {res.stderr.strip()}"
+    raw = out.read_bytes()
+    n = h * w
+    z = np.frombuffer(raw[:8 * n], "<f8").reshape(h, w)
+    dz = np.frombuffer(raw[8 * n:16 * n], "<f8").reshape(h, w)
+    flags = np.frombuffer(raw[16 * n:17 * n], np.uint8).reshape(h, w)
+    sigma = np.frombuffer(raw[17 * n:], "<f8").reshape(h, w)
+    return (z, dz, flags, sigma), None
+
+
+def compare_height(label: str, hm: HeightMap, c_result, u) -> tuple[int, int]:
+    """C against HeightMap.evaluate; returns (finite values compared, bit-identical ones)."""
+    ev = hm.evaluate(u)
+    z, dz, flags, sigma = c_result
+    want_flags = hm.valid.astype(np.uint8) | (ev.in_range.astype(np.uint8) << 1)
+    for name, cv, pv, tol in (("Z", z, ev.z, TOL_MM), ("dZ/du", dz, ev.dz_du, TOL_SLOPE)):
+        nan_c, nan_p = np.isnan(cv), np.isnan(pv)
+        if np.any(nan_c != nan_p):
+            r, c = np.argwhere(nan_c != nan_p)[0]
+            check(False, f"{label}: {name} NaN in C {nan_c[r, c]} vs Python {nan_p[r, c]} at ({r}, {c}),"
+                         f" u={u[r, c]!r}, {int(np.sum(nan_c != nan_p))} pixels")
+        both = ~nan_c & ~nan_p
+        err = np.max(np.abs(cv[both] - pv[both]), initial=0.0)
+        check(err <= tol, f"{label}: {name} differs by {err:.3g}")
+    if np.any(flags != want_flags):
+        r, c = np.argwhere(flags != want_flags)[0]
+        check(False, f"{label}: flags C {flags[r, c]} vs Python {want_flags[r, c]} at ({r}, {c}) u={u[r, c]!r}")
+    want_sigma = np.where(hm.valid, hm.sigma_z.astype(float), np.nan)
+    check(np.array_equal(sigma, want_sigma, equal_nan=True), f"{label}: sigma_z differs from /height/quality/sigma_z")
+    fin = np.isfinite(ev.z)
+    same = int(np.count_nonzero((z[fin] == ev.z[fin]) & (dz[fin] == ev.dz_du[fin])))
+    return int(np.count_nonzero(fin)), same
+
+
+def check_height_design(tool: str, path: Path, hm: HeightMap) -> None:
+    res = subprocess.run([tool, "height-info", str(path)], capture_output=True, text=True)
+    got = dict(line.split(" ", 1) for line in res.stdout.splitlines())
+    d = hm.design
+    want = {"degree": str(hm.degree), "direction": hm.direction, "chosen_by": hm.chosen_by,
+            "width": str(d["width"]), "height": str(d["height"]),
+            "steps": " ".join(str(v) for v in d["steps"]), "shift_sign": str(d["shift_sign"]), "unwrap": d["unwrap"]}
+    nums = {"phase_origin_rad": d["phase_origin_rad"], "offset": d["offset"], "amplitude": d["amplitude"],
+            "gamma": d["gamma"], "camera_noise_read_var": hm.camera_noise[0], "camera_noise_gain": hm.camera_noise[1]}
+    ok = res.returncode == 0 and all(got.get(k) == v for k, v in want.items())
+    ok = ok and all(k in got and float(got[k]) == float(v) for k, v in nums.items())
+    ok = ok and [float(v) for v in got.get("periods_px", "").split()] == [float(v) for v in d["periods_px"]]
+    check(ok, f"height-info of {path.name}: C {got!r} {res.stderr.strip()!r}, Python {want!r} {nums!r}")
+
+
+def compare_fitted_height(tool: str, asan_tool: str) -> None:
+    """A height map fitted to a simulated sweep (scanner-mild, 64 x 48, 5 plate heights), read in C at the
+    sweep's own decoded u_p: C = Python, and every sample the map was fitted to is in its pixel's range
+    (its extreme samples on the float32 bounds included)."""
+    from ptpcore.fit.height import fit_height_map
+    from ptpcore.run.scanner import decode_projector
+    from ptpcore.simulate.scanner import HeightSweepSource, ScannerRig, scanner_preset
+
+    rig, sim, sc = scanner_preset("scanner-mild", 64, heights=5)
+    dec = decode_projector(HeightSweepSource(ScannerRig(rig, sim, sc, seed=2)))
+    hm = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, design=rig.projector.design_attrs)
+    hm.camera_noise = (dec.noise.read_var, dec.noise.gain)
+    h, w = hm.shape
+    f32 = np.float32
+    zero = np.zeros((h, w), f32)
+    lut = Lut("poly", 1, 20.0, 20.0, 0.0, 40.0, np.stack([np.full((h, w), 100.0), np.full((h, w), 2.0)]),
+              np.stack([np.full((h, w), 50.0), np.full((h, w), -1.0)]), None, np.ones((h, w), bool),
+              np.full((h, w), 9, np.uint16), zero, zero + f32(40.0), zero, zero, zero, zero, height=hm)
+    path = OUT / "height-fitted.lut.h5"
+    save_lut(lut, path)
+    hm = load_lut(path).height
+    n_values = n_same = n_samples = n_in = 0
+    for k in range(dec.u.shape[0]):
+        u = dec.u[k].astype(float)
+        res, err = run_height_map(asan_tool if k == 0 else tool, path, u, env=ASAN_ENV if k == 0 else None)
+        check(err is None, f"fitted map, height {k}: {err}")
+        if res is None:
+            continue
+        n, same = compare_height(f"fitted map, height {k}", hm, res, u)
+        n_values, n_same = n_values + n, n_same + same
+        sample = hm.valid & np.isfinite(u)
+        n_samples += int(sample.sum())
+        n_in += int((res[2][sample] & 2).astype(bool).sum())
+    check(n_in == n_samples, f"fitted map: {n_samples - n_in} of the sweep's own samples out of range in C")
+    check(n_values > 1000, f"fitted map: only {n_values} values compared")
+    print(f"ok  fitted  C = Python on a simulated sweep's own u_p ({n_values} values, {n_same} bit-identical;"
+          f" {n_in} of {n_samples} samples in range, degree {hm.degree})", flush=True)
+
+
+def compare_heights(tool: str, asan_tool: str) -> Path:
+    """Height maps of degree 1 to 5 in C and Python; returns the degree-2 file (for the bad-file edits)."""
+    rng = np.random.default_rng(34)
+    for degree in range(1, 6):
+        name = f"height{degree}"
+        lut = poly_lut(rng, 2)
+        lut.height = make_height_map(rng, degree)
+        path = OUT / f"{name}.lut.h5"
+        save_lut(lut, path)
+        lut = load_lut(path)
+        hm = lut.height
+        n_values = n_same = 0
+        for i in range(6):
+            u = u_map(rng, hm)
+            res, err = run_height_map(tool, path, u)
+            check(err is None, f"{name}: {err}")
+            if res is not None:
+                n, same = compare_height(f"{name} map#{i}", hm, res, u)
+                n_values, n_same = n_values + n, n_same + same
+        u = u_map(rng, hm)
+        ev = hm.evaluate(u)
+        for r, c in zip(rng.integers(0, H, 12), rng.integers(0, W, 12)):
+            res = subprocess.run([tool, "height-pixel", str(path), str(r), str(c), repr(float(u[r, c]))],
+                                 capture_output=True, text=True)
+            got = res.stdout.split()
+            ok = res.returncode == 0 and len(got) == 3
+            if ok:
+                pairs = ((float(got[0]), ev.z[r, c], TOL_MM), (float(got[1]), ev.dz_du[r, c], TOL_SLOPE))
+                ok = all((np.isnan(a) and np.isnan(b)) or abs(a - b) <= tol for a, b, tol in pairs)
+                ok &= int(got[2]) == int(hm.valid[r, c]) | (int(ev.in_range[r, c]) << 1)
+            check(ok, f"{name}: pixel ({r}, {c}) u={u[r, c]!r}: C {res.stdout.strip()!r} {res.stderr.strip()!r},"
+                      f" Python {ev.z[r, c]!r} {ev.dz_du[r, c]!r}")
+        check_height_design(tool, path, hm)
+        u = u_map(rng, hm)
+        res, err = run_height_map(asan_tool, path, u, env=ASAN_ENV)
+        check(err is None, f"{name} (ASan): {err}")
+        if res is not None:
+            compare_height(f"{name} ASan", hm, res, u)
+        check(n_values > 500, f"{name}: only {n_values} finite values compared")
+        print(f"ok  {name:7s} C = Python: Z to {TOL_MM:g} mm, dZ/du to {TOL_SLOPE:g} ({n_values} values,"
+              f" {n_same} bit-identical, flags identical, design equal)", flush=True)
+    compare_fitted_height(tool, asan_tool)
+    # A LUT without /height: the height functions say so.
+    for args in (["height-info", str(OUT / "poly2.lut.h5")], ["height-pixel", str(OUT / "poly2.lut.h5"), "1", "1", "5"]):
+        res = subprocess.run([asan_tool, *args], capture_output=True, text=True, env=ASAN_ENV)
+        check(res.returncode == 1 and "no height" in res.stderr, f"{args[0]} without /height: exit {res.returncode}"
+                                                                 f" {res.stderr.strip()!r}")
+    print("ok  a LUT without /height: the height functions return PTPLUT_ERR_NO_HEIGHT", flush=True)
+    return OUT / "height2.lut.h5"
+
+
 # --------------------------------------------------------------------------- bad files
 
 def _copy_with(good: Path, name: str, edit) -> Path:
@@ -232,7 +426,48 @@ def _replace(f, name, data):
     f[name] = data
 
 
-def bad_files(good_poly: Path, good_table: Path) -> list[tuple[str, Path]]:
+def _set_attr(f, obj, key, value):
+    f[obj].attrs[key] = value
+
+
+def height_edits() -> dict:
+    """Damaged /height groups: each is refused by both readers."""
+    h = "height"
+    return {
+        "height-kind": lambda f: _set_attr(f, h, "kind", "poly"),
+        "height-degree-nine": lambda f: _set_attr(f, h, "degree", 9),
+        "height-no-degree": lambda f: f[h].attrs.__delitem__("degree"),
+        "height-direction": lambda f: _set_attr(f, h, "direction", "z"),
+        "height-no-chosen-by": lambda f: f[h].attrs.__delitem__("chosen_by"),
+        "height-no-periods": lambda f: f[h].attrs.__delitem__("periods_px"),
+        "height-periods-scalar": lambda f: _set_attr(f, h, "periods_px", 20.0),
+        "height-periods-nan": lambda f: _set_attr(f, h, "periods_px", np.array([1280.0, np.nan, 20.0])),
+        "height-periods-text": lambda f: _set_attr(f, h, "periods_px", "1280, 160, 20"),
+        "height-steps-fraction": lambda f: _set_attr(f, h, "steps", np.array([4.0, 4.5, 8.0])),
+        "height-steps-length": lambda f: _set_attr(f, h, "steps", np.array([4, 4])),
+        "height-width-text": lambda f: _set_attr(f, h, "width", "wide"),
+        "height-no-width": lambda f: f[h].attrs.__delitem__("width"),
+        "height-shift-fraction": lambda f: _set_attr(f, h, "shift_sign", 0.5),
+        "height-gamma-nan": lambda f: _set_attr(f, h, "gamma", np.nan),
+        "height-unwrap-number": lambda f: _set_attr(f, h, "unwrap", 3),
+        "height-noise-negative": lambda f: _set_attr(f, h, "camera_noise_read_var", -1.0),
+        "height-noise-no-gain": lambda f: f[h].attrs.__delitem__("camera_noise_gain"),
+        "height-valid-two": lambda f: _replace(f, "height/valid", np.full(f["height/valid"].shape, 2, np.uint8)),
+        "height-p-nan-valid": lambda f: _replace(f, "height/p", np.full(f["height/p"].shape, np.nan)),
+        "height-p-shape": lambda f: _replace(f, "height/p", np.zeros((2, 3, 3))),
+        "height-p-degree": lambda f: _set_attr(f, h, "degree", 3),
+        "height-q-one": lambda f: _replace(f, "height/q", np.ones(f["height/q"].shape)),
+        "height-q-2d": lambda f: _replace(f, "height/q", f["height/q"][0]),
+        "height-scale-zero": lambda f: _replace(f, "height/u_scale", np.zeros(f["height/u_scale"].shape)),
+        "height-centre-text": lambda f: _replace(f, "height/u_center", np.array([b"a", b"b"])),
+        "height-no-u-min": lambda f: f["height/quality"].__delitem__("u_min"),
+        "height-sigma-shape": lambda f: _replace(f, "height/quality/sigma_z", np.zeros((3, 3), np.float32)),
+        "height-no-n-positions": lambda f: f["height/quality"].__delitem__("n_positions"),
+        "height-dataset": lambda f: (f.__delitem__(h), f.create_dataset(h, data=np.zeros(3))),
+    }
+
+
+def bad_files(good_poly: Path, good_table: Path, good_height: Path) -> list[tuple[str, Path]]:
     files = [("missing file", OUT / "does-not-exist.lut.h5")]
     text = OUT / "bad-text.lut.h5"
     text.write_text("format = 'ptp-lut/1'\n" * 50)
@@ -316,12 +551,14 @@ def bad_files(good_poly: Path, good_table: Path) -> list[tuple[str, Path]]:
     }
     for name, edit in table_edits.items():
         files.append((name, _copy_with(good_table, name, edit)))
+    for name, edit in height_edits().items():
+        files.append((name, _copy_with(good_height, name, edit)))
     return files
 
 
-def check_bad_files(tool: str, asan_tool: str, good_poly: Path, good_table: Path) -> None:
+def check_bad_files(tool: str, asan_tool: str, good_poly: Path, good_table: Path, good_height: Path) -> None:
     n = 0
-    for label, path in bad_files(good_poly, good_table):
+    for label, path in bad_files(good_poly, good_table, good_height):
         for t, env in ((tool, None), (asan_tool, ASAN_ENV)):
             res = subprocess.run([t, "info", str(path)], capture_output=True, text=True, env=env)
             err = res.stderr.strip()
@@ -339,7 +576,7 @@ def check_bad_files(tool: str, asan_tool: str, good_poly: Path, good_table: Path
         except FileFormatError:
             pass
         n += 1
-        print(f"ok  refused: {label:18s} {lines[0] if lines else ''}", flush=True)
+        print(f"ok  refused: {label:22s} {lines[0] if lines else ''}", flush=True)
     print(f"ok  {n} damaged or foreign files refused with a message, clean under AddressSanitizer", flush=True)
     if HDF5_EXIT_NOISE:
         print(f"note: HDF5 itself complained at exit (its free lists, not ptplut.c) after: {', '.join(HDF5_EXIT_NOISE)}")
@@ -354,7 +591,8 @@ def main(argv) -> int:
         shutil.rmtree(OUT)
     OUT.mkdir()
     compare_kinds(tool, asan_tool)
-    check_bad_files(tool, asan_tool, OUT / "poly3.lut.h5", OUT / "pchip.lut.h5")
+    good_height = compare_heights(tool, asan_tool)
+    check_bad_files(tool, asan_tool, OUT / "poly3.lut.h5", OUT / "pchip.lut.h5", good_height)
     # A fixed-length (not variable-length) format string is text too.
     p = OUT / "fixed-string.lut.h5"
     shutil.copyfile(OUT / "linear.lut.h5", p)
