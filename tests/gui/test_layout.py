@@ -32,6 +32,14 @@ def _extent_ok(view: MapView, h: int, w: int, tol: float = 0.01) -> None:
     assert abs(y0 + 0.5) <= tol * h and abs(y1 - (h - 0.5)) <= tol * h, ((y0, y1), h)
 
 
+def _framed(view: MapView, h: int, w: int) -> bool:
+    try:
+        _extent_ok(view, h, w)
+    except AssertionError:
+        return False
+    return True
+
+
 def test_a_map_view_is_framed_to_its_map_in_a_tall_or_a_wide_widget(qtbot):
     view = MapView()
     qtbot.addWidget(view)
@@ -40,11 +48,12 @@ def test_a_map_view_is_framed_to_its_map_in_a_tall_or_a_wide_widget(qtbot):
     qtbot.waitExposed(view)
     view.set_map(np.random.default_rng(0).random((480, 640)))
     qtbot.waitUntil(lambda: view.plot.vb.rect().width() > 16)
-    qtbot.wait(50)
-    _extent_ok(view, 480, 640)
+    # The layout settles in the event loop: wait for it (a fixed 100 ms failed beside a loaded worker,
+    # and the failed test's view then crashed pytest-qt's close in teardown, which hung pytest-xdist).
+    qtbot.waitUntil(lambda: _framed(view, 480, 640), timeout=10000)
     view.resize(1200, 360)  # now wider than the map
-    qtbot.wait(100)
-    _extent_ok(view, 480, 640)
+    qtbot.waitUntil(lambda: _framed(view, 480, 640), timeout=10000)
+    _extent_ok(view, 480, 640)  # the message, if it did not settle
 
 
 def _wizard(qtbot):

@@ -14,6 +14,7 @@ import numpy as np
 
 from ptpcore.fit.perpixel import fit_lut
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks
+from ptpcore.fit.smooth.lsq import weighted_poly_fits
 from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import read_block
@@ -163,8 +164,6 @@ def residual_dof_variance(t: np.ndarray, valid: np.ndarray, sig: np.ndarray, deg
     -------
     (P,) float64, mm^2: ``sum_k (1 - h_kk) sigma_k^2 / (n - D - 1)``; NaN with ``n <= D + 1`` samples
     """
-    from ptpcore.fit.smooth.pixel_fits import weighted_poly_fits
-
     d1 = degree + 1
     _coefs, _var, n, inv = weighted_poly_fits(t, [], valid.astype(np.float64), degree, full=True)
     v = np.vander(np.asarray(t, float), d1, increasing=True)  # (K, D+1)

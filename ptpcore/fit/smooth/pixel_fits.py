@@ -18,6 +18,7 @@ import numpy as np
 
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks, sample_blocks
 from ptpcore.fit.smooth.global_model import corrected_samples, footprint_bias, global_residuals
+from ptpcore.fit.smooth.lsq import weighted_poly_fits
 from ptpcore.fit.smooth.noise import residual_dof_variance
 from ptpcore.fit.smooth.smoothing import (bin_factor, bin_sums, binned_points, binned_sigma, final_bin_side,
                                           local_linear_grid, smooth_on_bins, smoothed_covariance)
@@ -27,56 +28,6 @@ from ptpcore.store import load, park, read_block, row_store
 
 __all__ = ["PixelFits", "SmoothPass", "weighted_poly_fits", "range_moments", "smoothed_coefficients",
            "smoothing_weights", "residual_maps", "STRIP_ROWS"]
-
-
-def weighted_poly_fits(t: np.ndarray, values_list, weights: np.ndarray, degree: int, full: bool = False):
-    """Per-pixel weighted least squares of several value arrays sharing the weights (X and Y).
-
-    The normal equations of every pixel are solved together by Gauss-Jordan
-    elimination vectorised over the pixels (symmetric positive definite: no
-    pivoting); batched LAPACK calls cost far more than the arithmetic.
-
-    Parameters
-    ----------
-    t : (K,) ; values_list : list of (K, P) (anything where ``weights == 0``) ; weights : (K, P)
-
-    Returns
-    -------
-    coefs : list of (D+1, P), NaN where fewer than D+1 samples
-    var : (D+1, P) diagonal of the inverse normal matrix (coefficient variances for inverse-variance weights)
-    n : (P,) samples used
-    cov : (D+1, D+1, P), only with ``full``: the whole inverse normal matrix
-    """
-    d1 = degree + 1
-    p = weights.shape[1]
-    used = weights > 0
-    n = used.sum(axis=0)
-    ok = n >= d1
-    tp = t[:, None] ** np.arange(2 * degree + 1)  # (K, 2D+1)
-    m = np.einsum("kp,km->mp", weights, tp)
-    a = m[np.add.outer(np.arange(d1), np.arange(d1))]  # (D+1, D+1, P)
-    inv = np.zeros((d1, d1, p))
-    inv[np.arange(d1), np.arange(d1)] = 1.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for i in range(d1):
-            piv = a[i, i].copy()
-            a[i] /= piv
-            inv[i] /= piv
-            for r in range(d1):
-                if r != i:
-                    f = a[r, i].copy()
-                    a[r] -= f * a[i]
-                    inv[r] -= f * inv[i]
-    inv[:, :, ~ok] = np.nan
-    coefs = []
-    for values in values_list:
-        wv = weights * np.where(used, values, 0.0)
-        b = np.einsum("kp,kj->jp", wv, tp[:, :d1])
-        coefs.append(np.einsum("ijp,jp->ip", inv, b))
-    var = inv[np.arange(d1), np.arange(d1)]
-    if full:
-        return coefs, var, n, inv
-    return coefs, var, n
 
 
 def range_moments(ta: np.ndarray, tb: np.ndarray, order: int) -> np.ndarray:
