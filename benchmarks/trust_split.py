@@ -48,14 +48,18 @@ def sweeps(out: Path, kind: str, seed: int, model: str, degree: int) -> tuple[Pa
     return folders[0], folders[1]
 
 
-def errors(folder_a: Path, folder_b: Path, model: str, axis: str) -> dict:
-    """Both LUTs' errors (mm) at :data:`FRACTIONS` of each pixel's range, and the first one's sigma parts."""
-    from ptpcore.fit.sigma import sigma_parts
+def load(folder_a: Path, folder_b: Path, model: str) -> tuple:
+    """The two sweeps' LUTs and the rig's truth (read once for both axes)."""
     from ptpcore.io.lutfile import load_lut
     from ptpcore.simulate import load_truth
 
-    a, b = load_lut(folder_a / f"{model}.lut.h5"), load_lut(folder_b / f"{model}.lut.h5")
-    truth, _settings, _seed = load_truth(folder_a)
+    return load_lut(folder_a / f"{model}.lut.h5"), load_lut(folder_b / f"{model}.lut.h5"), load_truth(folder_a)[0]
+
+
+def errors(a, b, truth, axis: str) -> dict:
+    """Both LUTs' errors (mm) at :data:`FRACTIONS` of each pixel's range, and the first one's sigma parts."""
+    from ptpcore.fit.sigma import sigma_parts
+
     valid = a.valid.astype(bool) & b.valid.astype(bool)
     lo = np.where(valid, a.pixel_z_min, 0.0).astype(float)
     hi = np.where(valid, a.pixel_z_max, 0.0).astype(float)
@@ -137,10 +141,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    folder_a, folder_b = sweeps(out, args.kind, args.seed, args.model, args.degree)
+    luts_and_truth = load(*sweeps(out, args.kind, args.seed, args.model, args.degree), args.model)
     result = {}
     for axis in "xy":
-        result[axis] = split(errors(folder_a, folder_b, args.model, axis))
+        result[axis] = split(errors(*luts_and_truth, axis))
         print("\n".join(report(axis, result[axis])), flush=True)
     (out / "split.json").write_text(json.dumps({"kind": args.kind, "seed": args.seed, "model": args.model,
                                                 "degree": args.degree, **result}, indent=1))

@@ -795,9 +795,8 @@ def _add_resume_inspect(sub) -> None:
     a.add_argument("--force", action="store_true", help="replace an existing point cloud")
     a.set_defaults(func=cmd_apply)
 
-def _add_reconstruct(sub) -> None:
-    from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES  # noqa: F401  (the suffixes the help names)
 
+def _add_reconstruct(sub) -> None:
     r = sub.add_parser("reconstruct", help="scan folder + LUT with a height map -> point cloud (PLY, .npy or .h5)",
                        description="Decode a scan (ptp-scan/1) with the scanner's projector coordinate, take each"
                                    " pixel's Z from the LUT's height map and (X, Y) from its XY LUT at that Z;"

@@ -540,7 +540,6 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
         "smooth_global_fit": global_fits(np.arange(samples.z.size) if positions is None else positions)}
     lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint, **smooth)
-    del global_fits
     lut.extra_attrs["chosen_by"] = "held-out positions"
     lut.provenance["model_choice"] = choice.to_json()
     return lut, choice
