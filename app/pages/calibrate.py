@@ -70,7 +70,7 @@ def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
         "n_positions": ("Positions used per pixel", lut.n_positions, "positions", "CET-L4", True),
         "valid": ("Validity: 1 where the pixel has a usable LUT", ScaledMap(lut.valid, np.uint8(1)), "valid",
                   "CET-L15", True),
-        **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (phase noise and stage)",
+        **{f"sigma_{a}": (f"Predicted 1σ uncertainty of {a.upper()} (noise and model error)",
                           um(getattr(lut, f"sigma_{a}")), "µm", "viridis", False)
            for a in "xy" if getattr(lut, f"sigma_{a}", None) is not None},
         **({"sigma_z": ("Height map: predicted 1σ of Z from the projector coordinate u_p", um(lut.height.sigma_z),
