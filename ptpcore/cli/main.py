@@ -7,6 +7,7 @@ code 2 and one line naming the culprit, never a traceback.
 from __future__ import annotations
 
 import argparse
+import gc
 import shutil
 import sys
 import tempfile
@@ -893,6 +894,8 @@ def main(argv=None) -> int:
             return quiet_broken_pipe()
         finally:
             remove_temporaries()
+            if termination_requested():
+                gc.collect()  # objects the interrupted job left in cycles die while their errors stay quiet
 
 
 def _run(args) -> int:

@@ -135,10 +135,14 @@ def _quiet_about_swallowed_interrupts(unraisable) -> None:
     """``sys.unraisablehook``: no traceback for a Terminated that a C callback swallowed.
 
     The request is kept (:func:`raise_if_terminated` honours it); the user sees
-    the one ``ptp: terminated`` line, as for any other SIGTERM. Everything else
-    goes to Python's default hook.
+    the one ``ptp: terminated`` line, as for any other SIGTERM. Once SIGTERM has
+    arrived, a finaliser's error is quiet too: the signal can land inside a
+    library's constructor (llvmlite building a compiler pass while numba
+    compiles), and the half-built object's ``__del__`` then fails when the
+    unwinding drops it, which is the interruption's echo, not a new fault.
+    Everything else goes to Python's default hook.
     """
-    if isinstance(unraisable.exc_value, Terminated):
+    if isinstance(unraisable.exc_value, Terminated) or _termination_requested.is_set():
         return
     sys.__unraisablehook__(unraisable)
 
