@@ -37,6 +37,8 @@ def cmd_simulate(args) -> int:
     check_output_folder(args.out_dir, force=args.force)
     if args.preset.startswith("scanner-"):
         return _simulate_scanner(args)
+    if args.acceptance:
+        raise PtpError("--acceptance goes with a scanner preset (--preset scanner-mild or scanner-rough)")
     rig, settings = preset(args.preset)
     if args.width or args.height or args.positions:
         # Same field of view and lens with another sensor size (see scaled_preset).
@@ -74,7 +76,7 @@ def cmd_simulate(args) -> int:
 
 def _simulate_scanner(args) -> int:
     """``ptp simulate --preset scanner-*``: the LCD sweep, the plate's height sweep and object scans."""
-    from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
+    from ptpcore.simulate.scanner import ACCEPTANCE_FOLDER, scanner_preset, simulate_scanner_dataset
 
     for flag in ("repeat", "drift_um", "gray", "gray_inverse", "references", "heterodyne", "heterodyne_steps",
                  "positions"):
@@ -84,12 +86,13 @@ def _simulate_scanner(args) -> int:
     bar = progress_bar(args)
     try:
         out = simulate_scanner_dataset(args.out_dir, rig, sim, scanner, seed=args.seed, progress=bar,
-                                       image_ext=".tif" if args.tiff else ".png")
+                                       image_ext=".tif" if args.tiff else ".png", acceptance=args.acceptance)
     finally:
         bar.close()
+    accept = f", VDI/VDE 2634-2 acceptance scans in {out / ACCEPTANCE_FOLDER}" if args.acceptance else ""
     print(f"wrote a {rig.camera.width}x{rig.camera.height} scanner dataset ({args.preset} preset, seed {args.seed}):"
           f" {rig.stage.n_positions} LCD positions, {len(rig.height.z_mm)} plate heights, scans in"
-          f" {out / 'scans'}, truth in truth.h5, scanner_truth.h5 and each scan's truth.h5, to {out}")
+          f" {out / 'scans'}{accept}, truth in truth.h5, scanner_truth.h5 and each scan's truth.h5, to {out}")
     return 0
 
 
@@ -450,6 +453,79 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def cmd_acceptance(args) -> int:
+    """``ptp acceptance DATASET SCANS... --lut F.lut.h5 --out REPORT.json``: VDI/VDE 2634-2 on both
+    scanner calibrations (the LUT's height map, the conventional camera-projector pinholes)."""
+    import json
+
+    from ptpcore.atomic import write_text_atomic
+    from ptpcore.evaluate.acceptance_png import acceptance_png
+    from ptpcore.evaluate.vdi2634 import evaluate_acceptance, format_acceptance, parse_mpe
+    from ptpcore.io.lutfile import load_lut
+    from ptpcore.run.acceptance import conventional_calibration, reconstruct_scans
+
+    mpe = parse_mpe(args.mpe)
+    scans = _acceptance_scans(args.scans)
+    png = Path(args.png) if args.png else Path(args.out).with_suffix(".png")
+    inputs = [args.dataset_dir, args.lut, *scans]
+    check_output_file(args.out, "report", force=args.force, inputs=inputs)
+    check_output_file(png, "png", force=args.force, inputs=inputs)
+    if png.resolve() == Path(args.out).resolve():
+        raise OutputError(f"{png}: --png and --out name the same file")
+    lut = load_lut(args.lut)
+    if lut.height is None:
+        raise ValueError(f"{args.lut}: the LUT has no height map (/height); calibrate a dataset with a height"
+                         " sweep ([projector] and [height] in rig.toml)")
+    bar = progress_bar(args)
+    try:
+        conventional = None
+        if args.conventional:
+            conventional = conventional_calibration(args.dataset_dir,
+                                                    progress=lambda f, m: bar(0.3 * f, f"conventional: {m}"))
+        points = reconstruct_scans(scans, lut, conventional=conventional,
+                                   progress=lambda f, m: bar(0.3 + 0.65 * f, m))
+        report = evaluate_acceptance(points, mpe_mm=mpe, seed=args.seed)
+        bar(0.97, "writing the report")
+    finally:
+        bar.close()
+    js = {"dataset": str(args.dataset_dir), "lut": str(args.lut), "scans": [str(s) for s in scans],
+          **report.to_json_dict(),
+          "points": {sp.name: sp.counts for sp in points}}
+    write_text_atomic(args.out, json.dumps(js, indent=1, allow_nan=False) + "\n")
+    acceptance_png(report, png, title=f"VDI/VDE 2634-2 acceptance: {Path(args.dataset_dir).name},"
+                                      f" {len(scans)} poses")
+    print(format_acceptance(report))
+    print(f"report written to {args.out}, plots to {png}")
+    return 0
+
+
+def _acceptance_scans(args_scans) -> list[Path]:
+    """SCANS: scan folders (``scan.toml``), or folders of them (every sub-folder with a ``scan.toml``,
+    sorted by name), in the order given."""
+    out = []
+    for text in args_scans:
+        folder = Path(text)
+        if not folder.is_dir():
+            raise ValueError(f"{folder}: not a folder (a ptp-scan/1 folder, or a folder of them)")
+        if (folder / "scan.toml").exists():
+            out.append(folder)
+            continue
+        inner = sorted(p for p in folder.iterdir() if (p / "scan.toml").exists())
+        if not inner:
+            raise ValueError(f"{folder}: no scan.toml in it or in its sub-folders")
+        out += inner
+    from ptpcore.evaluate.vdi2634 import ARTEFACT_FILE, scan_artefact
+    from ptpcore.simulate.scanner import SCAN_TRUTH_FILE
+
+    for folder in out:  # which artefact each scan shows, before any decoding
+        if (folder / ARTEFACT_FILE).exists():
+            scan_artefact(folder)
+        elif not (folder / SCAN_TRUTH_FILE).exists():
+            raise ValueError(f"{folder}: no {ARTEFACT_FILE} saying which artefact it shows (kind, diameter_mm,"
+                             " distance_mm) and no simulator truth")
+    return out
+
+
 def _height_argument(text: str, shape) -> tuple[object, str]:
     """``--z``: a height map file, or one height (mm) for every pixel."""
     from ptpcore.io.pointcloud import read_height_map
@@ -660,6 +736,7 @@ def build_parser() -> OneLineParser:
     _add_resume_inspect(sub)
     _add_compare(sub)
     _add_reconstruct(sub)
+    _add_acceptance(sub)
     _add_diff_parser(sub)
     _add_demo(sub)
     from ptpcore.cli.capture import add_parser as add_capture_parser
@@ -700,6 +777,9 @@ def _add_simulate(sub) -> None:
                         " px, any order, whose beat covers the LCD plus the carrier, e.g. 128,136.5,151.7")
     s.add_argument("--heterodyne-steps", type=positive_int, metavar="N",
                    help="with --heterodyne: phase steps per period (default: the preset's finest level's)")
+    s.add_argument("--acceptance", action="store_true",
+                   help="with a scanner preset: also the VDI/VDE 2634-2 acceptance scans (10 sphere positions, 7 ball"
+                        " bar poses, 6 plane poses, sized against the measuring volume) in OUT_DIR/acceptance/")
     s.add_argument("--force", action="store_true", help="write into a folder that already holds a dataset")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
@@ -810,6 +890,34 @@ def _add_reconstruct(sub) -> None:
     r.add_argument("--force", action="store_true", help="replace an existing point cloud")
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_reconstruct)
+
+
+def _add_acceptance(sub) -> None:
+    a = sub.add_parser("acceptance", help="VDI/VDE 2634-2 acceptance of the scanner, PTP and conventional calibrations",
+                       description="Reconstruct scans of a sphere, a ball bar and a plane with both scanner"
+                                   " calibrations (the LUT's per-pixel height map and XY LUT; camera and projector as"
+                                   " two pinholes calibrated from the same dataset) on the same decoded phases, and"
+                                   " report the VDI/VDE 2634-2 figures PF, PS (sphere), SD (ball bar) and F (plane)"
+                                   " per pose, their largest magnitudes and the verdicts against --mpe; up to 0.3 %"
+                                   " of a fit's points are left out (the largest residuals). A scan names its"
+                                   " artefact in artefact.toml (kind, diameter_mm, distance_mm) or, simulated, by its"
+                                   " truth.h5, which adds the errors against the exact surface and the 3D distance"
+                                   " errors.")
+    a.add_argument("dataset_dir", metavar="DATASET", type=existing_dir,
+                   help="the dataset the LUT was calibrated from (its height sweep calibrates the conventional model)")
+    a.add_argument("scans", metavar="SCANS", nargs="+",
+                   help="ptp-scan/1 folders, or folders of them (e.g. DATASET/acceptance)")
+    a.add_argument("--lut", required=True, metavar="F.lut.h5", type=existing_file)
+    a.add_argument("--out", required=True, metavar="REPORT.json")
+    a.add_argument("--png", metavar="PAGE.png", help="the page of plots (default: REPORT.png beside the report)")
+    a.add_argument("--mpe", metavar="PF=..,PS=..,SD=..,F=..",
+                   help="maximum permissible errors in mm (or with the unit um), any of PF, PS, SD, F")
+    a.add_argument("--no-conventional", dest="conventional", action="store_false",
+                   help="PTP only (no conventional camera-projector calibration)")
+    a.add_argument("--seed", type=seed, default=0, help="seed of the 3D distance-error pairs (default 0)")
+    a.add_argument("--force", action="store_true", help="replace an existing report and page")
+    a.add_argument("-q", "--quiet", action="store_true")
+    a.set_defaults(func=cmd_acceptance)
 
 
 def _add_compare(sub) -> None:

@@ -22,14 +22,15 @@ from ptpcore.errors import OutputError
 __all__ = ["KINDS", "check_output_file", "check_output_folder", "file_kind", "dataset_marker"]
 
 KINDS = {"lut": "ptp-lut/1", "session": "ptp-session/1", "report": "comparison report (JSON)",
-         "points": "ptp-points/1"}
+         "points": "ptp-points/1", "png": "PNG image"}
 """The kinds of file a command writes, and the format each existing file must have to be replaced."""
 
 _DATASET_MARKERS = ("rig.toml", "capture-state.json", "truth.h5")
 
 
 def file_kind(path: Path) -> str | None:
-    """The kind of an existing file: ``"lut"``, ``"session"``, ``"report"``, ``"points"`` or None (another)."""
+    """The kind of an existing file: ``"lut"``, ``"session"``, ``"report"``, ``"points"``, ``"png"`` or None
+    (another)."""
     try:
         with open(path, "rb") as fh:
             head = fh.read(8)
@@ -41,6 +42,8 @@ def file_kind(path: Path) -> str | None:
         return "points"  # a point cloud as ptp apply writes it (PLY, .npy)
     if head.lstrip()[:1] == b"{" and path.suffix.lower() == ".json":
         return "report"
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"  # a page of plots (ptp acceptance)
     return None
 
 
@@ -97,7 +100,7 @@ def check_output_file(path, kind: str, *, force: bool = False, inputs=()) -> Pat
     ----------
     path : path
         The file the command will write.
-    kind : {"lut", "session", "report", "points"}
+    kind : {"lut", "session", "report", "points", "png"}
         What it writes there.
     force : bool
         Replace an existing file of the same kind.
@@ -116,7 +119,7 @@ def check_output_file(path, kind: str, *, force: bool = False, inputs=()) -> Pat
         of an input, or an existing file that must not be replaced.
     """
     path = Path(path)
-    label = {"report": "report", "points": "point cloud"}.get(kind, KINDS[kind])
+    label = {"report": "report", "points": "point cloud", "png": "page of plots (PNG)"}.get(kind, KINDS[kind])
     if path.is_dir():
         raise OutputError(f"{path}: is a folder; give a file name for the {label}")
     real = path.resolve()

@@ -38,7 +38,8 @@ from ptpcore.atomic import write_text_atomic
 
 __all__ = ["ProjectorSettings", "ScannerSettings", "ScanObject", "ScannerRig", "SCANNER_PRESETS",
            "scanner_preset", "simulate_scanner_dataset", "simulate_scan", "default_objects", "load_scanner",
-           "load_scan_truth", "SCANNER_TRUTH_FILE", "SCAN_TRUTH_FILE", "HeightSweepSource", "ScanSource"]
+           "load_scan_truth", "SCANNER_TRUTH_FILE", "SCAN_TRUTH_FILE", "HeightSweepSource", "ScanSource",
+           "ACCEPTANCE_FOLDER", "measuring_volume", "acceptance_objects", "simulate_acceptance_scans"]
 
 SCANNER_TRUTH_FILE = "scanner_truth.h5"
 SCAN_TRUTH_FILE = "truth.h5"
@@ -577,6 +578,127 @@ def default_objects(rig: Rig) -> dict:
     }
 
 
+ACCEPTANCE_FOLDER = "acceptance"
+"""Where :func:`simulate_scanner_dataset` puts the acceptance scans (``DATASET/acceptance/NAME/``)."""
+
+
+def measuring_volume(sr: ScannerRig, margin: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """The scanner's measuring volume: a box (world mm) every point of which a camera pixel sees and the
+    projector lights, between the height sweep's first and last heights.
+
+    X and Y: the camera's field at both end heights intersected with the projector's, shrunk by
+    ``margin`` of its width on each side (so an artefact at the box's edge is whole in the image).
+
+    Returns
+    -------
+    lo, hi : (3,) float64, mm
+    """
+    z0, z1 = min(sr.rig.height.z_mm), max(sr.rig.height.z_mm)
+    o, d = sr.pixel_rays()
+    pw, ph = sr.rig.projector.width, sr.rig.projector.height
+    lo, hi = np.full(2, -np.inf), np.full(2, np.inf)
+    ends = []
+    for z in (z0, z1):
+        p = o + ((z - o[..., 2]) / d[..., 2])[..., None] * d
+        # the box inside the camera's field: each image edge's innermost world coordinate
+        for axis, (first, last) in enumerate(((p[:, 0, 0], p[:, -1, 0]), (p[0, :, 1], p[-1, :, 1]))):
+            if first.mean() > last.mean():
+                first, last = last, first
+            lo[axis], hi[axis] = max(lo[axis], first.max()), min(hi[axis], last.min())
+        up, vp = sr.project(p)
+        ends.append((p, (up >= 0) & (up <= pw - 1) & (vp >= 0) & (vp <= ph - 1)))
+    for _ in range(50):  # shrink about the middle until the projector lights all of it
+        inside_dark = False
+        for p, lit in ends:
+            inside = np.all((p[..., :2] >= lo) & (p[..., :2] <= hi), axis=-1)
+            inside_dark |= bool(np.any(inside & ~lit))
+        if not inside_dark:
+            break
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        lo, hi = mid - 0.97 * half, mid + 0.97 * half
+    span = hi - lo
+    return np.array([*(lo + margin * span), z0]), np.array([*(hi - margin * span), z1])
+
+
+def acceptance_objects(sr: ScannerRig) -> dict:
+    """The VDI/VDE 2634-2 acceptance set, sized against the measuring volume's diagonal ``L0``
+    (:func:`measuring_volume`).
+
+    - ``sphere-01`` .. ``sphere-10``: a sphere of diameter 0.13 ``L0`` (the guideline: 0.1 to 0.2) at
+      the eight corners of a box inset from the volume (centres low and high in Z) and twice in the
+      middle (low and high);
+    - ``ballbar-01`` .. ``ballbar-07``: two balls of diameter 0.1 ``L0`` whose centres are 0.5 ``L0``
+      apart (the guideline: at least 0.3), along the volume's four space diagonals, its X and Y axes
+      and one diagonal of its XY face, all through the volume's centre;
+    - ``plane-01`` .. ``plane-06``: a square plane of side 0.5 ``L0`` tilted 15 degrees about X, Y
+      and both XY diagonals, both ways about each of X and Y, at two heights.
+
+    Every visible point lies within the volume's Z range (its depth allows the tilts and heights
+    chosen here); the plane's square may overhang the camera's field in X, Y (the points it shows
+    are what a scanner measures).
+
+    Returns
+    -------
+    dict of name -> ScanObject
+    """
+    lo, hi = measuring_volume(sr)
+    span = hi - lo
+    l0 = float(np.linalg.norm(span))
+    c = 0.5 * (lo + hi)
+    out = {}
+    r = round(0.065 * l0, 2)
+    z_low, z_high = lo[2] + r + 0.1 * span[2], hi[2] - 0.1 * span[2]
+    corners = [(x, y) for x in (lo[0] + r + 0.12 * span[0], hi[0] - r - 0.12 * span[0])
+               for y in (lo[1] + r + 0.12 * span[1], hi[1] - r - 0.12 * span[1])]
+    centres = [(x, y, z) for i, (x, y) in enumerate(corners) for z in ((z_low, z_high) if i % 2 == 0
+                                                                          else (z_high, z_low))]
+    centres += [(c[0], c[1], z_low), (c[0], c[1], z_high)]
+    for i, cen in enumerate(centres):
+        out[f"sphere-{i + 1:02d}"] = ScanObject("sphere", (tuple(float(v) for v in cen),), r)
+    rb, half = round(0.05 * l0, 2), 0.25 * l0
+    zc = c[2] + 0.5 * rb  # the balls' visible caps reach below their centres: keep them in the volume
+    dirs = [np.array([sx * span[0], sy * span[1], span[2]]) for sx, sy in ((1, 1), (-1, 1), (1, -1), (-1, -1))]
+    dirs += [np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([span[0], -span[1], 0.0])]
+    for i, d in enumerate(dirs):
+        d = d / np.linalg.norm(d)
+        a, b = np.array([c[0], c[1], zc]) - half * d, np.array([c[0], c[1], zc]) + half * d
+        out[f"ballbar-{i + 1:02d}"] = ScanObject("ballbar", (tuple(map(float, a)), tuple(map(float, b))), rb)
+    tilt = np.radians(15.0)
+    axes = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1)]
+    for i, (ax, ay) in enumerate(axes):
+        g = np.array([ax, ay], float) / np.hypot(ax, ay)  # the direction the plane rises toward
+        normal = (float(np.sin(tilt) * g[0]), float(np.sin(tilt) * g[1]), float(-np.cos(tilt)))
+        z = lo[2] + span[2] * (0.4 if i % 2 == 0 else 0.6)
+        out[f"plane-{i + 1:02d}"] = ScanObject("plane", point=(float(c[0]), float(c[1]), float(z)),
+                                               normal=normal, size=round(0.5 * l0, 1))
+    return out
+
+
+def simulate_acceptance_scans(out_dir, sr: ScannerRig, objects: dict | None = None, *,
+                              progress: Callable[[float, str], None] | None = None,
+                              image_ext: str = ".png", first_id: int = 100) -> list[Path]:
+    """Render the acceptance set (default :func:`acceptance_objects`), one ``ptp-scan/1`` folder with
+    its ``truth.h5`` per pose, in ``out_dir/NAME/`` (:func:`simulate_scan`).
+
+    ``first_id``: the scans' noise streams are ``first_id``, ``first_id + 1``, ... (the default
+    scans of :func:`simulate_scanner_dataset` use 0, 1, 2).
+
+    Returns
+    -------
+    list of Path, the scan folders in order.
+    """
+    objects = acceptance_objects(sr) if objects is None else objects
+    out = Path(out_dir)
+    paths = []
+    for i, (name, obj) in enumerate(objects.items()):
+        if progress:
+            progress(i / max(len(objects), 1), f"rendering acceptance scan {name} ({i + 1} of {len(objects)})")
+        paths.append(simulate_scan(out / name, sr, obj, first_id + i, image_ext))
+    if progress:
+        progress(1.0, "acceptance scans rendered")
+    return paths
+
+
 def _write_scanner_truth(path: Path, sr: ScannerRig) -> None:
     def fill(f) -> None:
         f.attrs["format"] = "ptp-scanner-truth/1"
@@ -623,13 +745,15 @@ def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, im
 
 def simulate_scanner_dataset(out_dir, rig: Rig, sim: SimSettings, scanner: ScannerSettings, seed: int = 0,
                              objects: dict | None = None, progress: Callable[[float, str], None] | None = None,
-                             image_ext: str = ".png") -> Path:
+                             image_ext: str = ".png", acceptance: bool = False) -> Path:
     """A ``ptp-dataset/2`` with the LCD sweep, the plate's height sweep and object scans, with truth.
 
     Writes ``rig.toml`` (``[projector]``, ``[height]``), the LCD sweep's frames and ``truth.h5``
     (:func:`ptpcore.simulate.simulate_dataset`), the height sweep's frames, ``scanner_truth.h5``
     (the projector, the plate's true heights, the true ``u_p`` each pixel sees on it), and ``scans/NAME/``, one
     ``ptp-scan/1`` folder per object (default :func:`default_objects`), each with its ``truth.h5``.
+    ``acceptance``: also the VDI/VDE 2634-2 acceptance set in ``acceptance/NAME/``
+    (:func:`simulate_acceptance_scans`).
 
     Returns
     -------
@@ -658,10 +782,14 @@ def simulate_scanner_dataset(out_dir, rig: Rig, sim: SimSettings, scanner: Scann
             _write_image(out / h_rig.image_name(k, d, t, n, big_n), img, image_ext)
     _write_scanner_truth(out / SCANNER_TRUTH_FILE, sr)
     objects = default_objects(rig) if objects is None else objects
+    share = 0.05 if acceptance else 0.1
     for i, (name, obj) in enumerate(objects.items()):
         if progress:
-            progress(0.9 + 0.1 * i / max(len(objects), 1), f"rendering scan {name}")
+            progress(0.9 + share * i / max(len(objects), 1), f"rendering scan {name}")
         simulate_scan(out / "scans" / name, sr, obj, i, image_ext)
+    if acceptance:
+        simulate_acceptance_scans(out / ACCEPTANCE_FOLDER, sr, image_ext=image_ext,
+                                  progress=(lambda f, m: progress(0.95 + 0.05 * f, m)) if progress else None)
     save_rig(rig, out / "rig.toml")
     if progress:
         progress(1.0, "simulation done")
