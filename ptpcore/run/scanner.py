@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Callable
@@ -47,6 +47,9 @@ class ProjectorDecode:
     noise_source : str
     noise : NoiseModel or None
         The camera noise model ``sigma_u`` came from (None: the neighbourhood's spread).
+    v, sigma_v : (K, H, W) float32, projector px, or None
+        ``v_p`` and its predicted 1-sigma when direction ``y`` was decoded (``directions=("x", "y")``),
+        valid where ``u`` is (a pixel is valid where both directions are); None otherwise.
     """
 
     z_mm: np.ndarray
@@ -55,13 +58,19 @@ class ProjectorDecode:
     reasons: np.ndarray
     noise_source: str
     noise: NoiseModel | None = None
+    v: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
 
 
-def _position_arrays(k: int, shape, spill: bool) -> dict:
+def _position_arrays(k: int, shape, spill: bool, with_v: bool = False) -> dict:
     """The decode's ``(K, H, W)`` arrays: in memory, or as maps of one temporary file
-    (:class:`ptpcore.store.SpillStore`: reserved up front, gone with the arrays) on a big sensor."""
+    (:class:`ptpcore.store.SpillStore`: reserved up front, gone with the arrays) on a big sensor.
+    ``with_v``: also ``v_p``'s (direction ``y``)."""
     fields = {"u": np.float32, "sigma_u": np.float32, "bg": np.float32, "mod": np.float32, "reasons": np.uint8}
     fill = {"u": np.nan, "sigma_u": np.nan, "bg": 0, "mod": 0, "reasons": 0}
+    if with_v:
+        fields.update({"v": np.float32, "sigma_v": np.float32, "bg_v": np.float32, "mod_v": np.float32})
+        fill.update({"v": np.nan, "sigma_v": np.nan, "bg_v": 0, "mod_v": 0})
     if not spill:
         return {name: np.full((k, *shape), fill[name], dt) for name, dt in fields.items()}
     from ptpcore.store import SpillStore
@@ -73,74 +82,142 @@ def _position_arrays(k: int, shape, spill: bool) -> dict:
 
 
 def decode_projector(source, *, options: DecodeOptions = DecodeOptions(), progress: Progress | None = None,
-                     noise: NoiseModel | None = None, spill: bool | None = None) -> ProjectorDecode:
-    """Decode ``u_p`` at every position of a projector rig's frames (:meth:`ptpcore.rig.Rig.height_rig`).
+                     noise: NoiseModel | None = None, spill: bool | None = None,
+                     directions: tuple[str, ...] = ("x",)) -> ProjectorDecode:
+    """Decode ``u_p`` (and ``v_p``) at every position of a projector rig's frames (:meth:`ptpcore.rig.Rig.height_rig`).
 
-    The noise model is measured over all positions (the harmonic-free N-step residuals, as the LCD
-    sweep's), unless one is given (a scan: the height sweep's, measured on every pixel of the
-    plate, where an object's few hundred pixels bias a fit weighted by their own scatter low);
-    ``sigma_u`` follows from it, the finest level's background and modulation. ``spill``: keep the
-    ``(K, H, W)`` arrays in a temporary file (default: when they would pass
+    The noise model is measured over all positions (the harmonic-free N-step residuals of direction
+    ``x``, as the LCD sweep's), unless one is given (a scan: the height sweep's, measured on every
+    pixel of the plate, where an object's few hundred pixels bias a fit weighted by their own scatter
+    low); ``sigma_u`` (``sigma_v``) follows from it, the finest level's background and modulation.
+    ``spill``: keep the ``(K, H, W)`` arrays in a temporary file (default: when they would pass
     :data:`ptpcore.run.pipeline.SPILL_BYTES`, as the LCD sweep's samples do).
+
+    Parameters
+    ----------
+    directions : ("x",) or ("x", "y")
+        What to decode: ``x`` alone (the height map's ``u_p``; the frames of other directions are not
+        read, so a pixel's validity is its ``x`` decode's), or ``x`` and ``y`` (``u_p`` and ``v_p``, valid
+        where both are: the conventional calibration, :mod:`ptpcore.run.structured_light`).
 
     Raises
     ------
+    ConfigError
+        ``directions`` asks for a direction the source's ``[projector]`` does not show.
     DatasetError
         No pixel valid at any position.
     """
     from ptpcore.run.pipeline import SPILL_BYTES, decode_positions
 
+    source = _showing(source, directions)
     rig: Rig = source.rig
     k_total = rig.stage.n_positions
     h, w = rig.camera.shape
+    with_v = "y" in directions
     if spill is None:
-        spill = k_total * h * w * 17 > SPILL_BYTES
-    arrays = _position_arrays(k_total, (h, w), spill)
-    u, reasons, bg, mod = arrays["u"], arrays["reasons"], arrays["bg"], arrays["mod"]
+        spill = k_total * h * w * (33 if with_v else 17) > SPILL_BYTES
+    arrays = _position_arrays(k_total, (h, w), spill, with_v)
     accumulated = NoiseAccumulator(rig.camera.max_level)
     fallback = []
     with contextlib.closing(decode_positions(source, range(k_total), options)) as decoded:
         for k in range(k_total):
             if progress:
                 progress(k / k_total, f"decoding projector position {k} ({k + 1} of {k_total})")
-            pos = next(decoded)
-            valid = pos.reasons == 0
-            reasons[k] = pos.reasons
-            u[k] = np.where(valid, pos.u, np.nan)
-            fine = pos.directions["x"].wrapped[-1]
-            bg[k], mod[k] = fine.background, fine.modulation
-            part = pos.info.get("noise_samples", {}).get("x")
-            if part is not None:
-                sub = valid[part["rows"]][:, part["cols"]].ravel()
-                accumulated.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
-            used = pos.info.get("sigma", {}).get("x")
-            if used is not None:
-                fallback.append(float(np.nanmedian(used)) if np.ndim(used) else float(used))
+            _keep_position(next(decoded), k, arrays, accumulated, fallback)
+    u = arrays["u"]
     if not np.any(np.isfinite(u)):
         raise DatasetError("no pixel decodes the projector's coordinate at any position")
     model = noise if noise is not None else accumulated.model()
-    sigma_u = arrays["sigma_u"]
-    source_name = _sigma_u(rig, model, bg, mod, fallback, sigma_u)
+    source_name = _sigma_u(rig, model, arrays["bg"], arrays["mod"], fallback, arrays["sigma_u"], "x")
+    if with_v:
+        _sigma_u(rig, model, arrays["bg_v"], arrays["mod_v"], fallback, arrays["sigma_v"], "y")
     for k in range(k_total):
-        sigma_u[k][~np.isfinite(u[k])] = np.nan
-    del arrays, bg, mod
+        arrays["sigma_u"][k][~np.isfinite(u[k])] = np.nan
+        if with_v:
+            arrays["sigma_v"][k][~np.isfinite(u[k])] = np.nan
     if progress:
         progress(1.0, "projector decoded")
-    return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, sigma_u, reasons, source_name, model)
+    return ProjectorDecode(np.asarray(rig.stage.z_mm, float), u, arrays["sigma_u"], arrays["reasons"], source_name,
+                           model, arrays.get("v"), arrays.get("sigma_v"))
+
+
+def _keep_position(pos, k: int, arrays: dict, accumulated: NoiseAccumulator, fallback: list) -> None:
+    """One decoded position into the ``(K, H, W)`` arrays (``k``), its noise samples into ``accumulated``
+    (direction ``x``) and its neighbourhood sigma into ``fallback``."""
+    valid = pos.reasons == 0
+    arrays["reasons"][k] = pos.reasons
+    arrays["u"][k] = np.where(valid, pos.u, np.nan)
+    fine = pos.directions["x"].wrapped[-1]
+    arrays["bg"][k], arrays["mod"][k] = fine.background, fine.modulation
+    if "v" in arrays:
+        arrays["v"][k] = np.where(valid, pos.v, np.nan)
+        fine = pos.directions["y"].wrapped[-1]
+        arrays["bg_v"][k], arrays["mod_v"][k] = fine.background, fine.modulation
+    part = pos.info.get("noise_samples", {}).get("x")
+    if part is not None:
+        sub = valid[part["rows"]][:, part["cols"]].ravel()
+        accumulated.add(part["background"], part["var"], sub & np.isfinite(part["var"]), part["dof"])
+    used = pos.info.get("sigma", {}).get("x")
+    if used is not None:
+        fallback.append(float(np.nanmedian(used)) if np.ndim(used) else float(used))
+
+
+class _Showing:
+    """A frame source passing on only the frames of its rig's directions (any source without
+    a ``showing`` method of its own)."""
+
+    def __init__(self, source, rig: Rig):
+        self.source, self.rig = source, rig
+
+    def frames(self, k: int):
+        shown = self.rig.fringes.directions
+        for key, img in self.source.frames(k):
+            if key[0] in shown:
+                yield key, img
+
+
+def _showing(source, directions: tuple[str, ...]):
+    """``source`` read for ``directions`` only: a dataset folder reads no other frame; a source with a
+    ``showing(directions)`` method (the simulator's) renders no other.
+
+    Raises
+    ------
+    ConfigError
+        A direction the source's design does not show, or ``directions`` without ``x``.
+    """
+    from ptpcore.io.dataset import DatasetSource
+
+    directions = tuple(directions)
+    shown = tuple(source.rig.fringes.directions)
+    if "x" not in directions or not set(directions) <= {"x", "y"}:
+        raise ConfigError(f"decode_projector: directions must be ('x',) or ('x', 'y'), got {directions!r}")
+    missing = [d for d in directions if d not in shown]
+    if missing:
+        raise ConfigError(f"the projector's design shows directions {list(shown)}, not {missing[0]!r}:"
+                          f" key 'projector.directions' needs {list(directions)}")
+    if shown == directions:
+        return source
+    rig = replace(source.rig, fringes=replace(source.rig.fringes, directions=directions))
+    if type(source) is DatasetSource:
+        return DatasetSource(source.folder, source.workers, rig=rig)
+    if hasattr(source, "showing"):
+        return source.showing(directions)
+    return _Showing(source, rig)
 
 
 def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray, fallback: list,
-             sigma_u: np.ndarray) -> str:
-    """Predicted 1-sigma of ``u_p`` into ``sigma_u`` (K, H, W) from the noise model and the finest
-    level's background and modulation (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD
-    sweep's), or the neighbourhood's spread without a model; returns where it came from."""
+             sigma_u: np.ndarray, direction: str = "x") -> str:
+    """Predicted 1-sigma of ``u_p`` (``v_p`` for ``direction`` ``y``) into ``sigma_u`` (K, H, W) from the
+    noise model and the direction's finest level's background and modulation
+    (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD sweep's), or the neighbourhood's spread
+    without a model; returns where it came from."""
     from ptpcore.run.pipeline import _coordinate_sigma
 
     f = rig.fringes
     if model is not None:
         for k in range(bg.shape[0]):
             rows = _coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
-                                     f.steps_of("x")[-1], f.amplitude, f.periods("x")[-1])
+                                     f.steps_of(direction)[-1], f.amplitude, f.periods(direction)[-1])
             sigma_u[k] = rows(0, bg.shape[1])
         return model.source
     if fallback:

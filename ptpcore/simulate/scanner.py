@@ -218,16 +218,20 @@ class ScanObject:
 
 
 def _scanner_design(camera_width: int) -> Projector:
-    """The projector's pattern design: 1280 x 800 px, periods 1280 (absolute), 160, 20 px, steps 4, 4, 8.
+    """The projector's pattern design: 1280 x 800 px, periods 1280 (absolute), 160, 20 px, steps 4, 4, 8,
+    directions ``x`` and ``y``.
 
-    A camera narrower than 640 px sees each projector pixel on fewer camera pixels: the finest
-    period grows as the camera shrinks (at 160 px: 80 px; ratios kept geometric), so each period
-    spans as many camera pixels.
+    The height sweep shows both directions: ``x`` gives the heights, ``y`` adds ``v_p``, which the
+    conventional (pinhole) calibration of the projector needs (FORMATS.md ``[projector]``); the
+    coarsest period, 1280 px, covers ``v_p``'s 800 px too. Scans show ``x`` alone
+    (:attr:`ScannerRig.scan_projector`). A camera narrower than 640 px sees each projector pixel on
+    fewer camera pixels: the finest period grows as the camera shrinks (at 160 px: 80 px; ratios kept
+    geometric), so each period spans as many camera pixels.
     """
     scale = camera_width / 640.0
     fine = round(20.0 / min(scale, 1.0), 1)  # one decimal: readable file names
     mid = float(np.sqrt(1280.0 * fine))
-    return Projector(1280, 800, FringeDesign(("x",), (1280.0, round(mid, 1), fine), (4, 4, 8), 127.5, 100.0))
+    return Projector(1280, 800, FringeDesign(("x", "y"), (1280.0, round(mid, 1), fine), (4, 4, 8), 127.5, 100.0))
 
 
 def _presets() -> dict:
@@ -331,6 +335,13 @@ class ScannerRig:
         self._sub_r = (np.arange(h + 2 * m)[:, None] + offs[None, :]).ravel() - m
         self._sub_c = (np.arange(w + 2 * m)[:, None] + offs[None, :]).ravel() - m
         self._geo_cache: tuple | None = None
+
+    @property
+    def scan_projector(self) -> Projector:
+        """The projector's design as a scan shows it: direction ``x`` alone (what heights need,
+        FORMATS.md ``ptp-scan/1``; half the frames of the height sweep's ``x`` and ``y``)."""
+        p = self.rig.projector
+        return replace(p, fringes=replace(p.fringes, directions=("x",)))
 
     # ---- projector geometry -----------------------------------------------------------------
     def field(self, ub: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -489,12 +500,15 @@ class ScannerRig:
         irr = (lum * geo["gain"]).reshape(h + 2 * m, ss, w + 2 * m, ss).mean(axis=(1, 3))
         return self.camera._expose(irr, blur, noise_key)
 
-    def height_frames(self, k: int):
-        """Yield ``((dir, level, period, step, N), image)`` of the plate at sweep height ``k``."""
+    def height_frames(self, k: int, directions: tuple[str, ...] | None = None):
+        """Yield ``((dir, level, period, step, N), image)`` of the plate at sweep height ``k``
+        (only ``directions``' frames when given; default every direction of ``[projector]``)."""
         geo = self._geometry(("plate", k), self._plate_surface(k))
         blur = self.blur_sigma(self.plate_z_true[k])
         f = self.rig.projector.fringes
         for d, j, t, n, big_n in f.frames():
+            if directions is not None and d not in directions:
+                continue
             yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
                                                    (20, k, "xy".index(d), _period_key(t), n))
 
@@ -503,7 +517,7 @@ class ScannerRig:
         geo = self._geometry(("object", obj, scan_id), self._object_surface(obj))
         z_mid = float(np.mean([c[2] for c in obj.centres])) if obj.centres else float(obj.point[2])
         blur = self.blur_sigma(z_mid)
-        for d, j, t, n, big_n in self.rig.projector.fringes.frames():
+        for d, j, t, n, big_n in self.scan_projector.fringes.frames():
             yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
                                                    (21, scan_id, "xy".index(d), _period_key(t), n))
 
@@ -524,14 +538,24 @@ class ScannerRig:
 
 
 class HeightSweepSource:
-    """The height sweep rendered on demand (a frame source for :func:`ptpcore.run.scanner.decode_projector`)."""
+    """The height sweep rendered on demand (a frame source for :func:`ptpcore.run.scanner.decode_projector`).
 
-    def __init__(self, sr: ScannerRig):
+    ``directions``: render only these (default every direction of ``[projector]``); see :meth:`showing`.
+    """
+
+    def __init__(self, sr: ScannerRig, directions: tuple[str, ...] | None = None):
         self.scanner_rig = sr
-        self.rig = sr.rig.height_rig()
+        rig = sr.rig.height_rig()
+        if directions is not None:
+            rig = replace(rig, fringes=replace(rig.fringes, directions=tuple(directions)))
+        self.rig = rig
+
+    def showing(self, directions: tuple[str, ...]) -> "HeightSweepSource":
+        """The same sweep rendering only ``directions`` (a decoder asking for fewer skips the rest)."""
+        return HeightSweepSource(self.scanner_rig, directions)
 
     def frames(self, k: int):
-        return self.scanner_rig.height_frames(k)
+        return self.scanner_rig.height_frames(k, self.rig.fringes.directions)
 
 
 class ScanSource:
@@ -539,7 +563,7 @@ class ScanSource:
 
     def __init__(self, sr: ScannerRig, obj: ScanObject, scan_id: int = 0):
         self.scanner_rig, self.obj, self.scan_id = sr, obj, scan_id
-        self.rig = projector_rig(sr.rig.camera, sr.rig.projector, (0.0,), "{dir}_T{period}_n{step:02d}.png")
+        self.rig = projector_rig(sr.rig.camera, sr.scan_projector, (0.0,), "{dir}_T{period}_n{step:02d}.png")
 
     def frames(self, k: int):
         return self.scanner_rig.scan_frames(self.obj, self.scan_id)
@@ -725,7 +749,7 @@ def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, im
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     template = "{dir}_T{period}_n{step:02d}" + image_ext
-    spec = ScanSpec(sr.rig.camera, sr.rig.projector, template)
+    spec = ScanSpec(sr.rig.camera, sr.scan_projector, template)
     for (d, _j, t, n, big_n), img in sr.scan_frames(obj, scan_id):
         _write_image(out / template.format(dir=d, period=format_period(t), step=n), img, image_ext)
     truth = sr.scan_truth(obj)

@@ -37,7 +37,9 @@ def test_rig_toml_round_trips_projector_and_height():
     (lambda t: t.replace("[projector]\n", "[projector]\ncarrier_px_per_mm = [1.0, 0.0]\n"),
      "projector.carrier_px_per_mm"),
     (lambda t: t.replace("[projector]\n", '[projector]\nunwrap = "gray"\ngray_bits = 4\n'), "projector.unwrap"),
-    (lambda t: t.replace('directions = [\n    "x",\n]', 'directions = [\n    "y",\n]'), "projector.directions"),
+    # the preset's projector shows x and y: a [projector] showing y alone is refused
+    (lambda t: t.replace('height = 800\ndirections = [\n    "x",\n    "y",\n]', 'height = 800\ndirections = [\n    "y",\n]'),
+     "projector.directions"),
     (lambda t: t.replace("width = 1280", "width = 4000"), "projector.periods_px"),
 ])
 def test_bad_scanner_tables_name_their_key(edit, key):
@@ -109,7 +111,11 @@ def test_cli_simulate_writes_a_scanner_dataset(tmp_path):
     assert (out / "scanner_truth.h5").is_file()
     for name in ("sphere", "ballbar", "plane"):
         spec = load_scan(out / "scans" / name)
-        assert spec.views == 1 and spec.projector == rig.projector
+        # a scan shows x alone (the height sweep x and y), otherwise the sweep's design (FORMATS.md)
+        assert spec.views == 1 and spec.projector.fringes.directions == ("x",)
+        assert rig.projector.fringes.directions == ("x", "y")
+        shown = replace(spec.projector, fringes=replace(spec.projector.fringes, directions=("x", "y")))
+        assert shown == rig.projector
         assert (out / "scans" / name / "truth.h5").is_file()
     assert main(["simulate", "--preset", "scanner-mild", "--gray", "2", "--force", "-q", str(out)]) == 2
 

@@ -1,0 +1,221 @@
+"""The conventional structured-light calibration of a dataset (METHOD.md section 9, "The comparison").
+
+The same sweeps as the per-pixel calibration, the same decoders, the same noise:
+
+- **Feature points**: a sparse grid of camera pixels (every ``grid_step_px``, default about 40 across
+  the image whatever its size), kept where the pixel is valid at every LCD position and every plate
+  height, so that each feature pixel is one fixed ray seen through the whole volume.
+- **Camera**: the LCD sweep's decoded coordinates at those pixels (:func:`ptpcore.run.pipeline.collect_samples`
+  with the cover-glass and flatness corrections of :func:`ptpcore.fit.corrected.correct_all`, as
+  ``ptp compare`` gives 3DSTC), world ``(X, Y, z_k)``: the translated planes as one non-coplanar
+  target, DLT start and Levenberg-Marquardt (a planar Zhang calibration is degenerate for them).
+- **Projector**: at each plate height ``z_h`` the feature pixel's ray meets the plate at
+  ``(X, Y, z_h)`` and the projector lights it at the decoded ``(u_p, v_p)``
+  (:func:`ptpcore.run.scanner.decode_projector` with directions ``x`` and ``y``). ``X, Y``: from the LCD
+  decode where the plate height is one of the LCD's readings (the same datum, FORMATS.md): that is a
+  measurement of where the ray meets ``Z = z_h``, micrometres of noise and no model error; at other
+  heights from the calibrated camera's ray (its model error then enters the projector's points).
+  Which one each height used is in the result's ``provenance``.
+- The two fits and OpenCV's stereo cross-check: :mod:`ptpcore.pinhole.structured_light`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ptpcore.decode.phase import DecodeOptions
+from ptpcore.errors import ConfigError, DatasetError
+from ptpcore.io.samples import SampleStack
+from ptpcore.pinhole.structured_light import ConventionalCalibration, fit_conventional, opencv_stereo_check
+from ptpcore.rig.rigfile import Rig, load_rig
+
+__all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid"]
+
+Progress = Callable[[float, str], None]
+
+# Plate heights within this of an LCD reading (mm) take that position's decoded X, Y.
+_SAME_HEIGHT_MM = 1e-6
+
+
+def check_conventional_rig(rig: Rig, where: str) -> None:
+    """The dataset must have a height sweep showing both projector directions.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``where`` (the ``rig.toml``) and the missing table or key.
+    """
+    if rig.projector is None or rig.height is None:
+        raise ConfigError(f"{where}: no height sweep ([projector] and [height], FORMATS.md): the conventional"
+                          " calibration needs the plate's sweep")
+    shown = list(rig.projector.fringes.directions)
+    if "y" not in shown:
+        raise ConfigError(f"{where}: key 'projector.directions' is {shown}: the conventional calibration needs"
+                          " [\"x\", \"y\"] (the projector's v_p as well as u_p)")
+
+
+def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, grid_step_px: int | None = None,
+                           options: DecodeOptions = DecodeOptions()) -> ConventionalCalibration:
+    """A ``ptp-dataset/2`` with an LCD sweep and a height sweep in ``x`` and ``y`` -> camera and projector pinholes.
+
+    Parameters
+    ----------
+    dataset_dir : path
+        The dataset folder (``rig.toml`` with ``[projector] directions = ["x", "y"]`` and ``[height]``).
+    progress : callable, optional
+        ``progress(fraction, message)``; may raise to cancel.
+    grid_step_px : int, optional
+        Feature grid spacing (camera px); default :func:`feature_grid`'s.
+    options : DecodeOptions
+
+    Returns
+    -------
+    ConventionalCalibration
+
+    Raises
+    ------
+    ConfigError
+        No height sweep, or one without direction ``y`` (naming ``rig.toml`` and the key).
+    DatasetError
+        Too few feature pixels valid at every position and height.
+    """
+    from ptpcore.io.dataset import DatasetSource
+
+    folder = Path(dataset_dir)
+    where = str(folder / "rig.toml")
+    rig = load_rig(folder)
+    check_conventional_rig(rig, where)
+    return calibrate_conventional_from(rig, DatasetSource(folder, rig=rig),
+                                       DatasetSource(folder, rig=rig.height_rig()), progress=progress,
+                                       grid_step_px=grid_step_px, options=options, where=where)
+
+
+def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress: Progress | None = None,
+                                grid_step_px: int | None = None, options: DecodeOptions = DecodeOptions(),
+                                where: str = "rig") -> ConventionalCalibration:
+    """:func:`calibrate_conventional` from frame sources (a dataset's, or the simulator's rendered on demand).
+
+    Parameters
+    ----------
+    rig : Rig
+        With ``[projector]`` (directions ``x`` and ``y``) and ``[height]``.
+    lcd_source, height_source : frame sources
+        The LCD sweep (its ``rig``: the LCD's) and the height sweep (:meth:`ptpcore.rig.Rig.height_rig`).
+    """
+    from ptpcore.fit.corrected import correct_all
+    from ptpcore.run.pipeline import collect_samples
+    from ptpcore.run.scanner import decode_projector
+
+    check_conventional_rig(rig, where)
+    report = progress or (lambda f, m: None)
+    samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
+    samples = correct_all(samples, lcd_source.rig)[0]
+    dec = decode_projector(height_source, options=options, directions=("x", "y"),
+                           progress=lambda f, m: report(0.45 + 0.45 * f, m))
+    report(0.9, "conventional calibration: fitting camera and projector")
+    rows, cols = feature_grid(samples, dec.u, dec.v, grid_step_px)
+    cam_world, cam_px = _camera_points(samples, rows, cols)
+    proj_world, proj_uv, proj_cam_px, used = _projector_points(samples, dec, rows, cols, None)
+    if not all(used.values()):  # heights off the LCD's readings: X, Y from the camera's fit
+        from ptpcore.pinhole.camera import fit_pinhole
+
+        camera = fit_pinhole(cam_world, cam_px).model
+        proj_world, proj_uv, proj_cam_px, used = _projector_points(samples, dec, rows, cols, camera)
+    provenance = {"grid_step_px": _step(samples.x.shape[1:], grid_step_px), "n_feature_pixels": int(rows.size),
+                  "lcd_z_mm": [float(z) for z in samples.z], "plate_z_mm": [float(z) for z in dec.z_mm],
+                  "plate_xy_from": {f"{z:g}": ("lcd decode" if lcd else "camera model") for z, lcd in used.items()},
+                  "noise_source": dec.noise_source, "corrections": sorted(samples.corrections)}
+    cal = fit_conventional(cam_world, cam_px, proj_world, proj_uv, provenance=provenance)
+    cal.opencv_check = opencv_stereo_check(cal, proj_world, proj_cam_px, proj_uv,
+                                           (rig.camera.width, rig.camera.height),
+                                           (rig.projector.width, rig.projector.height))
+    report(1.0, "conventional calibration done")
+    return cal
+
+
+def _step(shape, grid_step_px: int | None) -> int:
+    """The feature grid's spacing (camera px): given, or about 40 feature pixels across the image."""
+    return int(grid_step_px) if grid_step_px else max(1, int(round(shape[1] / 40)))
+
+
+def feature_grid(samples: SampleStack, u: np.ndarray, v: np.ndarray, grid_step_px: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The feature pixels: a grid every ``grid_step_px`` (from half a step in), valid everywhere.
+
+    Parameters
+    ----------
+    samples : SampleStack
+        The LCD sweep's (K LCD positions).
+    u, v : (K_h, H, W) float32
+        Decoded ``u_p``, ``v_p`` of the height sweep (NaN where invalid).
+    grid_step_px : int, optional
+        Default: about 40 pixels across the image.
+
+    Returns
+    -------
+    rows, cols : (M,) int64
+        Grid pixels valid at every LCD position and every plate height.
+
+    Raises
+    ------
+    DatasetError
+        Fewer than 20 such pixels.
+    """
+    h, w = samples.x.shape[1:]
+    step = _step((h, w), grid_step_px)
+    r, c = np.meshgrid(np.arange(step // 2, h, step), np.arange(step // 2, w, step), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    ok = np.all(np.isfinite(samples.x[:, r, c]) & np.isfinite(samples.y[:, r, c]), axis=0)
+    ok &= np.all(np.isfinite(u[:, r, c]) & np.isfinite(v[:, r, c]), axis=0)
+    if np.count_nonzero(ok) < 20:
+        raise DatasetError(f"the conventional calibration needs feature pixels valid at every LCD position and"
+                           f" plate height: {np.count_nonzero(ok)} of {r.size} grid pixels (every {step} px) are")
+    return r[ok], c[ok]
+
+
+def _camera_points(samples: SampleStack, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's feature points: world (K M, 3) mm, each feature pixel at every LCD position, and their
+    pixels (K M, 2) ``(col, row)``."""
+    k = samples.z.size
+    x = samples.x_ref[rows, cols] + samples.x[:, rows, cols].astype(np.float64)
+    y = samples.y_ref[rows, cols] + samples.y[:, rows, cols].astype(np.float64)
+    z = np.broadcast_to(np.asarray(samples.z, float)[:, None], x.shape)
+    world = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    pixels = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (k, 1))
+    return world, pixels
+
+
+def _projector_points(samples: SampleStack, dec, rows: np.ndarray, cols: np.ndarray, camera):
+    """The projector's feature points at every plate height.
+
+    Returns
+    -------
+    world : (K_h M, 3) float64, mm
+        ``(X, Y, z_h)``: X, Y from the LCD position at the same reading, else from ``camera``'s ray
+        (NaN when ``camera`` is None: the caller fits the camera first).
+    uv : (K_h M, 2) float64
+        Decoded ``(u_p, v_p)`` (projector px).
+    camera_px : (K_h M, 2) float64
+        The feature pixels ``(col, row)``.
+    used : dict of float -> bool
+        Per plate height: whether its X, Y came from the LCD decode.
+    """
+    world, used = [], {}
+    for h, z in enumerate(np.asarray(dec.z_mm, float)):
+        match = np.flatnonzero(np.abs(np.asarray(samples.z, float) - z) < _SAME_HEIGHT_MM)
+        used[float(z)] = match.size > 0
+        if match.size:
+            k = match[0]
+            x = samples.x_ref[rows, cols] + samples.x[k, rows, cols].astype(np.float64)
+            y = samples.y_ref[rows, cols] + samples.y[k, rows, cols].astype(np.float64)
+        elif camera is not None:
+            x, y = camera.pixel_to_world_at_z(cols.astype(float), rows.astype(float), z)
+        else:
+            x = y = np.full(rows.shape, np.nan)
+        world.append(np.stack([x, y, np.full(rows.shape, z)], axis=1))
+    uv = np.stack([dec.u[:, rows, cols].ravel(), dec.v[:, rows, cols].ravel()], axis=1).astype(np.float64)
+    camera_px = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (dec.z_mm.size, 1))
+    return np.concatenate(world), uv, camera_px, used
