@@ -46,7 +46,7 @@ def _axes(panel: np.ndarray, lo: float, hi: float, title: str, unit: str) -> cal
     for t in np.linspace(lo, hi, 5):
         y = y_of(t)
         cv2.line(panel, (LEFT - 4, y), (LEFT, y), (0, 0, 0), 1)
-        label = f"{t:.3g}"
+        label = f"{t:.4g}"
         put_text(panel, label, (LEFT - 8 - text_width(label, 0.4), y + 4), 0.4)
     put_text(panel, unit, (6, y0 - 8), 0.4, (60, 60, 60))
     if lo < 0 < hi:
@@ -107,8 +107,8 @@ def _distance_panel(report: AcceptanceReport) -> np.ndarray | None:
     hi = _nice_limit(1.1 * top)
     panel = np.full((PANEL_H, PANEL_W, 3), 255, np.uint8)
     dmax = max(float(c.edges_mm[-1]) for c in curves.values())
-    y_of = _axes(panel, 0.0, hi, f"3D distance error against truth, RMS per bin ({kind.replace('_', ' ')} pairs)",
-                 "µm")
+    y_of = _axes(panel, 0.0, hi, f"3D distance error against truth, RMS per bin of the true distance in mm"
+                                 f" ({kind.replace('_', ' ')} pairs)", "µm")
 
     def x_of(d):
         return int(round(LEFT + d / max(dmax, 1e-9) * (PANEL_W - 10 - LEFT)))
@@ -123,7 +123,6 @@ def _distance_panel(report: AcceptanceReport) -> np.ndarray | None:
     for d in np.linspace(0, dmax, 5):
         label = f"{d:.0f}"
         put_text(panel, label, (x_of(d) - text_width(label, 0.35) // 2, PANEL_H - 12), 0.35)
-    put_text(panel, "true distance (mm)", (PANEL_W - 170, PANEL_H - 12), 0.35, (60, 60, 60))
     return panel
 
 

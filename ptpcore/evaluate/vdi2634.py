@@ -721,18 +721,18 @@ def format_acceptance(report: AcceptanceReport) -> str:
     verdict; with truth, each method's 3D point and distance errors."""
     lines = [f"VDI/VDE 2634-2 ({len({p.pose for p in report.poses})} poses; up to"
              f" {100 * report.leave_out:g} % of each fit's points left out)"]
-    head = f"  {'':4s}" + "".join(f"{m:>26s}" for m in report.methods)
+    head = f"  {'':4s}" + "".join(f"  {m:>32s}" for m in report.methods)
     lines.append(head + ("      MPE" if report.mpe_mm else ""))
     for key in FIGURES:
         cells = []
         for m in report.methods:
             big = report.largest(m).get(key)
             if big is None:
-                cells.append(f"{'-':>26s}")
+                cells.append(f"  {'-':>32s}")
                 continue
             verdict = report.verdicts(m).get(key, "")
-            cell = f"{1e3 * big['value_mm']:+.2f} µm ({big['pose']})" + (f" {verdict.upper()}" if verdict else "")
-            cells.append(f"{cell:>26s}")
+            cell = f"{1e3 * big['value_mm']:+.2f} µm ({big['pose']})" + (f" {verdict}" if verdict else "")
+            cells.append(f"  {cell:>32s}")
         mpe = report.mpe_mm.get(key)
         lines.append(f"  {key:4s}" + "".join(cells) + (f"  {1e3 * mpe:g} µm" if mpe else ""))
     for m, d in report.distance.items():

@@ -5,7 +5,7 @@ noise model); the same decoded ``u_p`` of every pixel then goes through
 
 - **ptp**: the LUT's per-pixel height map and XY LUT (the point :func:`reconstruct` gives);
 - **conventional**: camera and projector as two pinholes with Brown distortion
-  (:func:`ptpcore.pinhole.structured_light.calibrate_conventional` on the same dataset), the camera
+  (:func:`ptpcore.run.structured_light.calibrate_conventional` on the same dataset), the camera
   ray intersected with the projector's surface of constant ``u_p``.
 
 The result is plain arrays per scan (pixels, each method's points, the exact points when the scan is
@@ -72,18 +72,16 @@ class ScanPoints:
 
 def conventional_calibration(dataset_dir, progress: Progress | None = None):
     """The conventional camera-projector calibration of ``dataset_dir``
-    (:func:`ptpcore.pinhole.structured_light.calibrate_conventional`).
+    (:func:`ptpcore.run.structured_light.calibrate_conventional`: camera and projector pinholes with
+    Brown distortion from the same LCD and height sweeps).
 
     Raises
     ------
-    ConfigError
-        This build has no conventional calibration.
+    ConfigError, DatasetError
+        The dataset cannot calibrate it (e.g. a height sweep without direction ``y``; named by it).
     """
-    try:
-        from ptpcore.pinhole.structured_light import calibrate_conventional
-    except ImportError:
-        raise ConfigError("the conventional camera-projector calibration (ptpcore.pinhole.structured_light) is not"
-                          " part of this build: run with --no-conventional") from None
+    from ptpcore.run.structured_light import calibrate_conventional
+
     return calibrate_conventional(dataset_dir, progress=progress)
 
 
