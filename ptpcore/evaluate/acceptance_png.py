@@ -12,7 +12,7 @@ import numpy as np
 from .pngtext import put_text, text_width, write_png
 from .vdi2634 import FIGURES, SIGNED, AcceptanceReport
 
-__all__ = ["acceptance_png", "METHOD_COLOURS"]
+__all__ = ["acceptance_page", "acceptance_png", "METHOD_COLOURS"]
 
 METHOD_COLOURS = {"ptp": (178, 114, 0), "conventional": (0, 120, 230)}
 """BGR: PTP blue, conventional orange; any other method grey."""
@@ -126,13 +126,12 @@ def _distance_panel(report: AcceptanceReport) -> np.ndarray | None:
     return panel
 
 
-def acceptance_png(report: AcceptanceReport, path, title: str = "VDI/VDE 2634-2 acceptance") -> None:
-    """Write the page (panels stacked, a legend under the title) as PNG, atomically.
+def acceptance_page(report: AcceptanceReport, title: str = "VDI/VDE 2634-2 acceptance") -> np.ndarray:
+    """The page as an image: (H, 760, 3) uint8 BGR (panels stacked, a legend under the title).
 
     Parameters
     ----------
     report : AcceptanceReport
-    path : str or Path
     title : str
     """
     panels = [p for p in [_figure_panel(report, k) for k in FIGURES] + [_distance_panel(report)] if p is not None]
@@ -145,4 +144,9 @@ def acceptance_png(report: AcceptanceReport, path, title: str = "VDI/VDE 2634-2 
         x += 40 + text_width(m, 0.45)
     put_text(head, "bars: each pose (number under it), the methods side by side; dashed: MPE", (x + 10, 45), 0.4,
              (60, 60, 60))
-    write_png(np.concatenate([head, *panels]), path)
+    return np.concatenate([head, *panels])
+
+
+def acceptance_png(report: AcceptanceReport, path, title: str = "VDI/VDE 2634-2 acceptance") -> None:
+    """Write :func:`acceptance_page` as PNG, atomically."""
+    write_png(acceptance_page(report, title), path)

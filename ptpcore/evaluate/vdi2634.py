@@ -635,3 +635,118 @@ def _draw_point_pairs(scan_of: np.ndarray, t_all: np.ndarray, rng: np.random.Gen
         keep = np.concatenate([np.flatnonzero(bins == i)[:quota] for i in range(n_bins)])
         out[kind] = (ka[keep], kb[keep])
     return out
+
+
+ARTEFACT_FILE = "artefact.toml"
+"""A real scan's calibrated artefact, beside its ``scan.toml``: ``kind = "sphere"`` (``diameter_mm``),
+``"ballbar"`` (``diameter_mm``, ``distance_mm``) or ``"plane"``."""
+
+
+def scan_artefact(scan_dir, truth_object=None) -> Artefact:
+    """The artefact a scan shows: ``artefact.toml`` in the folder (a calibration certificate's values)
+    or, for a simulated scan, its exact object.
+
+    Raises
+    ------
+    ValueError
+        Neither is there, or ``artefact.toml`` is wrong (the message names the file and key).
+    """
+    import tomllib
+    from pathlib import Path
+
+    path = Path(scan_dir) / ARTEFACT_FILE
+    if path.exists():
+        try:
+            d = tomllib.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise ValueError(f"{path}: unreadable ({exc})") from None
+        unknown = set(d) - {"kind", "diameter_mm", "distance_mm"}
+        if unknown:
+            raise ValueError(f"{path}: unknown key '{sorted(unknown)[0]}' (kind, diameter_mm, distance_mm)")
+        for key in ("diameter_mm", "distance_mm"):
+            if key in d and (isinstance(d[key], bool) or not isinstance(d[key], (int, float))):
+                raise ValueError(f"{path}: key '{key}' must be a number of mm, got {d[key]!r}")
+        try:
+            return Artefact(str(d.get("kind", "")), float(d.get("diameter_mm", 0.0)), float(d.get("distance_mm", 0.0)))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    if truth_object is not None:
+        return Artefact.of(truth_object)
+    raise ValueError(f"{scan_dir}: no {ARTEFACT_FILE} saying which artefact it shows (kind, diameter_mm,"
+                     " distance_mm) and no simulator truth")
+
+
+def evaluate_acceptance(scans, *, mpe_mm: dict | None = None, leave_out: float = VDI_LEAVE_OUT,
+                        seed: int = 0, n_pairs: int = 20000) -> AcceptanceReport:
+    """Every pose of every method, judged on the pixels where all methods give a point.
+
+    Parameters
+    ----------
+    scans : sequence of ScanPoints
+        :func:`ptpcore.run.acceptance.reconstruct_scans` (``name``, ``scan_dir``, ``points``,
+        ``truth_xyz``, ``truth_object``, ``common()``).
+    mpe_mm : dict, optional
+        :func:`parse_mpe`.
+    leave_out : float
+    seed, n_pairs : int
+        Of the 3D distance-error pairs (simulated scans only).
+
+    Raises
+    ------
+    ValueError
+        A scan without a point every method gives, or too few for its fit (named).
+    """
+    methods = tuple(scans[0].points) if scans else ()
+    poses, notes = [], []
+    truth_pts, method_pts = [], {m: [] for m in methods}
+    for sp in scans:
+        art = scan_artefact(sp.scan_dir, sp.truth_object)
+        if sp.truth_object is not None and art.kind != sp.truth_object.kind:
+            raise ValueError(f"{sp.scan_dir}: artefact.toml says {art.kind}, its truth.h5 a {sp.truth_object.kind}")
+        common = sp.common()
+        if not common.any():
+            counts = ", ".join(f"{k} {v}" for k, v in sp.counts.items())
+            raise ValueError(f"{sp.scan_dir}: no pixel where every method gives a point ({counts})")
+        for m in methods:
+            fig = pose_figures(sp.points[m][common], art, pose=sp.name, method=m, leave_out=leave_out)
+            if sp.truth_xyz is not None:
+                fig.truth = truth_figures(sp.points[m][common], sp.truth_xyz[common], sp.truth_object, fig)
+            poses.append(fig)
+        if sp.truth_xyz is not None:
+            truth_pts.append(sp.truth_xyz[common])
+            for m in methods:
+                method_pts[m].append(sp.points[m][common])
+    distance = {}
+    if scans and len(truth_pts) == len(scans):
+        distance = point_distance_errors(method_pts, truth_pts, n_pairs=n_pairs, seed=seed)
+    elif truth_pts:
+        notes.append("some scans have no simulator truth: no 3D distance errors")
+    return AcceptanceReport(poses, methods, dict(mpe_mm or {}), leave_out, distance, notes)
+
+
+def format_acceptance(report: AcceptanceReport) -> str:
+    """The report as a few lines of text: per figure and method the largest magnitude, its pose and
+    verdict; with truth, each method's 3D point and distance errors."""
+    lines = [f"VDI/VDE 2634-2 ({len({p.pose for p in report.poses})} poses; up to"
+             f" {100 * report.leave_out:g} % of each fit's points left out)"]
+    head = f"  {'':4s}" + "".join(f"  {m:>32s}" for m in report.methods)
+    lines.append(head + ("      MPE" if report.mpe_mm else ""))
+    for key in FIGURES:
+        cells = []
+        for m in report.methods:
+            big = report.largest(m).get(key)
+            if big is None:
+                cells.append(f"  {'-':>32s}")
+                continue
+            verdict = report.verdicts(m).get(key, "")
+            cell = f"{1e3 * big['value_mm']:+.2f} µm ({big['pose']})" + (f" {verdict}" if verdict else "")
+            cells.append(f"  {cell:>32s}")
+        mpe = report.mpe_mm.get(key)
+        lines.append(f"  {key:4s}" + "".join(cells) + (f"  {1e3 * mpe:g} µm" if mpe else ""))
+    for m, d in report.distance.items():
+        parts = [f"point |error| RMS {d.point.rms_um:.2f} µm"]
+        parts += [f"{k.replace('_', ' ')} distance error RMS {s.rms_um:.2f} µm (max {s.max_um:.1f})"
+                  for k, (s, _c) in d.kinds.items()]
+        lines.append(f"  3D against truth, {m}: " + "; ".join(parts))
+    lines += [f"  note: {n}" for n in report.notes]
+    return "\n".join(lines)

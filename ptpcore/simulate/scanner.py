@@ -39,7 +39,7 @@ from ptpcore.atomic import write_text_atomic
 __all__ = ["ProjectorSettings", "ScannerSettings", "ScanObject", "ScannerRig", "SCANNER_PRESETS",
            "scanner_preset", "simulate_scanner_dataset", "simulate_scan", "default_objects", "load_scanner",
            "load_scan_truth", "SCANNER_TRUTH_FILE", "SCAN_TRUTH_FILE", "HeightSweepSource", "ScanSource",
-           "ACCEPTANCE_FOLDER", "measuring_volume", "acceptance_objects", "simulate_acceptance_scans"]
+           "ACCEPTANCE_FOLDER", "measuring_volume", "exact_lut", "acceptance_objects", "simulate_acceptance_scans"]
 
 SCANNER_TRUTH_FILE = "scanner_truth.h5"
 SCAN_TRUTH_FILE = "truth.h5"
@@ -600,6 +600,29 @@ def default_objects(rig: Rig) -> dict:
         "ballbar": ScanObject("ballbar", ((cx - 30.0, cy - 10.0, zm - 4.0), (cx + 28.0, cy + 12.0, zm + 8.0)), 9.0),
         "plane": ScanObject("plane", point=(cx, cy, zm), normal=(np.sin(tilt), 0.0, -np.cos(tilt)), size=90.0),
     }
+
+
+def exact_lut(sr: ScannerRig, height_map=None):
+    """A degree-1 XY LUT of the simulated camera's exact rays over the height sweep's range, sigma 0,
+    with ``height_map`` as its ``/height``: what tests use to judge a height map or a scan alone.
+
+    Returns
+    -------
+    ptpcore.io.lutfile.Lut
+    """
+    from ptpcore.io.lutfile import Lut
+
+    o, d = sr.pixel_rays()
+    sx, sy = d[..., 0] / d[..., 2], d[..., 1] / d[..., 2]
+    x0, y0 = o[..., 0] - o[..., 2] * sx, o[..., 1] - o[..., 2] * sy
+    z0, z1 = min(sr.rig.height.z_mm), max(sr.rig.height.z_mm)
+    zc, zs = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
+    h, w = sx.shape
+    zero = np.zeros((h, w), np.float32)
+    return Lut("poly", 1, zc, zs, z0, z1, np.stack([x0 + sx * zc, sx * zs]), np.stack([y0 + sy * zc, sy * zs]), None,
+               np.ones((h, w), bool), np.full((h, w), len(sr.rig.height.z_mm), np.uint16),
+               np.full((h, w), z0, np.float32), np.full((h, w), z1, np.float32), zero, zero, zero, zero,
+               sigma_x=zero, sigma_y=zero, height=height_map)
 
 
 ACCEPTANCE_FOLDER = "acceptance"

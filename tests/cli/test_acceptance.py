@@ -17,27 +17,13 @@ import pytest
 from ptpcore.cli.main import main
 from ptpcore.evaluate.vdi2634 import Artefact, left_out_count, pose_figures
 from ptpcore.fit.height import fit_height_map
-from ptpcore.io.lutfile import Lut, save_lut
+from ptpcore.io.lutfile import save_lut
 from ptpcore.run import acceptance as run_acceptance
 from ptpcore.run.scanner import decode_projector, reconstruct
-from ptpcore.simulate.scanner import (HeightSweepSource, ScannerRig, acceptance_objects, load_scan_truth,
+from ptpcore.simulate.scanner import (HeightSweepSource, ScannerRig, acceptance_objects, exact_lut, load_scan_truth,
                                       scanner_preset, simulate_acceptance_scans)
 
 POSES = ("sphere-01", "ballbar-01", "plane-01")
-
-
-def _exact_lut(sr, hm) -> Lut:
-    """A degree-1 LUT of the camera's true rays over the sweep's heights, sigma 0, with ``hm``."""
-    o, d = sr.pixel_rays()
-    sx, sy = d[..., 0] / d[..., 2], d[..., 1] / d[..., 2]
-    x0, y0 = o[..., 0] - o[..., 2] * sx, o[..., 1] - o[..., 2] * sy
-    z0, z1 = min(sr.rig.height.z_mm), max(sr.rig.height.z_mm)
-    zc, zs = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
-    h, w = sx.shape
-    zero = np.zeros((h, w), np.float32)
-    return Lut("poly", 1, zc, zs, z0, z1, np.stack([x0 + sx * zc, sx * zs]), np.stack([y0 + sy * zc, sy * zs]), None,
-               np.ones((h, w), bool), np.full((h, w), 11, np.uint16), np.full((h, w), z0, np.float32),
-               np.full((h, w), z1, np.float32), zero, zero, zero, zero, sigma_x=zero, sigma_y=zero, height=hm)
 
 
 class ExactConventional:
@@ -67,7 +53,7 @@ def scanner(tmp_path_factory):
     dec = decode_projector(HeightSweepSource(sr, ("x",)))
     hm = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, design=rig.projector.design_attrs)
     hm.camera_noise = (dec.noise.read_var, dec.noise.gain)
-    save_lut(_exact_lut(sr, hm), folder / "scanner.lut.h5")
+    save_lut(exact_lut(sr, hm), folder / "scanner.lut.h5")
     objects = acceptance_objects(sr)
     simulate_acceptance_scans(folder / "acceptance", sr, {k: objects[k] for k in POSES})
     return folder, sr
