@@ -21,6 +21,7 @@ from ptpcore.run import save_session
 
 from ..sessionfile import to_engine
 from ..widgets.confirm import confirm
+from ..widgets.acceptance import AcceptancePanel
 from ..widgets.lutdiff import LutDiffPanel
 from ..widgets.pointcloud import PointCloudPanel
 from ..worker import Job
@@ -136,6 +137,12 @@ class ExportPage(StudioPage):
         self.diff_panel = LutDiffPanel(lambda: self.model.session.lut)
         view.addTab(self.cloud_panel, "Use the LUT: point cloud")
         view.addTab(self.diff_panel, "Trust the LUT: against a reference LUT")
+        # The whole scanner's acceptance (VDI/VDE 2634-2): only for a LUT with the scanner's height map.
+        self.acceptance_panel = AcceptancePanel(lambda: self.model.session.lut,
+                                                lambda: self.model.session.dataset_folder,
+                                                lambda: Path(self.folder.text().strip() or "."))
+        self._acceptance_tab = view.addTab(self.acceptance_panel, "Accept the scanner: VDI/VDE 2634-2")
+        view.setTabVisible(self._acceptance_tab, False)
         self.split_body(side, view, controls_width=330)
         self.files: list[Path] = []
         self._outcome = None
@@ -143,7 +150,14 @@ class ExportPage(StudioPage):
         model.lutChanged.connect(self._reset)
         model.lutChanged.connect(self.cloud_panel.reset)
         model.lutChanged.connect(self.diff_panel.reset)
+        model.lutChanged.connect(self.acceptance_panel.reset)
+        model.lutChanged.connect(self._show_acceptance)
         model.compareChanged.connect(self.on_enter)
+
+    def _show_acceptance(self, *_args) -> None:
+        """The acceptance tab only for a LUT with the scanner's height map (/height)."""
+        lut = self.model.session.lut
+        self.view_tabs.setTabVisible(self._acceptance_tab, lut is not None and getattr(lut, "height", None) is not None)
 
     def _browse(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Export to", self.folder.text())
