@@ -44,9 +44,10 @@ class ConventionalCalibration:
         World (mm, stage frame) -> camera pixel ``(col, row)``.
     projector : PinholeModel
         World (mm) -> projector pixel ``(u_p, v_p)``.
-    camera_fit, projector_fit : PinholeFit
+    camera_fit, projector_fit : PinholeFit or None
         The two fits: ``param_names``, ``param_values``, ``param_std`` (1-sigma standard errors of every
-        parameter), ``covariance``, ``residuals_px``, ``n_points``.
+        parameter), ``covariance``, ``residuals_px``, ``n_points``. None in a calibration built from known
+        models (:meth:`from_models`: triangulation only).
     rms_camera_px : float
         RMS reprojection error per coordinate of the camera's feature points (camera px).
     rms_projector_px : float
@@ -66,8 +67,8 @@ class ConventionalCalibration:
 
     camera: PinholeModel
     projector: PinholeModel
-    camera_fit: PinholeFit
-    projector_fit: PinholeFit
+    camera_fit: PinholeFit | None
+    projector_fit: PinholeFit | None
     rms_camera_px: float
     rms_projector_px: float
     R_proj_cam: np.ndarray
@@ -76,13 +77,21 @@ class ConventionalCalibration:
     opencv_check: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_models(cls, camera: PinholeModel, projector: PinholeModel) -> "ConventionalCalibration":
+        """Known models, no fit (e.g. the simulator's truth): for :meth:`points_from_up`."""
+        R, T = relative_pose(camera, projector)
+        return cls(camera, projector, None, None, float("nan"), float("nan"), R, T, np.full(6, np.nan))
+
     @property
     def n_camera_points(self) -> int:
-        return self.camera_fit.n_points
+        """Feature points of the camera's fit (0 without a fit)."""
+        return self.camera_fit.n_points if self.camera_fit is not None else 0
 
     @property
     def n_projector_points(self) -> int:
-        return self.projector_fit.n_points
+        """Feature points of the projector's fit (0 without a fit)."""
+        return self.projector_fit.n_points if self.projector_fit is not None else 0
 
     def points_from_up(self, cols, rows, u_p, *, max_iter: int = 50, tol_px: float = 1e-9) -> np.ndarray:
         """World points where camera pixels' rays meet the projector's surface of constant ``u_p``.

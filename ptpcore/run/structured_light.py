@@ -127,13 +127,23 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
     provenance = {"grid_step_px": _step(samples.x.shape[1:], grid_step_px), "n_feature_pixels": int(rows.size),
                   "lcd_z_mm": [float(z) for z in samples.z], "plate_z_mm": [float(z) for z in dec.z_mm],
                   "plate_xy_from": {f"{z:g}": ("lcd decode" if lcd else "camera model") for z, lcd in used.items()},
-                  "noise_source": dec.noise_source, "corrections": sorted(samples.corrections)}
+                  "noise_source": dec.noise_source, "corrections": sorted(samples.corrections),
+                  "projector_sigma_rms_px": _predicted_rms(dec, rows, cols)}
+    if dec.noise is not None:  # the camera noise model u_p's sigma came from: a scan's decode can reuse it
+        provenance["camera_noise"] = [float(dec.noise.read_var), float(dec.noise.gain)]
     cal = fit_conventional(cam_world, cam_px, proj_world, proj_uv, provenance=provenance)
     cal.opencv_check = opencv_stereo_check(cal, proj_world, proj_cam_px, proj_uv,
                                            (rig.camera.width, rig.camera.height),
                                            (rig.projector.width, rig.projector.height))
     report(1.0, "conventional calibration done")
     return cal
+
+
+def _predicted_rms(dec, rows: np.ndarray, cols: np.ndarray) -> float:
+    """RMS of the decoded ``u_p``, ``v_p``'s predicted 1-sigma over the projector's feature points (projector
+    px): what the projector's reprojection RMS should be when the pinhole model fits."""
+    sig = np.concatenate([dec.sigma_u[:, rows, cols].ravel(), dec.sigma_v[:, rows, cols].ravel()]).astype(float)
+    return float(np.sqrt(np.mean(sig ** 2)))
 
 
 def _step(shape, grid_step_px: int | None) -> int:
