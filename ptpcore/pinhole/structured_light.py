@@ -77,6 +77,21 @@ class ConventionalCalibration:
     opencv_check: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
 
+    def to_json_dict(self) -> dict:
+        """JSON-ready record: both models, every parameter with its standard error, the relative pose,
+        the RMS errors, point counts, the OpenCV check and the provenance."""
+        out = {"camera": self.camera.to_dict(), "projector": self.projector.to_dict(),
+               "rms_camera_px": self.rms_camera_px, "rms_projector_px": self.rms_projector_px,
+               "n_camera_points": self.n_camera_points, "n_projector_points": self.n_projector_points,
+               "R_proj_cam": self.R_proj_cam.tolist(), "T_proj_cam": self.T_proj_cam.tolist(),
+               "relative_std": self.relative_std.tolist(), "opencv_check": self.opencv_check,
+               "provenance": self.provenance}
+        for name, fit in (("camera_fit", self.camera_fit), ("projector_fit", self.projector_fit)):
+            if fit is not None:
+                out[name] = {"param_names": list(fit.param_names), "param_values": fit.param_values.tolist(),
+                             "param_std": fit.param_std.tolist()}
+        return out
+
     @classmethod
     def from_models(cls, camera: PinholeModel, projector: PinholeModel) -> "ConventionalCalibration":
         """Known models, no fit (e.g. the simulator's truth): for :meth:`points_from_up`."""
@@ -232,6 +247,11 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
         provenance=dict(provenance or {}))
 
 
+def _intrinsics(K: np.ndarray, dist) -> np.ndarray:
+    """(9,) ``fx, fy, cx, cy, k1, k2, p1, p2, k3``: :func:`~ptpcore.pinhole.camera.fit_pinhole`'s first values."""
+    return np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.ravel(dist)[:5]]
+
+
 def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, projector_pixels,
                         camera_size, projector_size) -> dict:
     """Cross-check with ``cv2.stereoCalibrate`` on one non-coplanar view, started from ``cal``'s intrinsics.
@@ -255,9 +275,11 @@ def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, proj
     -------
     dict
         ``rms_px`` (OpenCV's per-point RMS over both devices), ``projector_max_z`` (largest
-        ``|OpenCV - ours| / std`` over the projector's intrinsics and distortion), ``relative_max_z``
-        (same over the relative rotation vector and ``T``), ``camera_max_z`` (camera intrinsics and
-        distortion: OpenCV's from these points only, ours from the LCD sweep's), and OpenCV's values.
+        ``|OpenCV - ours| / std`` over the projector's intrinsics and distortion: the same objective,
+        so near 0), ``camera_max_z`` (camera intrinsics and distortion: OpenCV's from these points only,
+        ours from the LCD sweep's, so within their std where the two sets differ), ``relative_max_z``
+        (same over the relative rotation vector and ``T``, which carries OpenCV's camera pose), and
+        OpenCV's values.
     """
     obj = [np.asarray(world, np.float32).reshape(-1, 1, 3)]
     img_c = [np.asarray(camera_pixels, np.float32).reshape(-1, 1, 2)]
@@ -268,9 +290,8 @@ def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, proj
         obj, img_c, img_p, cal.camera.K.copy(), cal.camera.dist[:5].reshape(-1, 1).copy(), cal.projector.K.copy(),
         cal.projector.dist[:5].reshape(-1, 1).copy(), tuple(int(v) for v in camera_size), flags=flags,
         criteria=criteria)
-    intr = lambda K, d: np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.ravel(d)[:5]]  # noqa: E731
-    z_p = (intr(Kp, dp) - cal.projector_fit.param_values[:9]) / cal.projector_fit.param_std[:9]
-    z_c = (intr(Kc, dc) - cal.camera_fit.param_values[:9]) / cal.camera_fit.param_std[:9]
+    z_p = (_intrinsics(Kp, dp) - cal.projector_fit.param_values[:9]) / cal.projector_fit.param_std[:9]
+    z_c = (_intrinsics(Kc, dc) - cal.camera_fit.param_values[:9]) / cal.camera_fit.param_std[:9]
     rel = np.r_[cv2.Rodrigues(R)[0].ravel(), np.ravel(T)]
     ours = np.r_[cv2.Rodrigues(cal.R_proj_cam)[0].ravel(), cal.T_proj_cam]
     z_r = (rel - ours) / cal.relative_std

@@ -11,6 +11,7 @@ noise prediction.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -94,6 +95,8 @@ def test_residuals_are_the_decoded_noise(mild):
     assert cal.n_projector_points == 6 * cal.provenance["n_feature_pixels"]
     assert cal.n_camera_points == 11 * cal.provenance["n_feature_pixels"]
     assert set(cal.provenance["plate_xy_from"].values()) == {"lcd decode"}
+    record = json.loads(json.dumps(cal.to_json_dict(), allow_nan=False))  # a report can carry it whole
+    assert record["projector_fit"]["param_std"] == cal.projector_fit.param_std.tolist()
 
 
 def test_opencv_stereo_calibration_lands_on_the_same_minimum(mild):
@@ -161,3 +164,19 @@ def test_dataset_without_a_height_sweep_or_its_y_direction_is_refused(tmp_path, 
     with pytest.raises(ConfigError, match=r"rig\.toml: key 'projector\.directions' is \['x'\]") as err:
         calibrate_conventional(x_only)
     assert "\n" not in str(err.value)
+
+
+def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
+    """``calibrate_conventional(folder)`` (the frames read from the PNGs of ``ptp-dataset/2``) gives the very
+    numbers of :func:`calibrate_conventional_from` on the same frames rendered in memory."""
+    from ptpcore.simulate.scanner import simulate_scanner_dataset
+
+    rig, sim, sc = scanner_preset("scanner-mild", 96, heights=6)
+    folder = simulate_scanner_dataset(tmp_path / "ds", rig, sim, sc, seed=3, objects={})
+    read = calibrate_conventional(folder)
+    sr = ScannerRig(rig, sim, sc, seed=3)
+    lcd = VirtualRig(replace(rig, projector=None, height=None), sim, 3)
+    rendered = calibrate_conventional_from(rig, SimulatedSource(lcd), HeightSweepSource(sr))
+    for a, b in ((read.camera_fit, rendered.camera_fit), (read.projector_fit, rendered.projector_fit)):
+        np.testing.assert_array_equal(a.param_values, b.param_values)
+    assert read.provenance == rendered.provenance
