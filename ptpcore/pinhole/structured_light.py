@@ -211,7 +211,7 @@ def _relative_std(camera_fit: PinholeFit, projector_fit: PinholeFit) -> np.ndarr
 
 
 def fit_conventional(camera_world, camera_pixels, projector_world, projector_pixels, *,
-                     provenance: dict | None = None) -> ConventionalCalibration:
+                     camera_fit: PinholeFit | None = None, provenance: dict | None = None) -> ConventionalCalibration:
     """Calibrate camera and projector from their feature points: DLT start and Levenberg-Marquardt each.
 
     Parameters
@@ -224,6 +224,9 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
         Non-coplanar world points (mm) the projector lights at ``projector_pixels``.
     projector_pixels : (P, 2) array_like
         Decoded ``(u_p, v_p)`` (projector px).
+    camera_fit : PinholeFit, optional
+        The camera's fit to these points when the caller has it already (the projector's points may have
+        needed its rays).
     provenance : dict, optional
         Stored as :attr:`ConventionalCalibration.provenance`.
 
@@ -237,7 +240,8 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
     ValueError
         Too few points, or (near-)coplanar ones (:func:`~ptpcore.pinhole.camera.dlt_initial_guess`).
     """
-    camera_fit = fit_pinhole(camera_world, camera_pixels)
+    if camera_fit is None:
+        camera_fit = fit_pinhole(camera_world, camera_pixels)
     projector_fit = fit_pinhole(projector_world, projector_pixels)
     R, T = relative_pose(camera_fit.model, projector_fit.model)
     return ConventionalCalibration(

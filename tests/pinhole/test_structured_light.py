@@ -141,7 +141,9 @@ def test_sphere_scan_within_its_predicted_noise(mild):
     p = cal.points_from_up(cols, rows, u)
     radial = obj.distance(p)
     # the radial distance's sensitivity to u_p (mm per projector px), by central differences
-    dr = (obj.distance(cal.points_from_up(cols, rows, u + 0.01)) - obj.distance(cal.points_from_up(cols, rows, u - 0.01))) / 0.02
+    step = 0.01  # projector px: the map is smooth on this scale
+    hi, lo = cal.points_from_up(cols, rows, u + step), cal.points_from_up(cols, rows, u - step)
+    dr = (obj.distance(hi) - obj.distance(lo)) / (2 * step)
     predicted = float(np.sqrt(np.mean((dr * sig) ** 2)))
     rms = float(np.sqrt(np.mean(radial ** 2)))
     assert use.sum() > 0.5 * truth["lit"].sum() and np.all(np.isfinite(radial))
@@ -180,3 +182,32 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     for a, b in ((read.camera_fit, rendered.camera_fit), (read.projector_fit, rendered.projector_fit)):
         np.testing.assert_array_equal(a.param_values, b.param_values)
     assert read.provenance == rendered.provenance
+
+
+def test_plate_heights_on_the_lcd_readings_use_its_decode_alone():
+    """The presets' 21 plate heights hold the LCD's 11: the projector uses those 11 (X, Y decoded); with
+    fewer than 3 on the LCD's readings every height is used, X, Y from the camera's rays."""
+    from ptpcore.run.structured_light import _plate_heights
+
+    lcd = SimpleNamespace(z=np.arange(0.0, 41.0, 4.0))
+    heights, position = _plate_heights(lcd, np.arange(0.0, 41.0, 2.0))
+    np.testing.assert_array_equal(heights, np.arange(0, 21, 2))
+    np.testing.assert_array_equal(position, np.arange(11))
+    heights, position = _plate_heights(lcd, np.linspace(0.0, 40.0, 4))  # 0 and 40 only: too few
+    np.testing.assert_array_equal(heights, np.arange(4))
+    assert np.all(position == -1)
+
+
+def test_plate_points_from_the_camera_model_when_heights_are_off_the_lcd():
+    """4 plate heights (0, 13.3, 26.7, 40 mm): X, Y from the fitted camera's rays at every height; on the
+    Brown-exact camera the projector's residuals are still its decoded noise (issue 34's band)."""
+    rig, sim, sc = scanner_preset("scanner-mild", 96, heights=4)
+    sim = replace(sim, stage_error_um=0.0)
+    sc = replace(sc, plate_tilt_urad=(0.0, 0.0), plate_bow_um=0.0, plate_z_error_um=0.0)
+    sr = ScannerRig(rig, sim, sc, seed=4)
+    lcd = VirtualRig(replace(rig, projector=None, height=None), sim, 4)
+    cal = calibrate_conventional_from(rig, SimulatedSource(lcd), HeightSweepSource(sr))
+    assert list(cal.provenance["plate_xy_from"].values()) == ["camera model"] * 4
+    assert cal.n_projector_points == 4 * cal.provenance["n_feature_pixels"]
+    ratio = cal.rms_projector_px / cal.provenance["projector_sigma_rms_px"]
+    assert 0.7 <= ratio <= 1.4, ratio
