@@ -44,9 +44,10 @@ class ConventionalCalibration:
         World (mm, stage frame) -> camera pixel ``(col, row)``.
     projector : PinholeModel
         World (mm) -> projector pixel ``(u_p, v_p)``.
-    camera_fit, projector_fit : PinholeFit
+    camera_fit, projector_fit : PinholeFit or None
         The two fits: ``param_names``, ``param_values``, ``param_std`` (1-sigma standard errors of every
-        parameter), ``covariance``, ``residuals_px``, ``n_points``.
+        parameter), ``covariance``, ``residuals_px``, ``n_points``. None in a calibration built from known
+        models (:meth:`from_models`: triangulation only).
     rms_camera_px : float
         RMS reprojection error per coordinate of the camera's feature points (camera px).
     rms_projector_px : float
@@ -66,8 +67,8 @@ class ConventionalCalibration:
 
     camera: PinholeModel
     projector: PinholeModel
-    camera_fit: PinholeFit
-    projector_fit: PinholeFit
+    camera_fit: PinholeFit | None
+    projector_fit: PinholeFit | None
     rms_camera_px: float
     rms_projector_px: float
     R_proj_cam: np.ndarray
@@ -76,13 +77,36 @@ class ConventionalCalibration:
     opencv_check: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
 
+    def to_json_dict(self) -> dict:
+        """JSON-ready record: both models, every parameter with its standard error, the relative pose,
+        the RMS errors, point counts, the OpenCV check and the provenance."""
+        out = {"camera": self.camera.to_dict(), "projector": self.projector.to_dict(),
+               "rms_camera_px": self.rms_camera_px, "rms_projector_px": self.rms_projector_px,
+               "n_camera_points": self.n_camera_points, "n_projector_points": self.n_projector_points,
+               "R_proj_cam": self.R_proj_cam.tolist(), "T_proj_cam": self.T_proj_cam.tolist(),
+               "relative_std": self.relative_std.tolist(), "opencv_check": self.opencv_check,
+               "provenance": self.provenance}
+        for name, fit in (("camera_fit", self.camera_fit), ("projector_fit", self.projector_fit)):
+            if fit is not None:
+                out[name] = {"param_names": list(fit.param_names), "param_values": fit.param_values.tolist(),
+                             "param_std": fit.param_std.tolist()}
+        return out
+
+    @classmethod
+    def from_models(cls, camera: PinholeModel, projector: PinholeModel) -> "ConventionalCalibration":
+        """Known models, no fit (e.g. the simulator's truth): for :meth:`points_from_up`."""
+        R, T = relative_pose(camera, projector)
+        return cls(camera, projector, None, None, float("nan"), float("nan"), R, T, np.full(6, np.nan))
+
     @property
     def n_camera_points(self) -> int:
-        return self.camera_fit.n_points
+        """Feature points of the camera's fit (0 without a fit)."""
+        return self.camera_fit.n_points if self.camera_fit is not None else 0
 
     @property
     def n_projector_points(self) -> int:
-        return self.projector_fit.n_points
+        """Feature points of the projector's fit (0 without a fit)."""
+        return self.projector_fit.n_points if self.projector_fit is not None else 0
 
     def points_from_up(self, cols, rows, u_p, *, max_iter: int = 50, tol_px: float = 1e-9) -> np.ndarray:
         """World points where camera pixels' rays meet the projector's surface of constant ``u_p``.
@@ -187,7 +211,7 @@ def _relative_std(camera_fit: PinholeFit, projector_fit: PinholeFit) -> np.ndarr
 
 
 def fit_conventional(camera_world, camera_pixels, projector_world, projector_pixels, *,
-                     provenance: dict | None = None) -> ConventionalCalibration:
+                     camera_fit: PinholeFit | None = None, provenance: dict | None = None) -> ConventionalCalibration:
     """Calibrate camera and projector from their feature points: DLT start and Levenberg-Marquardt each.
 
     Parameters
@@ -200,6 +224,9 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
         Non-coplanar world points (mm) the projector lights at ``projector_pixels``.
     projector_pixels : (P, 2) array_like
         Decoded ``(u_p, v_p)`` (projector px).
+    camera_fit : PinholeFit, optional
+        The camera's fit to these points when the caller has it already (the projector's points may have
+        needed its rays).
     provenance : dict, optional
         Stored as :attr:`ConventionalCalibration.provenance`.
 
@@ -213,7 +240,8 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
     ValueError
         Too few points, or (near-)coplanar ones (:func:`~ptpcore.pinhole.camera.dlt_initial_guess`).
     """
-    camera_fit = fit_pinhole(camera_world, camera_pixels)
+    if camera_fit is None:
+        camera_fit = fit_pinhole(camera_world, camera_pixels)
     projector_fit = fit_pinhole(projector_world, projector_pixels)
     R, T = relative_pose(camera_fit.model, projector_fit.model)
     return ConventionalCalibration(
@@ -221,6 +249,11 @@ def fit_conventional(camera_world, camera_pixels, projector_world, projector_pix
         rms_camera_px=camera_fit.reprojection_rms_px, rms_projector_px=projector_fit.reprojection_rms_px,
         R_proj_cam=R, T_proj_cam=T, relative_std=_relative_std(camera_fit, projector_fit),
         provenance=dict(provenance or {}))
+
+
+def _intrinsics(K: np.ndarray, dist) -> np.ndarray:
+    """(9,) ``fx, fy, cx, cy, k1, k2, p1, p2, k3``: :func:`~ptpcore.pinhole.camera.fit_pinhole`'s first values."""
+    return np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.ravel(dist)[:5]]
 
 
 def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, projector_pixels,
@@ -246,9 +279,11 @@ def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, proj
     -------
     dict
         ``rms_px`` (OpenCV's per-point RMS over both devices), ``projector_max_z`` (largest
-        ``|OpenCV - ours| / std`` over the projector's intrinsics and distortion), ``relative_max_z``
-        (same over the relative rotation vector and ``T``), ``camera_max_z`` (camera intrinsics and
-        distortion: OpenCV's from these points only, ours from the LCD sweep's), and OpenCV's values.
+        ``|OpenCV - ours| / std`` over the projector's intrinsics and distortion: the same objective,
+        so near 0), ``camera_max_z`` (camera intrinsics and distortion: OpenCV's from these points only,
+        ours from the LCD sweep's, so within their std where the two sets differ), ``relative_max_z``
+        (same over the relative rotation vector and ``T``, which carries OpenCV's camera pose), and
+        OpenCV's values.
     """
     obj = [np.asarray(world, np.float32).reshape(-1, 1, 3)]
     img_c = [np.asarray(camera_pixels, np.float32).reshape(-1, 1, 2)]
@@ -259,9 +294,8 @@ def opencv_stereo_check(cal: ConventionalCalibration, world, camera_pixels, proj
         obj, img_c, img_p, cal.camera.K.copy(), cal.camera.dist[:5].reshape(-1, 1).copy(), cal.projector.K.copy(),
         cal.projector.dist[:5].reshape(-1, 1).copy(), tuple(int(v) for v in camera_size), flags=flags,
         criteria=criteria)
-    intr = lambda K, d: np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.ravel(d)[:5]]  # noqa: E731
-    z_p = (intr(Kp, dp) - cal.projector_fit.param_values[:9]) / cal.projector_fit.param_std[:9]
-    z_c = (intr(Kc, dc) - cal.camera_fit.param_values[:9]) / cal.camera_fit.param_std[:9]
+    z_p = (_intrinsics(Kp, dp) - cal.projector_fit.param_values[:9]) / cal.projector_fit.param_std[:9]
+    z_c = (_intrinsics(Kc, dc) - cal.camera_fit.param_values[:9]) / cal.camera_fit.param_std[:9]
     rel = np.r_[cv2.Rodrigues(R)[0].ravel(), np.ravel(T)]
     ours = np.r_[cv2.Rodrigues(cal.R_proj_cam)[0].ravel(), cal.T_proj_cam]
     z_r = (rel - ours) / cal.relative_std

@@ -13,9 +13,10 @@ The same sweeps as the per-pixel calibration, the same decoders, the same noise:
   ``(X, Y, z_h)`` and the projector lights it at the decoded ``(u_p, v_p)``
   (:func:`ptpcore.run.scanner.decode_projector` with directions ``x`` and ``y``). ``X, Y``: from the LCD
   decode where the plate height is one of the LCD's readings (the same datum, FORMATS.md): that is a
-  measurement of where the ray meets ``Z = z_h``, micrometres of noise and no model error; at other
-  heights from the calibrated camera's ray (its model error then enters the projector's points).
-  Which one each height used is in the result's ``provenance``.
+  measurement of where the ray meets ``Z = z_h``, micrometres of noise and no model error. With at
+  least :data:`MIN_LCD_HEIGHTS` such heights only those are used (the presets' 21 plate heights hold
+  the LCD's 11); otherwise every height, ``X, Y`` from the calibrated camera's ray (its model error then
+  enters the projector's points). Which heights and which source: the result's ``provenance``.
 - The two fits and OpenCV's stereo cross-check: :mod:`ptpcore.pinhole.structured_light`.
 """
 
@@ -29,6 +30,7 @@ import numpy as np
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.errors import ConfigError, DatasetError
 from ptpcore.io.samples import SampleStack
+from ptpcore.pinhole.camera import fit_pinhole
 from ptpcore.pinhole.structured_light import ConventionalCalibration, fit_conventional, opencv_stereo_check
 from ptpcore.rig.rigfile import Rig, load_rig
 
@@ -38,6 +40,9 @@ Progress = Callable[[float, str], None]
 
 # Plate heights within this of an LCD reading (mm) take that position's decoded X, Y.
 _SAME_HEIGHT_MM = 1e-6
+# At least this many plate heights on the LCD's readings: the projector is fitted on those alone
+# (3: the DLT needs two planes, a third checks them).
+MIN_LCD_HEIGHTS = 3
 
 
 def check_conventional_rig(rig: Rig, where: str) -> None:
@@ -118,22 +123,27 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
     report(0.9, "conventional calibration: fitting camera and projector")
     rows, cols = feature_grid(samples, dec.u, dec.v, grid_step_px)
     cam_world, cam_px = _camera_points(samples, rows, cols)
-    proj_world, proj_uv, proj_cam_px, used = _projector_points(samples, dec, rows, cols, None)
-    if not all(used.values()):  # heights off the LCD's readings: X, Y from the camera's fit
-        from ptpcore.pinhole.camera import fit_pinhole
-
-        camera = fit_pinhole(cam_world, cam_px).model
-        proj_world, proj_uv, proj_cam_px, used = _projector_points(samples, dec, rows, cols, camera)
+    camera_fit = fit_pinhole(cam_world, cam_px)  # first: the plate's points may need the camera's rays
+    proj_world, proj_uv, proj_cam_px, info = _projector_points(samples, dec, rows, cols, camera_fit.model)
     provenance = {"grid_step_px": _step(samples.x.shape[1:], grid_step_px), "n_feature_pixels": int(rows.size),
                   "lcd_z_mm": [float(z) for z in samples.z], "plate_z_mm": [float(z) for z in dec.z_mm],
-                  "plate_xy_from": {f"{z:g}": ("lcd decode" if lcd else "camera model") for z, lcd in used.items()},
-                  "noise_source": dec.noise_source, "corrections": sorted(samples.corrections)}
-    cal = fit_conventional(cam_world, cam_px, proj_world, proj_uv, provenance=provenance)
+                  "noise_source": dec.noise_source, "corrections": sorted(samples.corrections), **info}
+    if dec.noise is not None:  # the camera noise model u_p's sigma came from: a scan's decode can reuse it
+        provenance["camera_noise"] = [float(dec.noise.read_var), float(dec.noise.gain)]
+    cal = fit_conventional(cam_world, cam_px, proj_world, proj_uv, camera_fit=camera_fit, provenance=provenance)
     cal.opencv_check = opencv_stereo_check(cal, proj_world, proj_cam_px, proj_uv,
                                            (rig.camera.width, rig.camera.height),
                                            (rig.projector.width, rig.projector.height))
     report(1.0, "conventional calibration done")
     return cal
+
+
+def _predicted_rms(dec, heights: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
+    """RMS of the decoded ``u_p``, ``v_p``'s predicted 1-sigma over the projector's feature points (projector
+    px): what the projector's reprojection RMS should be when the pinhole model fits."""
+    sig = np.concatenate([dec.sigma_u[heights][:, rows, cols].ravel(),
+                          dec.sigma_v[heights][:, rows, cols].ravel()]).astype(float)
+    return float(np.sqrt(np.mean(sig ** 2)))
 
 
 def _step(shape, grid_step_px: int | None) -> int:
@@ -188,34 +198,57 @@ def _camera_points(samples: SampleStack, rows: np.ndarray, cols: np.ndarray) -> 
     return world, pixels
 
 
-def _projector_points(samples: SampleStack, dec, rows: np.ndarray, cols: np.ndarray, camera):
-    """The projector's feature points at every plate height.
+def _plate_heights(samples: SampleStack, plate_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which plate heights give the projector's points, and the LCD position each one's X, Y comes from.
+
+    The plate heights on the LCD's readings (within :data:`_SAME_HEIGHT_MM`), when there are at least
+    :data:`MIN_LCD_HEIGHTS`: their X, Y are the LCD decode's, a measurement with no model error, and the
+    other heights are left out rather than mixed in with the camera model's error (on a lens that Brown
+    does not describe, tens of um: more than ``u_p``'s noise). Otherwise every height, X, Y from the
+    camera's fit (LCD position -1).
 
     Returns
     -------
-    world : (K_h M, 3) float64, mm
-        ``(X, Y, z_h)``: X, Y from the LCD position at the same reading, else from ``camera``'s ray
-        (NaN when ``camera`` is None: the caller fits the camera first).
-    uv : (K_h M, 2) float64
-        Decoded ``(u_p, v_p)`` (projector px).
-    camera_px : (K_h M, 2) float64
-        The feature pixels ``(col, row)``.
-    used : dict of float -> bool
-        Per plate height: whether its X, Y came from the LCD decode.
+    heights : (K_u,) int64
+        Indices into ``plate_z``.
+    lcd_position : (K_u,) int64
+        The LCD position of each, or -1 for the camera model.
     """
-    world, used = [], {}
-    for h, z in enumerate(np.asarray(dec.z_mm, float)):
-        match = np.flatnonzero(np.abs(np.asarray(samples.z, float) - z) < _SAME_HEIGHT_MM)
-        used[float(z)] = match.size > 0
-        if match.size:
-            k = match[0]
+    lcd_z = np.asarray(samples.z, float)
+    match = np.array([np.flatnonzero(np.abs(lcd_z - z) < _SAME_HEIGHT_MM)[:1].tolist() or [-1] for z in plate_z])[:, 0]
+    on_lcd = np.flatnonzero(match >= 0)
+    if on_lcd.size >= MIN_LCD_HEIGHTS:
+        return on_lcd, match[on_lcd]
+    return np.arange(plate_z.size), np.full(plate_z.size, -1)
+
+
+def _projector_points(samples: SampleStack, dec, rows: np.ndarray, cols: np.ndarray, camera):
+    """The projector's feature points at the plate heights :func:`_plate_heights` picks.
+
+    Returns
+    -------
+    world : (K_u M, 3) float64, mm
+        ``(X, Y, z_h)``: X, Y from the LCD position at the same reading, or from ``camera``'s ray.
+    uv : (K_u M, 2) float64
+        Decoded ``(u_p, v_p)`` (projector px).
+    camera_px : (K_u M, 2) float64
+        The feature pixels ``(col, row)``.
+    info : dict
+        ``plate_xy_from``: per plate height used (``"%g"`` mm), ``"lcd decode"`` or ``"camera model"``;
+        ``projector_sigma_rms_px``: :func:`_predicted_rms` of these points.
+    """
+    plate_z = np.asarray(dec.z_mm, float)
+    heights, lcd_position = _plate_heights(samples, plate_z)
+    world, xy_from = [], {}
+    for h, k in zip(heights, lcd_position):
+        if k >= 0:
             x = samples.x_ref[rows, cols] + samples.x[k, rows, cols].astype(np.float64)
             y = samples.y_ref[rows, cols] + samples.y[k, rows, cols].astype(np.float64)
-        elif camera is not None:
-            x, y = camera.pixel_to_world_at_z(cols.astype(float), rows.astype(float), z)
         else:
-            x = y = np.full(rows.shape, np.nan)
-        world.append(np.stack([x, y, np.full(rows.shape, z)], axis=1))
-    uv = np.stack([dec.u[:, rows, cols].ravel(), dec.v[:, rows, cols].ravel()], axis=1).astype(np.float64)
-    camera_px = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (dec.z_mm.size, 1))
-    return np.concatenate(world), uv, camera_px, used
+            x, y = camera.pixel_to_world_at_z(cols.astype(float), rows.astype(float), plate_z[h])
+        world.append(np.stack([x, y, np.full(rows.shape, plate_z[h])], axis=1))
+        xy_from[f"{plate_z[h]:g}"] = "lcd decode" if k >= 0 else "camera model"
+    uv = np.stack([dec.u[heights][:, rows, cols].ravel(), dec.v[heights][:, rows, cols].ravel()], axis=1)
+    camera_px = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (heights.size, 1))
+    info = {"plate_xy_from": xy_from, "projector_sigma_rms_px": _predicted_rms(dec, heights, rows, cols)}
+    return np.concatenate(world), uv.astype(np.float64), camera_px, info
