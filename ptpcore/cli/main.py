@@ -491,6 +491,9 @@ def cmd_acceptance(args) -> int:
     js = {"dataset": str(args.dataset_dir), "lut": str(args.lut), "scans": [str(s) for s in scans],
           **report.to_json_dict(),
           "points": {sp.name: sp.counts for sp in points}}
+    if conventional is not None and hasattr(conventional, "to_json_dict"):
+        # both pinholes with every parameter's standard error: a calibration done well or not
+        js["conventional_calibration"] = conventional.to_json_dict()
     write_text_atomic(args.out, json.dumps(js, indent=1, allow_nan=False) + "\n")
     acceptance_png(report, png, title=f"VDI/VDE 2634-2 acceptance: {Path(args.dataset_dir).name},"
                                       f" {len(scans)} poses")
