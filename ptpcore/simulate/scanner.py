@@ -710,14 +710,14 @@ def acceptance_objects(sr: ScannerRig) -> dict:
         d = d / np.linalg.norm(d)
         a, b = np.array([c[0], c[1], zc]) - half * d, np.array([c[0], c[1], zc]) + half * d
         out[f"ballbar-{i + 1:02d}"] = ScanObject("ballbar", (tuple(map(float, a)), tuple(map(float, b))), rb)
-    tilt = np.radians(15.0)
+    tilt = np.radians(15.0)  # side 0.5 L0 (rounded up to 0.1 mm): the guideline's least length
     axes = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1)]
     for i, (ax, ay) in enumerate(axes):
         g = np.array([ax, ay], float) / np.hypot(ax, ay)  # the direction the plane rises toward
         normal = (float(np.sin(tilt) * g[0]), float(np.sin(tilt) * g[1]), float(-np.cos(tilt)))
         z = lo[2] + span[2] * (0.4 if i % 2 == 0 else 0.6)
         out[f"plane-{i + 1:02d}"] = ScanObject("plane", point=(float(c[0]), float(c[1]), float(z)),
-                                               normal=normal, size=round(0.5 * l0, 1))
+                                               normal=normal, size=float(np.ceil(5.0 * l0)) / 10)
     return out
 
 
