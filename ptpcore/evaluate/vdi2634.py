@@ -407,6 +407,8 @@ def truth_figures(points, true_points, obj, fig: PoseFigures) -> dict:
     Returns
     -------
     dict
+        (:func:`evaluate_acceptance` adds ``exact_points_figures_mm``: the figures of the exact points of
+        the same pixels, which must be 0 to rounding: the pixels' sampling and the fits add nothing.)
         ``rms_surface_mm`` (RMS distance of the points from the true surface), ``range_surface_mm``
         (its range after the same leave-out: the form seen against the true surface rather than the
         fitted one), ``rms_point_mm`` (RMS of ``|point - exact point|``, the full 3D error), and the
@@ -707,10 +709,14 @@ def evaluate_acceptance(scans, *, mpe_mm: dict | None = None, leave_out: float =
         if not common.any():
             counts = ", ".join(f"{k} {v}" for k, v in sp.counts.items())
             raise ValueError(f"{sp.scan_dir}: no pixel where every method gives a point ({counts})")
+        exact = None
+        if sp.truth_xyz is not None:  # the figures of the exact points of the same pixels: the fits' floor
+            exact = pose_figures(sp.truth_xyz[common], art, pose=sp.name, method="exact", leave_out=leave_out).figures
         for m in methods:
             fig = pose_figures(sp.points[m][common], art, pose=sp.name, method=m, leave_out=leave_out)
             if sp.truth_xyz is not None:
                 fig.truth = truth_figures(sp.points[m][common], sp.truth_xyz[common], sp.truth_object, fig)
+                fig.truth["exact_points_figures_mm"] = exact
             poses.append(fig)
         if sp.truth_xyz is not None:
             truth_pts.append(sp.truth_xyz[common])

@@ -89,6 +89,8 @@ def test_report_holds_every_pose_of_both_methods(scanner, exact_conventional, tm
         assert rep["verdicts"][m] == {"PF": "pass", "PS": "pass", "SD": "pass", "F": "fail"}
         assert set(rep["largest"][m]) == {"PF", "PS", "SD", "F"}
         assert rep["distance_errors_3d"][m]["same_scan"]["stats"]["n"] > 0
+    for p in rep["poses"]:  # the exact points of the same pixels give figures of 0 (to rounding)
+        assert all(abs(v) < 1e-9 for v in p["truth"]["exact_points_figures_mm"].values()), p["pose"]
     png = out.with_suffix(".png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
