@@ -1,7 +1,7 @@
 """Issue 35's Must show, measured: VDI/VDE 2634-2 figures of PTP against the conventional calibration.
 
     python -m benchmarks.acceptance_must_show [--presets scanner-mild scanner-rough] [--seeds 0 1 2 3 4]
-                                              [--width 160] [--keep DIR]
+                                              [--width 160] [--heights K] [--keep DIR]
 
 Per preset and seed: ``ptp simulate --preset P --width W --seed S --acceptance`` (10 sphere positions,
 7 ball-bar poses, 6 plane poses sized against the measuring volume), ``ptp calibrate`` (XY LUT and
@@ -32,16 +32,26 @@ BOUNDS = {"scanner-rough": {"SD": 0.5, "PS": 0.5, "PF": 1.1, "F": 1.1},
 """Issue 35: the largest ratio PTP / conventional each figure may have (median over seeds)."""
 
 
-def measure(preset: str, seed: int, width: int, folder: Path) -> dict:
-    """One preset and seed in ``folder``: the two methods' largest figures (µm) and their ratios."""
+def measure(preset: str, seed: int, width: int, folder: Path, heights: int | None = None) -> dict:
+    """One preset and seed in ``folder``: the two methods' largest figures (µm) and their ratios.
+
+    ``heights``: plate heights of the sweep (default: the preset's 21, as ``ptp simulate`` renders);
+    11 puts them on the LCD sweep's readings and halves the sweep's rendering.
+    """
     from ptpcore.cli.main import main
+    from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
 
     ds = folder / f"{preset}-{seed}"
     lut = folder / f"{preset}-{seed}.lut.h5"
     report = folder / f"{preset}-{seed}.acceptance.json"
-    steps = (["simulate", "--preset", preset, "--width", str(width), "--seed", str(seed), "--acceptance", "-q",
-              "--force", str(ds)],
-             ["calibrate", str(ds), "--out", str(lut), "-q", "--force"],
+    if heights is None:
+        if main(["simulate", "--preset", preset, "--width", str(width), "--seed", str(seed), "--acceptance", "-q",
+                 "--force", str(ds)]) != 0:
+            raise RuntimeError(f"ptp simulate failed for {preset} seed {seed}")
+    else:  # what ptp simulate --acceptance does, with another count of plate heights
+        rig, sim, sc = scanner_preset(preset, width, heights=heights)
+        simulate_scanner_dataset(ds, rig, sim, sc, seed=seed, acceptance=True)
+    steps = (["calibrate", str(ds), "--out", str(lut), "-q", "--force"],
              ["acceptance", str(ds), str(ds / "acceptance"), "--lut", str(lut), "--out", str(report), "-q",
               "--force"])
     for argv in steps:
@@ -49,7 +59,7 @@ def measure(preset: str, seed: int, width: int, folder: Path) -> dict:
             if main(argv) != 0:
                 raise RuntimeError(f"ptp {argv[0]} failed for {preset} seed {seed}")
     rep = json.loads(report.read_text())
-    out = {"preset": preset, "seed": seed, "width": width}
+    out = {"preset": preset, "seed": seed, "width": width, "heights": heights or 21}
     for m in ("ptp", "conventional"):
         out[m] = {k: round(1e3 * v["value_mm"], 1) for k, v in rep["largest"][m].items()}
         d = rep.get("distance_errors_3d", {}).get(m)
@@ -80,6 +90,7 @@ def main(argv=None) -> int:
     p.add_argument("--presets", nargs="+", default=["scanner-mild", "scanner-rough"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
     p.add_argument("--width", type=int, default=160)
+    p.add_argument("--heights", type=int, help="plate heights (default: the preset's 21)")
     p.add_argument("--keep", help="keep the datasets, LUTs and reports in this folder (default: a temporary one)")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
@@ -89,7 +100,7 @@ def main(argv=None) -> int:
     try:
         for preset in args.presets:
             for seed in args.seeds:
-                runs.append(measure(preset, seed, args.width, folder))
+                runs.append(measure(preset, seed, args.width, folder, args.heights))
                 print(json.dumps(runs[-1]), flush=True)
                 if not args.keep:  # the dataset is large; its report has what the table needs
                     shutil.rmtree(folder / f"{preset}-{seed}", ignore_errors=True)
