@@ -58,8 +58,13 @@ def measure(preset: str, seed: int, width: int, folder: Path, heights: int | Non
         with contextlib.redirect_stdout(io.StringIO()):
             if main(argv) != 0:
                 raise RuntimeError(f"ptp {argv[0]} failed for {preset} seed {seed}")
-    rep = json.loads(report.read_text())
-    out = {"preset": preset, "seed": seed, "width": width, "heights": heights or 21}
+    return from_report(report, preset, seed, width, heights or 21)
+
+
+def from_report(report: Path, preset: str, seed: int, width: int, heights: int = 21) -> dict:
+    """One run's line from its ``ptp acceptance`` report: each method's largest figures (µm), 3D errors, ratios."""
+    rep = json.loads(Path(report).read_text())
+    out = {"preset": preset, "seed": seed, "width": width, "heights": heights}
     for m in ("ptp", "conventional"):
         out[m] = {k: round(1e3 * v["value_mm"], 1) for k, v in rep["largest"][m].items()}
         d = rep.get("distance_errors_3d", {}).get(m)
@@ -91,8 +96,15 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
     p.add_argument("--width", type=int, default=160)
     p.add_argument("--heights", type=int, help="plate heights (default: the preset's 21)")
-    p.add_argument("--keep", help="keep the datasets, LUTs and reports in this folder (default: a temporary one)")
+    p.add_argument("--keep", help="keep the LUTs and reports in this folder (default: a temporary one)")
+    p.add_argument("--table", nargs="+", metavar="LOG",
+                   help="print the table of runs already made (files of this script's JSON lines) and exit")
     args = p.parse_args(argv)
+    if args.table:
+        runs = [json.loads(line) for f in args.table for line in Path(f).read_text().splitlines()
+                if line.startswith("{")]
+        print(table(runs))
+        return 0
     warnings.simplefilter("ignore")
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="ptp-acceptance-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -102,8 +114,8 @@ def main(argv=None) -> int:
             for seed in args.seeds:
                 runs.append(measure(preset, seed, args.width, folder, args.heights))
                 print(json.dumps(runs[-1]), flush=True)
-                if not args.keep:  # the dataset is large; its report has what the table needs
-                    shutil.rmtree(folder / f"{preset}-{seed}", ignore_errors=True)
+                # the dataset is large; its report (and the LUT, with --keep) has what the table needs
+                shutil.rmtree(folder / f"{preset}-{seed}", ignore_errors=True)
         print(table(runs), flush=True)
     finally:
         if not args.keep:
