@@ -34,7 +34,8 @@ from ptpcore.pinhole.camera import fit_pinhole
 from ptpcore.pinhole.structured_light import ConventionalCalibration, fit_conventional, opencv_stereo_check
 from ptpcore.rig.rigfile import Rig, load_rig
 
-__all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid"]
+__all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid",
+           "reconstruct_conventional"]
 
 Progress = Callable[[float, str], None]
 
@@ -252,3 +253,49 @@ def _projector_points(samples: SampleStack, dec, rows: np.ndarray, cols: np.ndar
     camera_px = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (heights.size, 1))
     info = {"plate_xy_from": xy_from, "projector_sigma_rms_px": _predicted_rms(dec, heights, rows, cols)}
     return np.concatenate(world), uv.astype(np.float64), camera_px, info
+
+
+def reconstruct_conventional(scan_dir, cal: ConventionalCalibration, *, options: DecodeOptions = DecodeOptions(),
+                             progress: Progress | None = None) -> list:
+    """A scan folder (``ptp-scan/1``) through the conventional calibration -> one point cloud per view.
+
+    ``u_p`` is decoded as :func:`ptpcore.run.scanner.reconstruct` decodes it (the height sweep's camera noise
+    model, ``cal.provenance["camera_noise"]``, for its sigma); each pixel's point is
+    :meth:`~ptpcore.pinhole.structured_light.ConventionalCalibration.points_from_up`. Its 1-sigma per axis is
+    ``|dP/du_p| sigma_u`` (the point moves along the camera ray as ``u_p`` varies; the calibration's own
+    parameter uncertainty is not included).
+
+    Returns
+    -------
+    list of PointCloud
+        Valid points only (``n_no_height``: pixels without ``u_p``; ``n_no_value``: pixels whose ray does not
+        meet the surface of their ``u_p``).
+    """
+    from ptpcore.decode.noise import NoiseModel
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.rig.rigfile import load_scan
+    from ptpcore.run.scanner import decode_projector
+
+    spec = load_scan(scan_dir)
+    noise = cal.provenance.get("camera_noise")
+    noise = None if noise is None else NoiseModel(*noise, source="height sweep")
+    dec = decode_projector(DatasetSource(scan_dir, rig=spec.rig()), options=options, progress=progress, noise=noise)
+    return [_cloud(cal, dec.u[k], dec.sigma_u[k]) for k in range(spec.views)]
+
+
+def _cloud(cal: ConventionalCalibration, u: np.ndarray, sigma_u: np.ndarray):
+    """One view's points from its decoded ``u_p`` (H, W), each with ``|dP/du_p| sigma_u`` per axis."""
+    from ptpcore.io.pointcloud import PointCloud
+
+    rows, cols = np.nonzero(np.isfinite(u))
+    up = u[rows, cols].astype(float)
+    p = cal.points_from_up(cols, rows, up)
+    step = 0.01  # projector px: the surface of constant u_p moves smoothly on this scale
+    slope = (cal.points_from_up(cols, rows, up + step) - cal.points_from_up(cols, rows, up - step)) / (2 * step)
+    sigma = np.abs(slope) * sigma_u[rows, cols].astype(float)[:, None]
+    ok = np.all(np.isfinite(p), axis=1)
+    s32 = sigma[ok].astype(np.float32)
+    return PointCloud(x=p[ok, 0], y=p[ok, 1], z=p[ok, 2], row=rows[ok].astype(np.int32), col=cols[ok].astype(np.int32),
+                      sigma_x=s32[:, 0], sigma_y=s32[:, 1], extrapolated=np.zeros(int(ok.sum()), bool), shape=u.shape,
+                      n_no_height=int(np.count_nonzero(~np.isfinite(u))), n_no_value=int(np.count_nonzero(~ok)),
+                      sigma_z=s32[:, 2])

@@ -25,7 +25,8 @@ from ptpcore.io.dataset import SimulatedSource
 from ptpcore.pinhole import ConventionalCalibration, PinholeModel
 from ptpcore.rig.rigfile import save_rig
 from ptpcore.run.scanner import decode_projector
-from ptpcore.run.structured_light import calibrate_conventional, calibrate_conventional_from
+from ptpcore.run.structured_light import (calibrate_conventional, calibrate_conventional_from,
+                                          reconstruct_conventional)
 from ptpcore.simulate.scanner import HeightSweepSource, ScannerRig, ScanSource, default_objects, scanner_preset
 from ptpcore.simulate.virtual_rig import VirtualRig
 
@@ -174,7 +175,8 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     from ptpcore.simulate.scanner import simulate_scanner_dataset
 
     rig, sim, sc = scanner_preset("scanner-mild", 96, heights=6)
-    folder = simulate_scanner_dataset(tmp_path / "ds", rig, sim, sc, seed=3, objects={})
+    sphere = default_objects(rig)["sphere"]
+    folder = simulate_scanner_dataset(tmp_path / "ds", rig, sim, sc, seed=3, objects={"sphere": sphere})
     read = calibrate_conventional(folder)
     sr = ScannerRig(rig, sim, sc, seed=3)
     lcd = VirtualRig(replace(rig, projector=None, height=None), sim, 3)
@@ -182,6 +184,14 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     for a, b in ((read.camera_fit, rendered.camera_fit), (read.projector_fit, rendered.projector_fit)):
         np.testing.assert_array_equal(a.param_values, b.param_values)
     assert read.provenance == rendered.provenance
+    # the scan folder's cloud: its decoded u_p through points_from_up, each point with |dP/du_p| sigma_u
+    (cloud,) = reconstruct_conventional(folder / "scans" / "sphere", read)
+    noise = NoiseModel(*read.provenance["camera_noise"], source="height sweep")
+    dec = decode_projector(ScanSource(sr, sphere), noise=noise)
+    assert cloud.x.size == np.count_nonzero(np.isfinite(dec.u[0])) > 20
+    p = read.points_from_up(cloud.col, cloud.row, dec.u[0][cloud.row, cloud.col])
+    np.testing.assert_array_equal(np.stack([cloud.x, cloud.y, cloud.z], axis=1), p)
+    assert np.all(cloud.sigma_z > 0) and np.all(np.isfinite(cloud.sigma_x))
 
 
 def test_plate_heights_on_the_lcd_readings_use_its_decode_alone():
