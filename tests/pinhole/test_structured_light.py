@@ -221,3 +221,31 @@ def test_plate_points_from_the_camera_model_when_heights_are_off_the_lcd():
     assert cal.n_projector_points == 4 * cal.provenance["n_feature_pixels"]
     ratio = cal.rms_projector_px / cal.provenance["projector_sigma_rms_px"]
     assert 0.7 <= ratio <= 1.4, ratio
+
+
+class _PlainSource:
+    """A frame source with nothing but ``rig`` and ``frames`` (decode_projector filters its frames)."""
+
+    def __init__(self, source):
+        self.rig, self.frames = source.rig, source.frames
+
+
+def test_decode_projector_reads_the_directions_asked_for():
+    """x alone by default (the height map's decode, whatever else the sweep shows; a plain source's other
+    frames are skipped alike); x and y: v_p against the simulator's truth within its predicted sigma
+    (issue 34's band); y from a sweep without it: a ConfigError naming the key."""
+    rig, sim, sc = scanner_preset("scanner-mild", 64, heights=3)
+    sr = ScannerRig(rig, sim, sc, seed=1)
+    a = decode_projector(HeightSweepSource(sr))
+    b = decode_projector(_PlainSource(HeightSweepSource(sr)))
+    np.testing.assert_array_equal(a.u, b.u)
+    assert a.v is None and b.v is None
+    both = decode_projector(HeightSweepSource(sr), directions=("x", "y"))
+    assert np.array_equal(np.isfinite(both.u), np.isfinite(both.v)) and np.isfinite(both.v).mean() > 0.5
+    o, d = sr.pixel_rays()
+    v_true = np.stack([sr.project(sr.plate_point(o, d, k))[1] for k in range(3)])
+    ok = np.isfinite(both.v)
+    normalised = (both.v[ok] - v_true[ok]) / both.sigma_v[ok]
+    assert 0.7 <= np.sqrt(np.mean(normalised ** 2)) <= 1.4
+    with pytest.raises(ConfigError, match=r"projector\.directions"):
+        decode_projector(HeightSweepSource(sr, ("x",)), directions=("x", "y"))
