@@ -247,5 +247,8 @@ def test_decode_projector_reads_the_directions_asked_for():
     ok = np.isfinite(both.v)
     normalised = (both.v[ok] - v_true[ok]) / both.sigma_v[ok]
     assert 0.7 <= np.sqrt(np.mean(normalised ** 2)) <= 1.4
+    spilled = decode_projector(HeightSweepSource(sr), directions=("x", "y"), spill=True)  # a big sensor's path
+    for name in ("u", "v", "sigma_u", "sigma_v"):
+        np.testing.assert_array_equal(getattr(spilled, name), getattr(both, name))
     with pytest.raises(ConfigError, match=r"projector\.directions"):
         decode_projector(HeightSweepSource(sr, ("x",)), directions=("x", "y"))
