@@ -64,7 +64,8 @@ def check_conventional_rig(rig: Rig, where: str) -> None:
 
 
 def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, grid_step_px: int | None = None,
-                           options: DecodeOptions = DecodeOptions()) -> ConventionalCalibration:
+                           options: DecodeOptions = DecodeOptions(), samples: SampleStack | None = None,
+                           decoded=None) -> ConventionalCalibration:
     """A ``ptp-dataset/2`` with an LCD sweep and a height sweep in ``x`` and ``y`` -> camera and projector pinholes.
 
     Parameters
@@ -76,6 +77,11 @@ def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, gri
     grid_step_px : int, optional
         Feature grid spacing (camera px); default :func:`feature_grid`'s.
     options : DecodeOptions
+    samples : SampleStack, optional
+        The LCD sweep already decoded and corrected (:func:`ptpcore.fit.corrected.correct_all`), e.g. by the
+        caller's own ``ptp calibrate`` run: not decoded again.
+    decoded : ProjectorDecode, optional
+        The height sweep already decoded with ``directions=("x", "y")``: not decoded again.
 
     Returns
     -------
@@ -96,12 +102,14 @@ def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, gri
     check_conventional_rig(rig, where)
     return calibrate_conventional_from(rig, DatasetSource(folder, rig=rig),
                                        DatasetSource(folder, rig=rig.height_rig()), progress=progress,
-                                       grid_step_px=grid_step_px, options=options, where=where)
+                                       grid_step_px=grid_step_px, options=options, where=where, samples=samples,
+                                       decoded=decoded)
 
 
 def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress: Progress | None = None,
                                 grid_step_px: int | None = None, options: DecodeOptions = DecodeOptions(),
-                                where: str = "rig") -> ConventionalCalibration:
+                                where: str = "rig", samples: SampleStack | None = None,
+                                decoded=None) -> ConventionalCalibration:
     """:func:`calibrate_conventional` from frame sources (a dataset's, or the simulator's rendered on demand).
 
     Parameters
@@ -110,6 +118,15 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
         With ``[projector]`` (directions ``x`` and ``y``) and ``[height]``.
     lcd_source, height_source : frame sources
         The LCD sweep (its ``rig``: the LCD's) and the height sweep (:meth:`ptpcore.rig.Rig.height_rig`).
+    where : str
+        Names the rig in error messages.
+    samples, decoded : optional
+        As :func:`calibrate_conventional`'s.
+
+    Raises
+    ------
+    ValueError
+        ``decoded`` without ``v_p`` (decoded with direction ``x`` alone).
     """
     from ptpcore.fit.corrected import correct_all
     from ptpcore.run.pipeline import collect_samples
@@ -117,10 +134,14 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
 
     check_conventional_rig(rig, where)
     report = progress or (lambda f, m: None)
-    samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
-    samples = correct_all(samples, lcd_source.rig)[0]
-    dec = decode_projector(height_source, options=options, directions=("x", "y"),
-                           progress=lambda f, m: report(0.45 + 0.45 * f, m))
+    if decoded is not None and decoded.v is None:
+        raise ValueError("calibrate_conventional: the height sweep was decoded without v_p:"
+                         " decode_projector(..., directions=('x', 'y'))")
+    if samples is None:
+        samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
+        samples = correct_all(samples, lcd_source.rig)[0]
+    dec = decoded if decoded is not None else decode_projector(
+        height_source, options=options, directions=("x", "y"), progress=lambda f, m: report(0.45 + 0.45 * f, m))
     report(0.9, "conventional calibration: fitting camera and projector")
     rows, cols = feature_grid(samples, dec.u, dec.v, grid_step_px)
     cam_world, cam_px = _camera_points(samples, rows, cols)

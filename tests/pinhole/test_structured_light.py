@@ -184,6 +184,14 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     for a, b in ((read.camera_fit, rendered.camera_fit), (read.projector_fit, rendered.projector_fit)):
         np.testing.assert_array_equal(a.param_values, b.param_values)
     assert read.provenance == rendered.provenance
+    # a caller that decoded the height sweep already (x and y) passes it in: the same calibration
+    from ptpcore.io.dataset import DatasetSource
+
+    h_source = DatasetSource(folder, rig=rig.height_rig())
+    again = calibrate_conventional(folder, decoded=decode_projector(h_source, directions=("x", "y")))
+    np.testing.assert_array_equal(again.projector_fit.param_values, read.projector_fit.param_values)
+    with pytest.raises(ValueError, match="without v_p"):
+        calibrate_conventional(folder, decoded=decode_projector(h_source))
     # the scan folder's cloud: its decoded u_p through points_from_up, each point with |dP/du_p| sigma_u
     (cloud,) = reconstruct_conventional(folder / "scans" / "sphere", read)
     noise = NoiseModel(*read.provenance["camera_noise"], source="height sweep")
