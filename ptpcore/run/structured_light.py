@@ -34,7 +34,8 @@ from ptpcore.pinhole.camera import fit_pinhole
 from ptpcore.pinhole.structured_light import ConventionalCalibration, fit_conventional, opencv_stereo_check
 from ptpcore.rig.rigfile import Rig, load_rig
 
-__all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid"]
+__all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid",
+           "reconstruct_conventional"]
 
 Progress = Callable[[float, str], None]
 
@@ -63,7 +64,8 @@ def check_conventional_rig(rig: Rig, where: str) -> None:
 
 
 def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, grid_step_px: int | None = None,
-                           options: DecodeOptions = DecodeOptions()) -> ConventionalCalibration:
+                           options: DecodeOptions = DecodeOptions(), samples: SampleStack | None = None,
+                           decoded=None) -> ConventionalCalibration:
     """A ``ptp-dataset/2`` with an LCD sweep and a height sweep in ``x`` and ``y`` -> camera and projector pinholes.
 
     Parameters
@@ -75,6 +77,11 @@ def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, gri
     grid_step_px : int, optional
         Feature grid spacing (camera px); default :func:`feature_grid`'s.
     options : DecodeOptions
+    samples : SampleStack, optional
+        The LCD sweep already decoded and corrected (:func:`ptpcore.fit.corrected.correct_all`), e.g. by the
+        caller's own ``ptp calibrate`` run: not decoded again.
+    decoded : ProjectorDecode, optional
+        The height sweep already decoded with ``directions=("x", "y")``: not decoded again.
 
     Returns
     -------
@@ -95,12 +102,14 @@ def calibrate_conventional(dataset_dir, *, progress: Progress | None = None, gri
     check_conventional_rig(rig, where)
     return calibrate_conventional_from(rig, DatasetSource(folder, rig=rig),
                                        DatasetSource(folder, rig=rig.height_rig()), progress=progress,
-                                       grid_step_px=grid_step_px, options=options, where=where)
+                                       grid_step_px=grid_step_px, options=options, where=where, samples=samples,
+                                       decoded=decoded)
 
 
 def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress: Progress | None = None,
                                 grid_step_px: int | None = None, options: DecodeOptions = DecodeOptions(),
-                                where: str = "rig") -> ConventionalCalibration:
+                                where: str = "rig", samples: SampleStack | None = None,
+                                decoded=None) -> ConventionalCalibration:
     """:func:`calibrate_conventional` from frame sources (a dataset's, or the simulator's rendered on demand).
 
     Parameters
@@ -109,6 +118,15 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
         With ``[projector]`` (directions ``x`` and ``y``) and ``[height]``.
     lcd_source, height_source : frame sources
         The LCD sweep (its ``rig``: the LCD's) and the height sweep (:meth:`ptpcore.rig.Rig.height_rig`).
+    where : str
+        Names the rig in error messages.
+    samples, decoded : optional
+        As :func:`calibrate_conventional`'s.
+
+    Raises
+    ------
+    ValueError
+        ``decoded`` without ``v_p`` (decoded with direction ``x`` alone).
     """
     from ptpcore.fit.corrected import correct_all
     from ptpcore.run.pipeline import collect_samples
@@ -116,10 +134,14 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
 
     check_conventional_rig(rig, where)
     report = progress or (lambda f, m: None)
-    samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
-    samples = correct_all(samples, lcd_source.rig)[0]
-    dec = decode_projector(height_source, options=options, directions=("x", "y"),
-                           progress=lambda f, m: report(0.45 + 0.45 * f, m))
+    if decoded is not None and decoded.v is None:
+        raise ValueError("calibrate_conventional: the height sweep was decoded without v_p:"
+                         " decode_projector(..., directions=('x', 'y'))")
+    if samples is None:
+        samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
+        samples = correct_all(samples, lcd_source.rig)[0]
+    dec = decoded if decoded is not None else decode_projector(
+        height_source, options=options, directions=("x", "y"), progress=lambda f, m: report(0.45 + 0.45 * f, m))
     report(0.9, "conventional calibration: fitting camera and projector")
     rows, cols = feature_grid(samples, dec.u, dec.v, grid_step_px)
     cam_world, cam_px = _camera_points(samples, rows, cols)
@@ -252,3 +274,49 @@ def _projector_points(samples: SampleStack, dec, rows: np.ndarray, cols: np.ndar
     camera_px = np.tile(np.stack([cols, rows], axis=1).astype(np.float64), (heights.size, 1))
     info = {"plate_xy_from": xy_from, "projector_sigma_rms_px": _predicted_rms(dec, heights, rows, cols)}
     return np.concatenate(world), uv.astype(np.float64), camera_px, info
+
+
+def reconstruct_conventional(scan_dir, cal: ConventionalCalibration, *, options: DecodeOptions = DecodeOptions(),
+                             progress: Progress | None = None) -> list:
+    """A scan folder (``ptp-scan/1``) through the conventional calibration -> one point cloud per view.
+
+    ``u_p`` is decoded as :func:`ptpcore.run.scanner.reconstruct` decodes it (the height sweep's camera noise
+    model, ``cal.provenance["camera_noise"]``, for its sigma); each pixel's point is
+    :meth:`~ptpcore.pinhole.structured_light.ConventionalCalibration.points_from_up`. Its 1-sigma per axis is
+    ``|dP/du_p| sigma_u`` (the point moves along the camera ray as ``u_p`` varies; the calibration's own
+    parameter uncertainty is not included).
+
+    Returns
+    -------
+    list of PointCloud
+        Valid points only (``n_no_height``: pixels without ``u_p``; ``n_no_value``: pixels whose ray does not
+        meet the surface of their ``u_p``).
+    """
+    from ptpcore.decode.noise import NoiseModel
+    from ptpcore.io.dataset import DatasetSource
+    from ptpcore.rig.rigfile import load_scan
+    from ptpcore.run.scanner import decode_projector
+
+    spec = load_scan(scan_dir)
+    noise = cal.provenance.get("camera_noise")
+    noise = None if noise is None else NoiseModel(*noise, source="height sweep")
+    dec = decode_projector(DatasetSource(scan_dir, rig=spec.rig()), options=options, progress=progress, noise=noise)
+    return [_cloud(cal, dec.u[k], dec.sigma_u[k]) for k in range(spec.views)]
+
+
+def _cloud(cal: ConventionalCalibration, u: np.ndarray, sigma_u: np.ndarray):
+    """One view's points from its decoded ``u_p`` (H, W), each with ``|dP/du_p| sigma_u`` per axis."""
+    from ptpcore.io.pointcloud import PointCloud
+
+    rows, cols = np.nonzero(np.isfinite(u))
+    up = u[rows, cols].astype(float)
+    p = cal.points_from_up(cols, rows, up)
+    step = 0.01  # projector px: the surface of constant u_p moves smoothly on this scale
+    slope = (cal.points_from_up(cols, rows, up + step) - cal.points_from_up(cols, rows, up - step)) / (2 * step)
+    sigma = np.abs(slope) * sigma_u[rows, cols].astype(float)[:, None]
+    ok = np.all(np.isfinite(p), axis=1)
+    s32 = sigma[ok].astype(np.float32)
+    return PointCloud(x=p[ok, 0], y=p[ok, 1], z=p[ok, 2], row=rows[ok].astype(np.int32), col=cols[ok].astype(np.int32),
+                      sigma_x=s32[:, 0], sigma_y=s32[:, 1], extrapolated=np.zeros(int(ok.sum()), bool), shape=u.shape,
+                      n_no_height=int(np.count_nonzero(~np.isfinite(u))), n_no_value=int(np.count_nonzero(~ok)),
+                      sigma_z=s32[:, 2])

@@ -25,7 +25,8 @@ from ptpcore.io.dataset import SimulatedSource
 from ptpcore.pinhole import ConventionalCalibration, PinholeModel
 from ptpcore.rig.rigfile import save_rig
 from ptpcore.run.scanner import decode_projector
-from ptpcore.run.structured_light import calibrate_conventional, calibrate_conventional_from
+from ptpcore.run.structured_light import (calibrate_conventional, calibrate_conventional_from,
+                                          reconstruct_conventional)
 from ptpcore.simulate.scanner import HeightSweepSource, ScannerRig, ScanSource, default_objects, scanner_preset
 from ptpcore.simulate.virtual_rig import VirtualRig
 
@@ -174,7 +175,8 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     from ptpcore.simulate.scanner import simulate_scanner_dataset
 
     rig, sim, sc = scanner_preset("scanner-mild", 96, heights=6)
-    folder = simulate_scanner_dataset(tmp_path / "ds", rig, sim, sc, seed=3, objects={})
+    sphere = default_objects(rig)["sphere"]
+    folder = simulate_scanner_dataset(tmp_path / "ds", rig, sim, sc, seed=3, objects={"sphere": sphere})
     read = calibrate_conventional(folder)
     sr = ScannerRig(rig, sim, sc, seed=3)
     lcd = VirtualRig(replace(rig, projector=None, height=None), sim, 3)
@@ -182,6 +184,22 @@ def test_a_dataset_folder_calibrates_as_its_frames_rendered_on_demand(tmp_path):
     for a, b in ((read.camera_fit, rendered.camera_fit), (read.projector_fit, rendered.projector_fit)):
         np.testing.assert_array_equal(a.param_values, b.param_values)
     assert read.provenance == rendered.provenance
+    # a caller that decoded the height sweep already (x and y) passes it in: the same calibration
+    from ptpcore.io.dataset import DatasetSource
+
+    h_source = DatasetSource(folder, rig=rig.height_rig())
+    again = calibrate_conventional(folder, decoded=decode_projector(h_source, directions=("x", "y")))
+    np.testing.assert_array_equal(again.projector_fit.param_values, read.projector_fit.param_values)
+    with pytest.raises(ValueError, match="without v_p"):
+        calibrate_conventional(folder, decoded=decode_projector(h_source))
+    # the scan folder's cloud: its decoded u_p through points_from_up, each point with |dP/du_p| sigma_u
+    (cloud,) = reconstruct_conventional(folder / "scans" / "sphere", read)
+    noise = NoiseModel(*read.provenance["camera_noise"], source="height sweep")
+    dec = decode_projector(ScanSource(sr, sphere), noise=noise)
+    assert cloud.x.size == np.count_nonzero(np.isfinite(dec.u[0])) > 20
+    p = read.points_from_up(cloud.col, cloud.row, dec.u[0][cloud.row, cloud.col])
+    np.testing.assert_array_equal(np.stack([cloud.x, cloud.y, cloud.z], axis=1), p)
+    assert np.all(cloud.sigma_z > 0) and np.all(np.isfinite(cloud.sigma_x))
 
 
 def test_plate_heights_on_the_lcd_readings_use_its_decode_alone():
@@ -211,3 +229,34 @@ def test_plate_points_from_the_camera_model_when_heights_are_off_the_lcd():
     assert cal.n_projector_points == 4 * cal.provenance["n_feature_pixels"]
     ratio = cal.rms_projector_px / cal.provenance["projector_sigma_rms_px"]
     assert 0.7 <= ratio <= 1.4, ratio
+
+
+class _PlainSource:
+    """A frame source with nothing but ``rig`` and ``frames`` (decode_projector filters its frames)."""
+
+    def __init__(self, source):
+        self.rig, self.frames = source.rig, source.frames
+
+
+def test_decode_projector_reads_the_directions_asked_for():
+    """x alone by default (the height map's decode, whatever else the sweep shows; a plain source's other
+    frames are skipped alike); x and y: v_p against the simulator's truth within its predicted sigma
+    (issue 34's band); y from a sweep without it: a ConfigError naming the key."""
+    rig, sim, sc = scanner_preset("scanner-mild", 64, heights=3)
+    sr = ScannerRig(rig, sim, sc, seed=1)
+    a = decode_projector(HeightSweepSource(sr))
+    b = decode_projector(_PlainSource(HeightSweepSource(sr)))
+    np.testing.assert_array_equal(a.u, b.u)
+    assert a.v is None and b.v is None
+    both = decode_projector(HeightSweepSource(sr), directions=("x", "y"))
+    assert np.array_equal(np.isfinite(both.u), np.isfinite(both.v)) and np.isfinite(both.v).mean() > 0.5
+    o, d = sr.pixel_rays()
+    v_true = np.stack([sr.project(sr.plate_point(o, d, k))[1] for k in range(3)])
+    ok = np.isfinite(both.v)
+    normalised = (both.v[ok] - v_true[ok]) / both.sigma_v[ok]
+    assert 0.7 <= np.sqrt(np.mean(normalised ** 2)) <= 1.4
+    spilled = decode_projector(HeightSweepSource(sr), directions=("x", "y"), spill=True)  # a big sensor's path
+    for name in ("u", "v", "sigma_u", "sigma_v"):
+        np.testing.assert_array_equal(getattr(spilled, name), getattr(both, name))
+    with pytest.raises(ConfigError, match=r"projector\.directions"):
+        decode_projector(HeightSweepSource(sr, ("x",)), directions=("x", "y"))
