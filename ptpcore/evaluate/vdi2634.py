@@ -709,15 +709,14 @@ def evaluate_acceptance(scans, *, mpe_mm: dict | None = None, leave_out: float =
         if not common.any():
             counts = ", ".join(f"{k} {v}" for k, v in sp.counts.items())
             raise ValueError(f"{sp.scan_dir}: no pixel where every method gives a point ({counts})")
-        exact = None
+        figs = [pose_figures(sp.points[m][common], art, pose=sp.name, method=m, leave_out=leave_out)
+                for m in methods]  # first: a pose with too few points is named with its method
         if sp.truth_xyz is not None:  # the figures of the exact points of the same pixels: the fits' floor
-            exact = pose_figures(sp.truth_xyz[common], art, pose=sp.name, method="exact", leave_out=leave_out).figures
-        for m in methods:
-            fig = pose_figures(sp.points[m][common], art, pose=sp.name, method=m, leave_out=leave_out)
-            if sp.truth_xyz is not None:
+            exact = pose_figures(sp.truth_xyz[common], art, pose=sp.name, method="exact", leave_out=leave_out)
+            for m, fig in zip(methods, figs):
                 fig.truth = truth_figures(sp.points[m][common], sp.truth_xyz[common], sp.truth_object, fig)
-                fig.truth["exact_points_figures_mm"] = exact
-            poses.append(fig)
+                fig.truth["exact_points_figures_mm"] = exact.figures
+        poses += figs
         if sp.truth_xyz is not None:
             truth_pts.append(sp.truth_xyz[common])
             for m in methods:
