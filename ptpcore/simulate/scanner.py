@@ -675,7 +675,8 @@ def acceptance_objects(sr: ScannerRig) -> dict:
       the eight corners of a box inset from the volume (centres low and high in Z) and twice in the
       middle (low and high);
     - ``ballbar-01`` .. ``ballbar-07``: two balls of diameter 0.1 ``L0`` whose centres are 0.5 ``L0``
-      apart (the guideline: at least 0.3), along the volume's four space diagonals, its X and Y axes
+      apart (the guideline: at least 0.3; less where the volume is too narrow for both balls to be
+      whole in it, never under 0.3 ``L0``), along the volume's four space diagonals, its X and Y axes
       and one diagonal of its XY face, all through the volume's centre;
     - ``plane-01`` .. ``plane-06``: a square plane of side 0.5 ``L0`` tilted 15 degrees about X, Y
       and both XY diagonals, both ways about each of X and Y, at two heights.
@@ -708,7 +709,11 @@ def acceptance_objects(sr: ScannerRig) -> dict:
     dirs += [np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([span[0], -span[1], 0.0])]
     for i, d in enumerate(dirs):
         d = d / np.linalg.norm(d)
-        a, b = np.array([c[0], c[1], zc]) - half * d, np.array([c[0], c[1], zc]) + half * d
+        # both balls whole inside the volume's X, Y (a bar along Y is shorter than 0.5 L0 when the
+        # volume is narrower in Y): at least the guideline's 0.3 L0 apart
+        room = min((span[k] / 2 - rb) / abs(d[k]) for k in (0, 1) if abs(d[k]) > 1e-12)
+        h = max(min(half, room), 0.15 * l0)
+        a, b = np.array([c[0], c[1], zc]) - h * d, np.array([c[0], c[1], zc]) + h * d
         out[f"ballbar-{i + 1:02d}"] = ScanObject("ballbar", (tuple(map(float, a)), tuple(map(float, b))), rb)
     tilt = np.radians(15.0)  # side 0.5 L0 (rounded up to 0.1 mm): the guideline's least length
     axes = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1)]
