@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .scanner import VDI_LEAVE_OUT
-from .statistics import DistanceCurve, ErrorStats, _curve, _jsonable, error_stats
+from .statistics import ErrorStats, _curve, _jsonable, error_stats
 
 __all__ = ["ACCEPTANCE_FORMAT", "FIGURES", "FIGURE_OF_KIND", "SphereFit", "PlaneFit", "fit_sphere", "fit_plane",
            "left_out_count", "split_ball_bar", "Artefact", "PoseFigures", "pose_figures", "truth_figures",

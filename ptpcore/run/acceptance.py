@@ -124,7 +124,8 @@ def reconstruct_scans(scans, lut, *, conventional=None, options: DecodeOptions =
         points = {"ptp": np.stack([view.x[rows, cols], view.y[rows, cols], view.z[rows, cols]], axis=1)}
         if conventional is not None:
             points["conventional"] = _conventional_points(conventional, cols, rows, u)
-        counts = {"decoded": int(rows.size), **{m: int(np.all(np.isfinite(p), axis=1).sum()) for m, p in points.items()}}
+        counts = {"decoded": int(rows.size),
+                  **{m: int(np.all(np.isfinite(p), axis=1).sum()) for m, p in points.items()}}
         sp = ScanPoints(folder.name, folder, rows.astype(np.int64), cols.astype(np.int64), u, points, counts=counts)
         _attach_truth(sp)
         out.append(sp)

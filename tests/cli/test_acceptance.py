@@ -1,6 +1,7 @@
 """``ptp acceptance``: VDI/VDE 2634-2 figures of both scanner calibrations, the report, the page, bad input.
 
-Fast tier: a 128 x 96 mild scanner (smaller, the decoder's 3 px border around each ball leaves a ball bar too few points), its height map fitted to a decoded sweep and an exact XY LUT (as
+Fast tier: a 128 x 96 mild scanner (at 96 px the decoder's 3 px border around each ball leaves a ball
+bar too few points), its height map fitted to a decoded sweep and an exact XY LUT (as
 tests/scanner/test_reconstruct.py), three acceptance poses on disk. The conventional calibration
 is replaced by an exact one (the simulator's own ray-plate geometry: what a perfect pinhole pair
 would give from the same decoded ``u_p``), so what is tested is the command's wiring: both methods on
