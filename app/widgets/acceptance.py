@@ -91,7 +91,7 @@ class AcceptancePanel(QGroupBox):
         grid.addWidget(QLabel("Scans"), 0, 0)
         grid.addLayout(row, 0, 1)
         self.mpe = QLineEdit()
-        self.mpe.setPlaceholderText("e.g. PF=0.05,PS=0.03,SD=0.08,F=0.06 (mm, or 12um)")
+        self.mpe.setPlaceholderText("e.g. PF=0.05,PS=0.03,SD=0.08,F=0.06 (mm, or 12µm)")
         self.mpe.setToolTip("Maximum permissible errors the maker states: any of PF, PS, SD, F")
         grid.addWidget(QLabel("MPE"), 1, 0)
         grid.addWidget(self.mpe, 1, 1)

@@ -914,7 +914,7 @@ def _add_acceptance(sub) -> None:
     a.add_argument("--out", required=True, metavar="REPORT.json")
     a.add_argument("--png", metavar="PAGE.png", help="the page of plots (default: REPORT.png beside the report)")
     a.add_argument("--mpe", metavar="PF=..,PS=..,SD=..,F=..",
-                   help="maximum permissible errors in mm (or with the unit um), any of PF, PS, SD, F")
+                   help="maximum permissible errors in mm (or µm with the unit, e.g. 12µm), any of PF, PS, SD, F")
     a.add_argument("--no-conventional", dest="conventional", action="store_false",
                    help="PTP only (no conventional camera-projector calibration)")
     a.add_argument("--seed", type=seed, default=0, help="seed of the 3D distance-error pairs (default 0)")

@@ -442,7 +442,7 @@ def truth_figures(points, true_points, obj, fig: PoseFigures) -> dict:
     return out
 
 
-_MPE_RE = re.compile(r"^\s*([A-Za-z]+)\s*=\s*([^,]*?)\s*(um|µm|mm)?\s*$")
+_MPE_RE = re.compile(r"^\s*([A-Za-z]+)\s*=\s*([^,]*?)\s*([uµ]m|mm)?\s*$")  # µm typed as um too
 
 
 def parse_mpe(text: str | None) -> dict:
@@ -459,7 +459,8 @@ def parse_mpe(text: str | None) -> dict:
     for part in text.split(","):
         m = _MPE_RE.match(part)
         if not m:
-            raise ValueError(f"--mpe: {part.strip()!r} is not KEY=VALUE (keys {', '.join(FIGURES)}; mm, or um)")
+            raise ValueError(f"--mpe: {part.strip()!r} is not KEY=VALUE (keys {', '.join(FIGURES)};"
+                             " mm, or µm with the unit)")
         key, value, unit = m.group(1).upper(), m.group(2), m.group(3)
         if key not in FIGURES:
             raise ValueError(f"--mpe: unknown key {m.group(1)!r} (keys {', '.join(FIGURES)})")
@@ -468,7 +469,7 @@ def parse_mpe(text: str | None) -> dict:
         try:
             v = float(value)
         except ValueError:
-            raise ValueError(f"--mpe: {key} value {value!r} is not a number (mm, or um with the unit)") from None
+            raise ValueError(f"--mpe: {key} value {value!r} is not a number (mm, or µm with the unit)") from None
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"--mpe: {key} value {value!r} must be a positive length")
         out[key] = v * 1e-3 if unit in ("um", "µm") else v
