@@ -33,6 +33,8 @@ __all__ = ["AcceptancePanel", "scan_folders"]
 
 FIGURE_WORDS = {"PF": "PF, probing error form", "PS": "PS, probing error size", "SD": "SD, sphere spacing",
                 "F": "F, flatness"}
+METHOD_TITLES = {"ptp": "PTP (per pixel)", "conventional": "Conventional (two pinholes)"}
+"""Column titles of the report's methods (its keys stay as the JSON has them)."""
 
 
 def scan_folders(text: str) -> list[Path]:
@@ -184,7 +186,7 @@ class AcceptancePanel(QGroupBox):
         report, counts, page = result
         self.report, self.page, self._counts = report, page, counts
         self.table.setColumnCount(len(report.methods))
-        self.table.setHorizontalHeaderLabels(list(report.methods))
+        self.table.setHorizontalHeaderLabels([METHOD_TITLES.get(m, m) for m in report.methods])
         for j, m in enumerate(report.methods):
             big, verdicts = report.largest(m), report.verdicts(m)
             for i, k in enumerate(FIGURES):

@@ -68,6 +68,8 @@ def test_the_panel_runs_shows_and_saves(scanner, qtbot, tmp_path, monkeypatch):
     assert run_job(qtbot, panel.run()) == "finished"
     rep = panel.report
     assert rep.methods == ("ptp", "conventional") and len(rep.poses) == 2 * len(POSES)
+    titles = [panel.table.horizontalHeaderItem(j).text() for j in range(2)]
+    assert titles == ["PTP (per pixel)", "Conventional (two pinholes)"]
     for i, key in enumerate(FIGURES):
         cells = [panel.table.item(i, j).text() for j in range(2)]
         assert cells[0] == cells[1]  # the stand-in is PTP itself: the same figures
