@@ -14,27 +14,13 @@ import pytest
 from ptpcore.cli.main import main
 from ptpcore.evaluate.scanner import VDI_LEAVE_OUT, scan_accuracy
 from ptpcore.fit.height import fit_height_map
-from ptpcore.io.lutfile import Lut, load_lut, save_lut
+from ptpcore.io.lutfile import load_lut, save_lut
 from ptpcore.rig.rigfile import load_scan, scan_to_toml
 from ptpcore.run.scanner import decode_projector, reconstruct
-from ptpcore.simulate.scanner import (HeightSweepSource, ScannerRig, default_objects, load_scan_truth,
+from ptpcore.simulate.scanner import (HeightSweepSource, ScannerRig, default_objects, exact_lut, load_scan_truth,
                                       scanner_preset, simulate_scan)
 
 NORMALISED = (0.7, 1.4)  # issue 34: RMS of distance / sigma along the normal
-
-
-def _exact_lut(sr, hm) -> Lut:
-    """A degree-1 LUT of the camera's true rays over the sweep's heights, sigma 0, with ``hm``."""
-    o, d = sr.pixel_rays()
-    sx, sy = d[..., 0] / d[..., 2], d[..., 1] / d[..., 2]
-    x0, y0 = o[..., 0] - o[..., 2] * sx, o[..., 1] - o[..., 2] * sy
-    z0, z1 = min(sr.rig.height.z_mm), max(sr.rig.height.z_mm)
-    zc, zs = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
-    h, w = sx.shape
-    zero = np.zeros((h, w), np.float32)
-    return Lut("poly", 1, zc, zs, z0, z1, np.stack([x0 + sx * zc, sx * zs]), np.stack([y0 + sy * zc, sy * zs]), None,
-               np.ones((h, w), bool), np.full((h, w), 11, np.uint16), np.full((h, w), z0, np.float32),
-               np.full((h, w), z1, np.float32), zero, zero, zero, zero, sigma_x=zero, sigma_y=zero, height=hm)
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +32,7 @@ def scanner(tmp_path_factory):
     dec = decode_projector(HeightSweepSource(sr))
     hm = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, design=rig.projector.design_attrs)
     hm.camera_noise = (dec.noise.read_var, dec.noise.gain)  # as calibrate_height keeps it
-    lut = _exact_lut(sr, hm)
+    lut = exact_lut(sr, hm)
     save_lut(lut, folder / "scanner.lut.h5")
     for i, (name, obj) in enumerate(default_objects(rig).items()):
         simulate_scan(folder / name, sr, obj, i)
@@ -96,7 +82,7 @@ def test_outside_the_height_range_is_flagged_never_extrapolated(scanner, tmp_pat
     low = np.flatnonzero(dec.z_mm <= 20.0)
     half = fit_height_map(dec.u, dec.sigma_u, dec.z_mm, degree=1, positions=low,
                           design=sr.rig.projector.design_attrs)
-    lut_half = _exact_lut(sr, half)
+    lut_half = exact_lut(sr, half)
     res = reconstruct(folder / "plane", lut_half)[0]
     assert res.cloud.n_out_of_height_range > 100
     # the range is the calibrated u_p's: its edge reads 20 mm to within the samples' noise there
