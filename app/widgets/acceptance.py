@@ -24,36 +24,17 @@ from ptpcore.atomic import write_text_atomic
 from ptpcore.evaluate.acceptance_png import acceptance_page
 from ptpcore.evaluate.pngtext import write_png
 from ptpcore.evaluate.vdi2634 import FIGURES, evaluate_acceptance, parse_mpe
-from ptpcore.run.acceptance import conventional_calibration, reconstruct_scans
+from ptpcore.run.acceptance import conventional_calibration, reconstruct_scans, scan_folders
 
 from ..worker import Job
 from .jobpanel import JobPanel
 
-__all__ = ["AcceptancePanel", "scan_folders"]
+__all__ = ["AcceptancePanel"]
 
 FIGURE_WORDS = {"PF": "PF, probing error form", "PS": "PS, probing error size", "SD": "SD, sphere spacing",
                 "F": "F, flatness"}
 METHOD_TITLES = {"ptp": "PTP (per pixel)", "conventional": "Conventional (two pinholes)"}
 """Column titles of the report's methods (its keys stay as the JSON has them)."""
-
-
-def scan_folders(text: str) -> list[Path]:
-    """A scan folder, or a folder of them (every sub-folder with ``scan.toml``, by name).
-
-    Raises
-    ------
-    ValueError
-        Not a folder, or no scan in it.
-    """
-    folder = Path(text)
-    if not folder.is_dir():
-        raise ValueError(f"{folder}: not a folder")
-    if (folder / "scan.toml").is_file():
-        return [folder]
-    inner = sorted(p for p in folder.iterdir() if (p / "scan.toml").is_file())
-    if not inner:
-        raise ValueError(f"{folder}: no scan.toml in it or in its sub-folders")
-    return inner
 
 
 class AcceptancePanel(QGroupBox):
@@ -156,7 +137,7 @@ class AcceptancePanel(QGroupBox):
             return None
         try:
             mpe = parse_mpe(self.mpe.text())
-            scans = scan_folders(self.scans.text().strip()) if self.scans.text().strip() else None
+            scans = scan_folders([self.scans.text().strip()]) if self.scans.text().strip() else None
         except ValueError as exc:
             self.jobs.show_error(str(exc))
             return None

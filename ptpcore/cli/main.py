@@ -426,7 +426,6 @@ def cmd_apply(args) -> int:
 
 def cmd_reconstruct(args) -> int:
     """``ptp reconstruct SCAN_DIR --lut F.lut.h5 --out cloud.ply``: the scanner's point cloud."""
-    from ptpcore.io.lutfile import load_lut
     from ptpcore.io.pointcloud import POINT_CLOUD_SUFFIXES, write_point_cloud
     from ptpcore.run.scanner import reconstruct
 
@@ -434,10 +433,7 @@ def cmd_reconstruct(args) -> int:
     if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
         raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
     check_output_file(out, "points", force=args.force, inputs=[args.lut, args.scan_dir])
-    lut = load_lut(args.lut)
-    if lut.height is None:
-        raise ValueError(f"{args.lut}: the LUT has no height map (/height); calibrate a dataset with a height"
-                         " sweep ([projector] and [height] in rig.toml)")
+    lut = _load_scanner_lut(args.lut)
     bar = progress_bar(args)
     try:
         views = reconstruct(args.scan_dir, lut, progress=bar)
@@ -453,6 +449,17 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _load_scanner_lut(path):
+    """A LUT with the scanner's height map (``ptp reconstruct``, ``ptp acceptance``); else one clear error."""
+    from ptpcore.io.lutfile import load_lut
+
+    lut = load_lut(path)
+    if lut.height is None:
+        raise ValueError(f"{path}: the LUT has no height map (/height); calibrate a dataset with a height"
+                         " sweep ([projector] and [height] in rig.toml)")
+    return lut
+
+
 def cmd_acceptance(args) -> int:
     """``ptp acceptance DATASET SCANS... --lut F.lut.h5 --out REPORT.json``: VDI/VDE 2634-2 on both
     scanner calibrations (the LUT's height map, the conventional camera-projector pinholes)."""
@@ -461,7 +468,6 @@ def cmd_acceptance(args) -> int:
     from ptpcore.atomic import write_text_atomic
     from ptpcore.evaluate.acceptance_png import acceptance_png
     from ptpcore.evaluate.vdi2634 import evaluate_acceptance, format_acceptance, parse_mpe
-    from ptpcore.io.lutfile import load_lut
     from ptpcore.run.acceptance import conventional_calibration, reconstruct_scans
 
     mpe = parse_mpe(args.mpe)
@@ -472,10 +478,7 @@ def cmd_acceptance(args) -> int:
     check_output_file(png, "png", force=args.force, inputs=inputs)
     if png.resolve() == Path(args.out).resolve():
         raise OutputError(f"{png}: --png and --out name the same file")
-    lut = load_lut(args.lut)
-    if lut.height is None:
-        raise ValueError(f"{args.lut}: the LUT has no height map (/height); calibrate a dataset with a height"
-                         " sweep ([projector] and [height] in rig.toml)")
+    lut = _load_scanner_lut(args.lut)
     bar = progress_bar(args)
     try:
         conventional = None
@@ -503,23 +506,13 @@ def cmd_acceptance(args) -> int:
 
 
 def _acceptance_scans(args_scans) -> list[Path]:
-    """SCANS: scan folders (``scan.toml``), or folders of them (every sub-folder with a ``scan.toml``,
-    sorted by name), in the order given."""
-    out = []
-    for text in args_scans:
-        folder = Path(text)
-        if not folder.is_dir():
-            raise ValueError(f"{folder}: not a folder (a ptp-scan/1 folder, or a folder of them)")
-        if (folder / "scan.toml").exists():
-            out.append(folder)
-            continue
-        inner = sorted(p for p in folder.iterdir() if (p / "scan.toml").exists())
-        if not inner:
-            raise ValueError(f"{folder}: no scan.toml in it or in its sub-folders")
-        out += inner
+    """SCANS: scan folders (``scan.toml``), or folders of them, in the order given; each names its
+    artefact (``artefact.toml``) or has the simulator's truth."""
     from ptpcore.evaluate.vdi2634 import ARTEFACT_FILE, scan_artefact
+    from ptpcore.run.acceptance import scan_folders
     from ptpcore.simulate.scanner import SCAN_TRUTH_FILE
 
+    out = scan_folders(args_scans)
     for folder in out:  # which artefact each scan shows, before any decoding
         if (folder / ARTEFACT_FILE).exists():
             scan_artefact(folder)

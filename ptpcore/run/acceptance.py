@@ -23,7 +23,7 @@ import numpy as np
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.errors import ConfigError
 
-__all__ = ["ACCEPTANCE_METHODS", "ScanPoints", "conventional_calibration", "reconstruct_scans"]
+__all__ = ["ACCEPTANCE_METHODS", "ScanPoints", "scan_folders", "conventional_calibration", "reconstruct_scans"]
 
 ACCEPTANCE_METHODS = ("ptp", "conventional")
 Progress = Callable[[float, str], None]
@@ -68,6 +68,30 @@ class ScanPoints:
         for p in self.points.values():
             ok &= np.all(np.isfinite(p), axis=1)
         return ok
+
+
+def scan_folders(paths) -> list[Path]:
+    """The scans named by ``paths``: each a scan folder (``scan.toml``) or a folder of them (every
+    sub-folder with a ``scan.toml``, sorted by name), in the order given.
+
+    Raises
+    ------
+    ValueError
+        A path that is not a folder, or a folder with no scan in it or under it (named).
+    """
+    out = []
+    for text in paths:
+        folder = Path(text)
+        if not folder.is_dir():
+            raise ValueError(f"{folder}: not a folder (a ptp-scan/1 folder, or a folder of them)")
+        if (folder / "scan.toml").is_file():
+            out.append(folder)
+            continue
+        inner = sorted(p for p in folder.iterdir() if (p / "scan.toml").is_file())
+        if not inner:
+            raise ValueError(f"{folder}: no scan.toml in it or in its sub-folders")
+        out += inner
+    return out
 
 
 def conventional_calibration(dataset_dir, progress: Progress | None = None):
