@@ -90,7 +90,7 @@ def symmetric_rig():
     lens = replace(s.lens, principal_offset_px=(0.0, 0.0), dist=(s.lens.dist[0], s.lens.dist[1], 0.0, 0.0,
                                                                   s.lens.dist[4]))
     rig = replace(rig, stage=replace(rig.stage, direction=(0.0, 0.0, 1.0)),
-                  fringes=replace(rig.fringes, carrier=(1.5, 1.5)),
+                  fringes=replace(rig.fringes, carrier_px_per_mm=(1.5, 1.5)),
                   lcd=replace(rig.lcd, cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX))
     s = replace(s, name="symmetric", lens=lens, tilt_deg=(0.0, 0.0, 0.0), offset_mm=(0.0, 0.0),
                 skew=(0.0, 0.0), cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX)

@@ -79,4 +79,5 @@ def _add_poly_model_part(lut: Lut, samples: SampleStack, rig: Rig, positions, st
                   + MODEL_MAP_WORDS + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in info["scale_px"].items()}, "rms_um": round(1e3 * rms, 6),
         "resolved_limit_um": {a: round(1e3 * v, 6) for a, v in info["resolved_limit_mm"].items()},
-        "n_samples": info["n_samples"], "spatial": MODEL_MAP_SPATIAL})
+        "n_samples": info["n_samples"],
+        "spatial": MODEL_MAP_SPATIAL and any(np.isfinite(v) for v in info["scale_px"].values())})

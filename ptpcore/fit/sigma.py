@@ -217,24 +217,28 @@ def add_stage_pose_sigma(lut, samples: SampleStack, rig, pose_sigma: np.ndarray,
 # ---- the model's own error, mapped over the image --------------------------------------------
 
 MODEL_MAP_SCALES_PX = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
-"""Candidate Gaussian scales (px) of the model-error map; cross-validation picks one per axis."""
+"""Candidate Gaussian scales (px) of the model-error map; a split-half cross-validation picks one per axis."""
 
-MODEL_MAP_SPATIAL = False
-"""Whether :func:`model_variance_map` shares the model variance out over the image (True) or keeps it
-uniform at the image-wide level (False, the default). Measured on issue 30's harness (half A, reduced,
-one draw each): the spatial map, with or without the shrinkage, made the lowest decile of predicted
-sigma worse than the uniform level (realistic x: RMS(z) 4.4 against 0.75; ripple x: 1.62 against
-1.34): where the leave-one-out excess maps near 0 the smooth LUT still errs (0.28 um on realistic),
-so the excess does not see all of the LUT's error there. Until it does, the level is the honest map."""
+MODEL_MAP_SPATIAL = True
+"""Whether :func:`model_variance_map` maps the model variance over the image (True, the default, when
+the fit gives the excess split by the parity of the held-out position) or keeps the image-wide level
+everywhere (False). Issue 30's diagnosis (``python -m benchmarks.trust_excess``): the held-out excess
+sees the LUT's error well (without image noise its map follows the error at 0.99 correlation), but
+with noise the map's own error, about 0.1 um^2 at its best scale on the realistic preset at 640 px,
+is as large as the smallest model variances: a map floored at 0 then predicts almost nothing where
+the LUT still errs, and a uniform level cannot follow an error that varies 3x over the image. The
+map is therefore each pixel's posterior mean of the model variance given its noisy estimate."""
 
-MODEL_MAP_WORDS = ("mapped by Gaussian kernel regression at a cross-validated scale, shrunk toward and scaled to"
-                   " the image-wide mean excess" if MODEL_MAP_SPATIAL
+MODEL_MAP_WORDS = ("mapped by Gaussian kernel regression at a scale chosen by split-half cross-validation"
+                   " (held-out positions of odd against even rank), each pixel's value the posterior mean under"
+                   " a log-normal spread of the model variance over the image, the map's own error from the"
+                   " two halves' difference" if MODEL_MAP_SPATIAL
                    else "the image-wide mean excess, uniform over the image") + " (0 unless beyond 2 standard errors)"
 """How :func:`model_variance_map` maps the excess, in words (the LUTs' ``/provenance`` ``model_error``)."""
 
-DECORRELATION_LENGTHS = 3
-"""Pixels nearer than this many correlation lengths are left out of a pixel's cross-validated
-prediction: a Gaussian correlation is below 1.1 % beyond 3 lengths."""
+MAP_BIN_PX = 2
+"""The model-error map is drawn on bins of this many pixels a side (sums kept): its smallest scale
+is 4 px, and the Gaussian blurs' maps at 12 MP would otherwise be 100 MB each."""
 
 
 def correlation_length_px(smoothing_scale_px: float) -> float:
@@ -249,24 +253,150 @@ def _gauss(a: np.ndarray, scale: float) -> np.ndarray:
     return cv2.GaussianBlur(a, (0, 0), scale, borderType=cv2.BORDER_CONSTANT)
 
 
-def _hole_kernel_sum(a: np.ndarray, scale: float, radius: int) -> np.ndarray:
-    """``a`` convolved with the Gaussian of ``scale`` restricted to ``|d| <= radius`` (unnormalised
-    like :func:`_gauss`: the same weights), for taking a pixel's neighbourhood out of its prediction."""
+def _binned(a: np.ndarray, b: int) -> np.ndarray:
+    """Sums of ``a`` (H, W) over ``b x b`` bins (the last bins padded with zeros), float64."""
+    h, w = a.shape
+    hp, wp = -(-h // b) * b, -(-w // b) * b
+    p = np.zeros((hp, wp))
+    p[:h, :w] = a
+    return p.reshape(hp // b, b, wp // b, b).sum(axis=(1, 3))
+
+
+def _unbinned(a: np.ndarray, b: int, shape) -> np.ndarray:
+    """A smooth binned map back on the pixels (bilinear, bin centres), ``shape`` (H, W)."""
     import cv2
 
-    r = int(radius)
-    d = np.arange(-r, r + 1, dtype=float)
-    g1 = np.exp(-0.5 * (d / scale) ** 2)
-    k = max(int(2 * np.ceil(4 * scale) + 1), 2 * r + 1)  # cv2's kernel for float64: 8 sigma + 1 wide
-    full = np.exp(-0.5 * (np.arange(-(k // 2), k // 2 + 1) / scale) ** 2)
-    g1 = g1 / full.sum()
-    disc = (d[:, None] ** 2 + d[None, :] ** 2) <= r * r
-    kernel = np.outer(g1, g1) * disc
-    return cv2.filter2D(a, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+    h, w = shape
+    up = cv2.resize(a, (a.shape[1] * b, a.shape[0] * b), interpolation=cv2.INTER_LINEAR)
+    return up[:h, :w]
 
 
-def _uniform_level(e: np.ndarray, n: np.ndarray, excess_sq_sum) -> tuple[np.ndarray, float, dict]:
-    """The image-wide mean of ``x`` everywhere when it is beyond 2 standard errors, else 0."""
+def _local_mean(s_sum: np.ndarray, s_n: np.ndarray, scale: float) -> np.ndarray:
+    """Gaussian kernel regression ``G * sum / G * n`` (0 where no count reaches)."""
+    den = _gauss(s_n, scale)
+    return np.where(den > 1e-12, _gauss(s_sum, scale) / np.maximum(den, 1e-300), 0.0)
+
+
+def _split_half_scale(halves, scales) -> tuple[float, dict]:
+    """The kernel scale (in bins) whose map from one half of the held-out positions best predicts the
+    other half's per-bin mean (both ways, count-weighted): the halves' noise is independent, so no
+    neighbourhood has to be left out and the smallest scales can win where the data resolve them."""
+    (e_even, n_even), (e_odd, n_odd) = halves
+    cv = {}
+    for s in scales:
+        err, wsum = 0.0, 0.0
+        for (e_a, n_a), (e_b, n_b) in (((e_even, n_even), (e_odd, n_odd)), ((e_odd, n_odd), (e_even, n_even))):
+            pred = _local_mean(e_a, n_a, s)
+            have = n_b > 0
+            err += float(np.sum(n_b[have] * (e_b[have] / n_b[have] - pred[have]) ** 2))
+            wsum += float(n_b[have].sum())
+        cv[float(s)] = err / wsum if wsum > 0 else float("inf")
+    return min(cv, key=cv.get), cv
+
+
+def _lognormal_posterior_mean(m: np.ndarray, se: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Each value's posterior mean of ``b2 >= 0`` given ``m ~ N(b2, se^2)``, under a log-normal spread of
+    ``b2`` with the mean and variance of the values less their noise (moments, weighted).
+
+    Written here because no library gives an empirical-Bayes posterior with a per-value noise: the
+    integral over a log grid of ``b2`` is tabulated on a grid of (``m``, ``se``) and interpolated
+    (scipy), so its cost does not grow with the image.
+    """
+    from scipy.interpolate import RegularGridInterpolator
+
+    mu = float(np.sum(weight * m) / weight.sum())
+    if not mu > 0:
+        return np.full(m.shape, max(mu, 0.0))
+    tau2 = float(np.sum(weight * (m - mu) ** 2) / weight.sum()) - float(np.sum(weight * se * se) / weight.sum())
+    tau2 = max(tau2, 1e-6 * mu * mu)
+    sl2 = float(np.log1p(tau2 / (mu * mu)))
+    ml = float(np.log(mu)) - sl2 / 2.0
+    t = np.exp(ml + np.sqrt(sl2) * np.linspace(-5.0, 5.0, 401))  # the prior on a log grid: equal weights in log t
+    prior = np.exp(-0.5 * np.linspace(-5.0, 5.0, 401) ** 2)
+    m_grid = np.linspace(float(m.min()), float(m.max()), 512)
+    s_grid = np.geomspace(max(float(se.min()), 1e-30), max(float(se.max()), 1e-30) * (1 + 1e-9), 48)
+    table = np.empty((m_grid.size, s_grid.size))
+    for j, sd in enumerate(s_grid):
+        like = np.exp(-0.5 * ((m_grid[:, None] - t[None, :]) / sd) ** 2) * prior
+        table[:, j] = (like @ t) / np.maximum(like.sum(axis=1), 1e-300)
+    look = RegularGridInterpolator((m_grid, s_grid), table, bounds_error=False, fill_value=None)
+    return look(np.stack([m, np.clip(se, s_grid[0], s_grid[-1])], axis=-1))
+
+
+def _posterior_map(e: np.ndarray, n: np.ndarray, odd: tuple, scales_px) -> tuple[np.ndarray, float, dict]:
+    """The spatial model-variance map (see :func:`model_variance_map`), (H, W) mm^2, its scale (px) and
+    the cross-validation ``{scale px: error}``."""
+    b = MAP_BIN_PX
+    e_odd, n_odd = (np.nan_to_num(np.asarray(v, dtype=np.float64)) for v in odd)
+    halves = [(_binned(e - e_odd, b), _binned(n - n_odd, b)), (_binned(e_odd, b), _binned(n_odd, b))]
+    scale, cv = _split_half_scale(halves, [s / b for s in scales_px])
+    (e0, n0), (e1, n1) = halves
+    g0, g1 = _gauss(n0, scale), _gauss(n1, scale)
+    m = _local_mean(e0 + e1, n0 + n1, scale)
+    # The map's own variance from the halves' difference: Var(m0 - m1) = Var(m0) + Var(m1), and m
+    # (the count-weighted mean of the two) has g0 g1 / (g0 + g1)^2 of it; averaged over 4 scales
+    # (the noise level changes slowly: vignetting, modulation), where one scale's square is noisy.
+    frac = g0 * g1 / np.maximum((g0 + g1) ** 2, 1e-300)
+    d2 = (_local_mean(e0, n0, scale) - _local_mean(e1, n1, scale)) ** 2
+    n_all = n0 + n1
+    se = np.sqrt(np.maximum(_local_mean(d2 * n_all, n_all, 4 * scale) * frac, 0.0))
+    have = (n_all > 0) & (g0 > 1e-12) & (g1 > 1e-12)
+    post = np.zeros_like(m)
+    post[have] = _lognormal_posterior_mean(m[have], se[have], n_all[have])
+    return np.maximum(_unbinned(post, b, e.shape), 0.0), float(scale * b), {float(k * b): v for k, v in cv.items()}
+
+
+def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scale_px: float = 0.0,
+                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None,
+                       odd: tuple | None = None, spatial: bool | None = None) -> tuple[np.ndarray, float, dict]:
+    """The model's own error variance per pixel, from held-out residuals' excess over their noise.
+
+    Per pixel ``p`` the held-out samples give ``x = r^2 - E[noise part of r^2]`` (summed:
+    ``excess_sum``, their number ``count``), whose mean is the model error ``b^2`` there plus zero-mean
+    noise. With ``excess_sq_sum`` the image-wide mean must exceed 2 of its standard errors (the data
+    resolve a model error at all), else the map is 0. Then, with ``odd`` (the same sums over the
+    held-out positions of odd rank among the interior ones) and :data:`MODEL_MAP_SPATIAL`:
+
+    1. ``b^2`` is mapped by Gaussian kernel regression ``G * excess_sum / G * count``, at the scale of
+       :data:`MODEL_MAP_SCALES_PX` whose map from one half of the positions best predicts the other
+       half (the halves' noise is independent: the pixel's own noise cannot predict itself);
+    2. the map's own standard error at each pixel comes from the two halves' maps' difference;
+    3. each pixel's value is the posterior mean of ``b^2`` given its map value and standard error,
+       under a log-normal spread of ``b^2`` over the image whose mean and variance are the map's less
+       its noise. A floor at 0 would put the noisiest low values at nothing where the LUT still errs;
+       the posterior mean is calibrated given the value it is computed from, which is what sigma
+       maps judged per decile of themselves need.
+
+    Without ``odd`` (or with ``spatial`` False) the image-wide level is used everywhere.
+
+    Parameters
+    ----------
+    excess_sum : (H, W) float64, mm^2
+    count : (H, W) int
+    smoothing_scale_px : float
+        The LUT's smoothing scale (kept for the provenance; the split-half validation does not need it).
+    scales_px : sequence of float
+    excess_sq_sum : (H, W) float64, mm^4, optional
+        Per pixel the sum of ``x^2``, for the standard error of the image-wide mean.
+    odd : ((H, W) float64, (H, W) int), optional
+        ``excess_sum`` and ``count`` of the held-out positions of odd rank only.
+    spatial : bool, optional
+        Default :data:`MODEL_MAP_SPATIAL`.
+
+    Returns
+    -------
+    var : (H, W) float64, mm^2 (>= 0; 0 without any held-out sample or when not resolved)
+    scale_px : float
+        The chosen scale (NaN when uniform).
+    info : dict
+        ``cv`` : {scale px: split-half prediction error}, ``mean`` : the image-wide mean of ``x``
+        (mm^2), ``limit`` : 2 standard errors of it (NaN without ``excess_sq_sum``), ``resolved`` : bool,
+        ``spatial`` : bool (whether the map was drawn over the image).
+    """
+    e = np.nan_to_num(np.asarray(excess_sum, dtype=np.float64))
+    n = np.asarray(count, dtype=np.float64)
+    if not (n > 0).any():
+        return np.zeros(e.shape), float("nan"), {"cv": {}, "spatial": False}
     total = float(n.sum())
     level = float(e.sum()) / total
     limit = float("nan")
@@ -274,107 +404,16 @@ def _uniform_level(e: np.ndarray, n: np.ndarray, excess_sq_sum) -> tuple[np.ndar
         spread = max(float(np.nansum(excess_sq_sum)) / total - level * level, 0.0)
         limit = 2.0 * np.sqrt(spread / (total - 1))
     resolved = level > 0 and not limit >= level
-    info = {"cv": {}, "radius_px": 0, "mean": level, "limit": limit, "resolved": bool(resolved)}
-    return np.full(e.shape, level if resolved else 0.0), float("nan"), info
-
-
-def _shrink_to_level(local: np.ndarray, den: np.ndarray, n: np.ndarray, scale: float, level: float,
-                     spread: float, have: np.ndarray) -> np.ndarray:
-    """Empirical-Bayes shrinkage of the kernel map toward the image-wide level.
-
-    The kernel estimate at ``p`` has sampling variance ``se2 = v sum_q G(p-q)^2 n_q / (sum_q G n)^2``
-    (``v`` the per-sample variance of ``x``, ``G^2`` a Gaussian of scale ``s / sqrt(2)`` over
-    ``4 pi s^2``); the true map's spread over the image is ``tau2 = var(local) - mean(se2)``. Each
-    pixel keeps ``tau2 / (tau2 + se2)`` of its departure from the level (James-Stein): where the
-    data resolve the map it stays, where they do not it falls back to the level, not to a noisy 0.
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        se2 = spread * _gauss(n, scale / np.sqrt(2.0)) / (4.0 * np.pi * scale * scale) / (den * den)
-    w = n[have]
-    tau2 = max(float(np.sum(w * (local[have] - level) ** 2) / w.sum()) - float(np.sum(w * se2[have]) / w.sum()), 0.0)
-    keep = np.where(np.isfinite(se2), tau2 / (tau2 + se2), 0.0) if tau2 > 0 else 0.0
-    return level + keep * (local - level)
-
-
-def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scale_px: float = 0.0,
-                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None,
-                       shrink: bool = True, spatial: bool | None = None) -> tuple[np.ndarray, float, dict]:
-    """The model's own error variance per pixel, from held-out residuals' excess over their noise.
-
-    Per pixel ``p`` the held-out samples give ``x = r^2 - E[noise part of r^2]`` (summed:
-    ``excess_sum``, their number ``count``), whose mean is the model error ``b^2`` there plus zero-mean
-    noise. ``b^2`` is mapped by Gaussian kernel regression ``G * excess_sum / G * count`` at a scale
-    chosen by cross-validation: each pixel's ``x`` is predicted from the pixels farther than
-    :data:`DECORRELATION_LENGTHS` correlation lengths (:func:`correlation_length_px`), so that the
-    pixel's own noise and its correlated neighbours' do not predict it, and the scale with the
-    smallest count-weighted squared prediction error wins. The map is floored at 0 (a variance), and
-    then scaled so that its count-weighted mean is the image-wide mean of ``x`` (unbiased, where the
-    floor alone would bias a noisy map up): the data set the level, the map only shares it out. With
-    ``excess_sq_sum`` the image-wide mean must exceed 2 of its standard errors (the data resolve a
-    model error at all), else the map is 0.
-
-    Parameters
-    ----------
-    excess_sum : (H, W) float64, mm^2
-    count : (H, W) int
-    smoothing_scale_px : float
-        The LUT's smoothing scale (its noise's correlation), 0 for a per-pixel model.
-    scales_px : sequence of float
-    excess_sq_sum : (H, W) float64, mm^4, optional
-        Per pixel the sum of ``x^2``, for the standard error of the image-wide mean.
-    shrink : bool
-        Shrink the kernel map toward the level by its standard error (:func:`_shrink_to_level`).
-    spatial : bool, optional
-        Map over the image (default :data:`MODEL_MAP_SPATIAL`); False: the level everywhere (no
-        cross-validation, ``scale_px`` NaN).
-
-    Returns
-    -------
-    var : (H, W) float64, mm^2 (>= 0; 0 without any held-out sample or when not resolved)
-    scale_px : float
-        The chosen scale (NaN without samples).
-    info : dict
-        ``cv`` : {scale: prediction error}, ``radius_px`` : the left-out radius, ``mean`` : the
-        image-wide mean of ``x`` (mm^2), ``limit`` : 2 standard errors of it (NaN without
-        ``excess_sq_sum``), ``resolved`` : bool.
-    """
-    e = np.nan_to_num(np.asarray(excess_sum, dtype=np.float64))
-    n = np.asarray(count, dtype=np.float64)
-    have = n > 0
-    if not have.any():
-        return np.zeros(e.shape), float("nan"), {"cv": {}, "radius_px": 0}
-    if not (MODEL_MAP_SPATIAL if spatial is None else spatial):
-        return _uniform_level(e, n, excess_sq_sum)
-    radius = int(np.ceil(DECORRELATION_LENGTHS * correlation_length_px(smoothing_scale_px)))
-    mean_x = np.where(have, e / np.maximum(n, 1), 0.0)
-    cv = {}
-    for s in scales_px:
-        num = _gauss(e, s) - _hole_kernel_sum(e, s, radius)
-        den = _gauss(n, s) - _hole_kernel_sum(n, s, radius)
-        ok = have & (den > 1e-6 * n.sum() / n.size)  # a prediction that rests on some held-out data
-        if ok.sum() < 0.5 * have.sum():
-            continue
-        pred = num[ok] / den[ok]
-        cv[float(s)] = float(np.sum(n[ok] * (mean_x[ok] - pred) ** 2) / n[ok].sum())
-    scale = min(cv, key=cv.get) if cv else float(max(scales_px))
-    total = float(n.sum())
-    level = float(e.sum()) / total
-    limit, spread = float("nan"), 0.0
-    if excess_sq_sum is not None and total > 1:
-        spread = max(float(np.nansum(excess_sq_sum)) / total - level * level, 0.0)
-        limit = 2.0 * np.sqrt(spread / (total - 1))
-    resolved = level > 0 and not limit >= level
-    info = {"cv": cv, "radius_px": radius, "mean": level, "limit": limit, "resolved": bool(resolved)}
+    info = {"cv": {}, "mean": level, "limit": limit, "resolved": bool(resolved), "spatial": False}
     if not resolved:
-        return np.zeros(e.shape), float(scale), info
-    with np.errstate(invalid="ignore", divide="ignore"):
-        den = _gauss(n, scale)
-        var = np.nan_to_num(np.where(den > 0, _gauss(e, scale) / den, 0.0))
-        if shrink and excess_sq_sum is not None:
-            var = _shrink_to_level(var, den, n, scale, level, spread, have)
-    var = np.maximum(var, 0.0)
-    mean_map = float(np.sum(var * n)) / total
-    return (var * (level / mean_map) if mean_map > 0 else np.full(e.shape, level)), float(scale), info
+        return np.zeros(e.shape), float("nan"), info
+    n_odd = None if odd is None else np.asarray(odd[1], dtype=np.float64)
+    halves = n_odd is not None and (n_odd > 0).any() and ((n - n_odd) > 0).any()
+    if not ((MODEL_MAP_SPATIAL if spatial is None else spatial) and halves):
+        return np.full(e.shape, level), float("nan"), info
+    var, scale, info["cv"] = _posterior_map(e, n, odd, scales_px)
+    info["spatial"] = True
+    return var, scale, info
 
 
 def sigma_parts(lut, axis: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:

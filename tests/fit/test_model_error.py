@@ -15,41 +15,78 @@ def _excess(rng, b2, n, noise_var=1.0, squares=False):
     return (x.sum(axis=0), (x * x).sum(axis=0)) if squares else x.sum(axis=0)
 
 
-def test_model_variance_map_follows_a_smooth_field_and_is_zero_without_one():
+def _halves(rng, b2, n_even=5, n_odd=4, noise_var=1.0):
+    """:func:`_excess` split as the fits split their interior positions: the sums over all of them,
+    their count, the sums of squares, and ``(sums, count)`` over the ``n_odd`` of odd rank."""
+    x = rng.standard_normal((n_even + n_odd,) + b2.shape) ** 2 * (noise_var + b2) - noise_var
+    n = np.full(b2.shape, n_even + n_odd)
+    return x.sum(axis=0), n, (x * x).sum(axis=0), (x[n_even:].sum(axis=0), np.full(b2.shape, n_odd))
+
+
+def test_model_variance_map_follows_a_smooth_field():
     """A model variance rising linearly across the image from 0 to 2 (noise variance 1, 9 held-out samples
-    per pixel): the map follows it (RMS error below 0.15 where the field spans 2; the kernel regression's
-    statistical error at the chosen scale is about sqrt(2 * 3^2 / (9 * 4 pi s^2))) and is >= 0.
-    Without any model error the map's mean is within 0.05 of 0 (the image-wide mean's standard error
-    is 1.4 / sqrt(9 * 19100) = 0.005)."""
+    per pixel, 4 of them of odd rank): the map follows it within 0.15 RMS (a kernel regression's
+    statistical error at 8 px is about sqrt(2 * 2^2 / (9 * 4 pi 8^2)) = 0.03, the posterior's pull toward
+    the prior adds to it), its mean is the data's level within 2 standard errors, and it is positive
+    everywhere: the posterior mean never puts a pixel at nothing."""
     rng = np.random.default_rng(2)
-    h, w, n = 120, 160, 9
+    h, w = 120, 160
     b2 = np.tile(np.linspace(0.0, 2.0, w), (h, 1))
-    count = np.full((h, w), n)
-    count[:10, :10] = 0  # a corner without held-out samples
-    sums = np.where(count > 0, _excess(rng, b2, n), 0.0)
-    var, scale, info = model_variance_map(sums, count, spatial=True)
-    assert np.all(var >= 0) and scale in info["cv"] and info["radius_px"] == 3
-    err = np.sqrt(np.mean((var - b2)[count > 0] ** 2))
-    assert err < 0.15, (err, scale, info)
-    flat, _, _ = model_variance_map(np.where(count > 0, _excess(rng, 0 * b2, n), 0.0), count, spatial=True)
-    assert abs(flat[count > 0].mean()) < 0.05, flat.mean()
-    # The map's mean is the data's mean excess (the floor at 0 does not lift it).
-    np.testing.assert_allclose(np.sum(var * count) / count.sum(), sums.sum() / count.sum(), rtol=1e-9)
-    # With the squares the data's resolution is judged: nothing to resolve, the map is 0; a small
-    # uniform model error (0.05 of the noise variance, 20 standard errors here) is kept.
-    e, e2 = _excess(rng, 0 * b2, n, squares=True)
-    none, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2, spatial=True)
+    e, n, e2, odd = _halves(rng, b2)
+    var, scale, info = model_variance_map(e, n, excess_sq_sum=e2, odd=odd)
+    assert info["spatial"] and info["resolved"] and scale in info["cv"]
+    assert np.sqrt(np.mean((var - b2) ** 2)) < 0.15
+    assert abs(var.mean() - info["mean"]) < info["limit"] and var.min() > 0
+
+
+def test_the_split_half_validation_picks_a_scale_the_field_has():
+    """A field that changes over 20 px gets a small kernel; a uniform one the largest, and its map is flat
+    at the level (its spread is the map's noise, which the posterior takes out)."""
+    rng = np.random.default_rng(5)
+    h, w = 160, 200
+    cols = np.arange(w)
+    wavy = np.tile(1.0 + 0.9 * np.sin(2 * np.pi * cols / 40.0), (h, 1))
+    e, n, e2, odd = _halves(rng, wavy, noise_var=0.3)
+    assert model_variance_map(e, n, excess_sq_sum=e2, odd=odd)[1] <= 8.0
+    e, n, e2, odd = _halves(rng, np.full((h, w), 0.05))
+    flat, scale, info = model_variance_map(e, n, excess_sq_sum=e2, odd=odd)
+    assert scale >= 64.0 and flat.max() - flat.min() < 0.05 * info["mean"]
+    assert abs(info["mean"] - 0.05) < 1.5 * info["limit"]
+
+
+def test_the_map_is_calibrated_per_decile_of_itself():
+    """What issue 30 judges the sigma maps by: within each decile of the map, the true model variance's
+    mean over the map's. A log-normal field (smooth over 12 px, 2.2x spread) under noise 3x its level:
+    the posterior map is within the issue's bound for RMS(z), [0.7, 1.4], in every decile (three fields;
+    measured 0.83-1.06). The kernel map floored at 0 under-predicted its lowest decile by 1.22-1.63x
+    on the same data."""
+    from ptpcore.fit.sigma import _gauss
+
+    for seed in range(3):
+        rng = np.random.default_rng(10 + seed)
+        f = _gauss(rng.standard_normal((240, 320)), 12.0)
+        b2 = 0.3 * np.exp(0.8 * f / f.std())
+        e, n, e2, odd = _halves(rng, b2)
+        var, scale, _ = model_variance_map(e, n, excess_sq_sum=e2, odd=odd)
+        edges = np.quantile(var, np.linspace(0, 1, 11))
+        dec = np.clip(np.searchsorted(edges, var, side="right") - 1, 0, 9)
+        ratio = [b2[dec == q].mean() / var[dec == q].mean() for q in range(10)]
+        assert 0.7 <= min(ratio) and max(ratio) <= 1.4, (seed, scale, np.round(ratio, 2))
+
+
+def test_without_halves_or_with_nothing_resolved_the_map_is_uniform_or_zero():
+    """Without the odd-rank sums (the height map) or with ``spatial=False`` the level everywhere; with no
+    model error the image-wide mean is within its 2 standard errors and the map is 0."""
+    rng = np.random.default_rng(3)
+    b2 = np.tile(np.linspace(0.0, 2.0, 50), (40, 1))
+    e, n, e2, odd = _halves(rng, b2)
+    for kwargs in ({}, {"odd": odd, "spatial": False}):
+        var, scale, info = model_variance_map(e, n, excess_sq_sum=e2, **kwargs)
+        assert info["resolved"] and not info["spatial"] and np.isnan(scale)
+        np.testing.assert_array_equal(var, np.full((40, 50), e.sum() / n.sum()))
+    e, n, e2, odd = _halves(rng, 0.0 * b2)
+    none, _, info = model_variance_map(e, n, excess_sq_sum=e2, odd=odd)
     assert (not info["resolved"]) == (info["mean"] <= info["limit"]) and (info["resolved"] or not none.any())
-    e, e2 = _excess(rng, 0 * b2 + 0.05, n, squares=True)
-    small, _, info = model_variance_map(e, np.full((h, w), n), excess_sq_sum=e2, spatial=True)
-    assert info["resolved"] and abs(small.mean() - 0.05) < 3 * info["limit"] / 2
-
-
-def test_correlated_neighbours_are_left_out_of_the_cross_validation():
-    """The radius left out grows with the LUT's smoothing scale: 3 correlation lengths (sqrt(2) s + 1)."""
-    count = np.ones((40, 40))
-    for s, want in ((0.0, 3), (2.0, 12), (16.0, 71)):
-        assert model_variance_map(np.zeros((40, 40)), count, s, scales_px=(4.0,), spatial=True)[2]["radius_px"] == want
 
 
 @pytest.fixture(scope="module")
@@ -86,30 +123,3 @@ def test_lut_carries_its_model_part_and_says_how(realistic_96, model, degree, tm
     assert main(["inspect", str(p)]) == 0
     out = capsys.readouterr().out
     assert "noise part X" in out and "model part Y" in out
-
-
-def test_an_unresolved_map_falls_back_to_the_level_not_to_zero():
-    """A uniform model variance (0.05 of the noise variance): the kernel map's pixel-to-pixel spread is
-    sampling noise, so the shrinkage (tau^2 = spread beyond the standard errors, about 0) puts every
-    pixel at the image-wide level, where flooring the raw map would leave some near 0. The level is
-    within 3 standard errors of 0.05."""
-    rng = np.random.default_rng(7)
-    h, w, n = 120, 160, 9
-    e, e2 = _excess(rng, np.full((h, w), 0.05), n, squares=True)
-    count = np.full((h, w), n)
-    raw, _, _ = model_variance_map(e, count, excess_sq_sum=e2, shrink=False, scales_px=(4.0,), spatial=True)
-    shrunk, _, info = model_variance_map(e, count, excess_sq_sum=e2, scales_px=(4.0,), spatial=True)
-    assert raw.min() < 0.5 * info["mean"]  # the raw map at 4 px is noisy
-    assert shrunk.max() - shrunk.min() < 0.2 * info["mean"], (shrunk.min(), shrunk.max())
-    assert abs(info["mean"] - 0.05) < 1.5 * info["limit"]
-
-
-def test_the_default_map_is_the_uniform_level():
-    """MODEL_MAP_SPATIAL off (the harness's verdict, issue 30): the level everywhere when resolved."""
-    from ptpcore.fit.sigma import MODEL_MAP_SPATIAL
-
-    rng = np.random.default_rng(3)
-    e, e2 = _excess(rng, np.tile(np.linspace(0.0, 2.0, 50), (40, 1)), 9, squares=True)
-    var, scale, info = model_variance_map(e, np.full((40, 50), 9), excess_sq_sum=e2)
-    assert not MODEL_MAP_SPATIAL and info["resolved"] and np.isnan(scale)
-    np.testing.assert_array_equal(var, np.full((40, 50), e.sum() / (9 * 2000)))

@@ -247,7 +247,7 @@ def _add_model_part(lut: Lut, merr, valid) -> None:
                   + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
         "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6),
-        "spatial": MODEL_MAP_SPATIAL})
+        "spatial": MODEL_MAP_SPATIAL and any(np.isfinite(v) for v in (merr.scale_px or {}).values())})
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,

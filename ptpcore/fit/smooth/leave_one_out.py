@@ -106,13 +106,15 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     grow = k_all / max(k_all - 1, 1)
     report(0.0, "fitting every pixel through all calibration positions")
     own = OwnFits.from_samples(s)
+    rank = 0  # among the interior positions: its parity splits them in halves (model_variance_map)
     for k in range(k_all):
         report(k / k_all, f"leaving calibration position {k + 1} of {k_all} out")
         # Only interior positions measure the model error: the LUT is used inside its calibrated
         # range, and the fit without an end position extrapolates to it.
         interior = s.z.min() < s.z[k] < s.z.max()
         coef, own_noise, kept = _fit_without(s, k, own, interior)
-        _accumulate_left_out(s, k, coef, valid, sums, grow, own_noise, kept)
+        _accumulate_left_out(s, k, coef, valid, sums, grow, own_noise, kept, odd=interior and rank % 2 == 1)
+        rank += interior
         del coef, own_noise, kept
         release_free_memory()  # each left-out fit's maps (~50 MB resident at 5 MP otherwise)
     own = None
@@ -260,7 +262,7 @@ def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
 
 
 def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
-                         own_noise, kept) -> None:
+                         own_noise, kept, odd: bool = False) -> None:
     """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
 
     ``loo_sq`` and ``count`` (the leave-one-out map) always. For an interior position (``own_noise``
@@ -270,7 +272,8 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     ``h`` its leverage there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever
     the noise model's scale (``own_noise``, (2, H, W) from :func:`_fit_without`); ``grow`` scales
     ``fit_var`` to a fit with one position less. ``kept``: position ``k``'s corrected samples and
-    validity (:func:`_fit_without`).
+    validity (:func:`_fit_without`). ``odd``: the position's rank among the interior ones is odd; its
+    ``x`` go to ``excess_odd`` and ``n_odd`` as well (the halves of :func:`model_error`'s map).
     """
     h, w = s.samples.shape
     t_all = (s.z - s.z_norm[0]) / s.z_norm[1]
@@ -293,16 +296,20 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
             ok &= np.isfinite(x)
             sums.add("excess", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
             sums.add("excess_sq", a, r0, r1, np.where(ok, x * x, 0.0).reshape(r1 - r0, w))
+            if odd:
+                sums.add("excess_odd", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
             if i_axis == 0:
                 sums.n_model[r0:r1] += ok.reshape(r1 - r0, w)
+                if odd:
+                    sums.n_odd[r0:r1] += ok.reshape(r1 - r0, w)
 
     run_blocks(block, row_blocks(h, w))
 
 
 class LooSums:
-    """The leave-one-out's per-pixel float64 sums, X and Y (``loo_sq``, ``excess``, ``excess_sq``) and
-    the predicted variance they are judged by (``fit_var``), with the counts ``count`` and
-    ``n_model`` ((H, W) int32, in memory).
+    """The leave-one-out's per-pixel float64 sums, X and Y (``loo_sq``, ``excess``, ``excess_sq``, and
+    ``excess_odd`` over the interior positions of odd rank) and the predicted variance they are judged
+    by (``fit_var``), with the counts ``count``, ``n_model`` and ``n_odd`` ((H, W) int32, in memory).
 
     The sums are one row store (:func:`ptpcore.store.row_store`): above
     :data:`ptpcore.store.SPILL_PIXELS` they wait in a temporary file while the left-out fits run, and
@@ -310,12 +317,13 @@ class LooSums:
     fit's own maps would otherwise sit on top of.
     """
 
-    NAMES = ("loo_sq", "excess", "excess_sq", "fit_var")
+    NAMES = ("loo_sq", "excess", "excess_sq", "excess_odd", "fit_var")
 
     def __init__(self, shape):
         h, w = shape
         self.count = np.zeros((h, w), np.int32)  # counts: exact in any type (the float64 sums saw the same values)
         self.n_model = np.zeros((h, w), np.int32)
+        self.n_odd = np.zeros((h, w), np.int32)
         self._sums = row_store((len(self.NAMES) * 2, h, w), zeros=True)
 
     def _index(self, name: str, axis: str) -> int:
@@ -351,17 +359,19 @@ def model_error(sums: "LooSums", smoothing_scale_px: float = 0.0) -> ModelError:
     otherwise pass for a model error of 0.7 um on the mild preset at 320 px),
     ``sigma_fit^2`` is the predicted noise of the left-out fit. The mean of
     ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``; it is mapped over the image by
-    :func:`ptpcore.fit.sigma.model_variance_map` (Gaussian kernel regression at a scale chosen by
-    cross-validation, floored at 0, scaled to the image-wide mean; 0 where that mean is within 2
-    standard errors of 0: the data do not resolve a model error). ``sums`` holds ``x`` and ``x^2``
-    summed per pixel (``excess``, ``excess_sq``) and their count (``n_model``). ``limit_mm`` is the
+    :func:`ptpcore.fit.sigma.model_variance_map` (kernel regression at a scale chosen by split-half
+    cross-validation, each pixel's posterior mean given the map's own error; 0 where the image-wide
+    mean is within 2 standard errors of 0: the data do not resolve a model error). ``sums`` holds
+    ``x`` and ``x^2`` summed per pixel (``excess``, ``excess_sq``; ``excess_odd`` over the interior
+    positions of odd rank) and their counts (``n_model``, ``n_odd``). ``limit_mm`` is the
     2-standard-error limit of the image-wide mean.
     """
     count = sums.n_model
     var, limits, scales = {}, [], {}
     for a in "xy":
         var[a], scales[a], info = model_variance_map(sums.get("excess", a), count, smoothing_scale_px,
-                                                     excess_sq_sum=sums.get("excess_sq", a))
+                                                     excess_sq_sum=sums.get("excess_sq", a),
+                                                     odd=(sums.get("excess_odd", a), sums.n_odd))
         if np.isfinite(info["limit"]):
             limits.append(info["limit"])
     has = count > 0

@@ -301,8 +301,12 @@ def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None
     h, w = samples.shape
     sums = {a: np.zeros(h * w) for a in "xy"}
     sums_sq = {a: np.zeros(h * w) for a in "xy"}
+    sums_odd = {a: np.zeros(h * w) for a in "xy"}
     count = np.zeros(h * w)
+    count_odd = np.zeros(h * w)
     vander = np.vander(t, lut.degree + 1, increasing=True)
+    odd = np.zeros(sel.size, bool)  # interior positions of odd rank: the halves of the map's validation
+    odd[np.flatnonzero(interior)[1::2]] = True
 
     def block(r0, r1):
         a0, a1 = r0 * w, r1 * w
@@ -332,14 +336,17 @@ def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None
                 use[np.ix_(rows_idx, cols)] = np.isfinite(xp[inner])
             sums[a][a0:a1] = np.where(use, x, 0.0).sum(axis=0)
             sums_sq[a][a0:a1] = np.where(use, x * x, 0.0).sum(axis=0)
+            sums_odd[a][a0:a1] = np.where(use & odd[:, None], x, 0.0).sum(axis=0)
             if d == 0:
                 count[a0:a1] = use.sum(axis=0)
+                count_odd[a0:a1] = (use & odd[:, None]).sum(axis=0)
 
     run_blocks(block, row_blocks(h, w))
     var, scales, limits = {}, {}, {}
     for a in "xy":
         v, scales[a], info = model_variance_map(sums[a].reshape(h, w), count.reshape(h, w), 0.0,
-                                                excess_sq_sum=sums_sq[a].reshape(h, w))
+                                                excess_sq_sum=sums_sq[a].reshape(h, w),
+                                                odd=(sums_odd[a].reshape(h, w), count_odd.reshape(h, w)))
         var[a] = np.where(lut.valid, v, np.nan)
         limits[a] = float(np.sqrt(info["limit"])) if np.isfinite(info["limit"]) else float("nan")
     return var, {"scale_px": scales, "n_samples": int(count.sum()), "resolved_limit_mm": limits}
