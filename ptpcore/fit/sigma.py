@@ -316,14 +316,16 @@ def _lognormal_posterior_mean(m: np.ndarray, se: np.ndarray, weight: np.ndarray)
     tau2 = max(tau2, 1e-6 * mu * mu)
     sl2 = float(np.log1p(tau2 / (mu * mu)))
     ml = float(np.log(mu)) - sl2 / 2.0
-    t = np.exp(ml + np.sqrt(sl2) * np.linspace(-5.0, 5.0, 401))  # the prior on a log grid: equal weights in log t
-    prior = np.exp(-0.5 * np.linspace(-5.0, 5.0, 401) ** 2)
+    u = np.linspace(-5.0, 5.0, 401)
+    t = np.exp(ml + np.sqrt(sl2) * u)  # the prior on a log grid: density exp(-u^2 / 2) per step of log t
     m_grid = np.linspace(float(m.min()), float(m.max()), 512)
-    s_grid = np.geomspace(max(float(se.min()), 1e-30), max(float(se.max()), 1e-30) * (1 + 1e-9), 48)
+    s_hi = max(float(se.max()), 1e-30)
+    s_grid = np.geomspace(max(float(se.min()), 1e-6 * s_hi), s_hi * (1 + 1e-9), 48)
     table = np.empty((m_grid.size, s_grid.size))
     for j, sd in enumerate(s_grid):
-        like = np.exp(-0.5 * ((m_grid[:, None] - t[None, :]) / sd) ** 2) * prior
-        table[:, j] = (like @ t) / np.maximum(like.sum(axis=1), 1e-300)
+        log_like = -0.5 * ((m_grid[:, None] - t[None, :]) / sd) ** 2 - 0.5 * u * u
+        like = np.exp(log_like - log_like.max(axis=1, keepdims=True))  # no underflow far from the prior
+        table[:, j] = (like @ t) / like.sum(axis=1)
     look = RegularGridInterpolator((m_grid, s_grid), table, bounds_error=False, fill_value=None)
     out = np.empty(m.shape)
     for i in range(0, m.size, 1 << 18):  # the interpolator's temporaries are several times its input
