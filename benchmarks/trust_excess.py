@@ -43,12 +43,12 @@ def fit_with_excess(folder: Path, stage_sigma_um: float) -> tuple:
     caught = {}
     original = loo.model_error
 
-    def catch(sums, scale=0.0):
+    def catch(sums):
         caught.update({a: (sums.get("excess", a).copy(), sums.get("excess_sq", a).copy(),
                            sums.get("excess_odd", a).copy()) for a in "xy"})
         caught["n"] = sums.n_model.astype(np.float64)
         caught["n_odd"] = sums.n_odd.astype(np.float64)
-        return original(sums, scale)
+        return original(sums)
 
     loo.model_error = catch
     try:

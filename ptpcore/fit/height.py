@@ -370,7 +370,7 @@ def _tile(uf, sf, sl: slice):
 def _model_variance(excess: np.ndarray, shape) -> tuple[np.ndarray, dict]:
     """The model's own error variance map (mm^2) from held-out residuals beyond their predicted noise
     (``excess``: (3, P) per pixel the sum of x = r^2 - predicted, of x^2, and their count)."""
-    var, scale, info = model_variance_map(excess[0].reshape(shape), excess[2].reshape(shape), 0.0,
+    var, scale, info = model_variance_map(excess[0].reshape(shape), excess[2].reshape(shape),
                                           excess_sq_sum=excess[1].reshape(shape))
     return var.reshape(-1), {"scale_px": scale, "mean_mm2": info.get("mean"), "resolved": info.get("resolved")}
 

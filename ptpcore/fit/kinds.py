@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Callable
 
 from ptpcore.fit.perpixel import fit_lut
-from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
+from ptpcore.fit.sigma import MODEL_MAP_WORDS
 from ptpcore.fit.smooth import fit_smooth_lut, poly_model_variance, poly_sigma_maps, sigma_scale
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
@@ -80,4 +80,4 @@ def _add_poly_model_part(lut: Lut, samples: SampleStack, rig: Rig, positions, st
         "scale_px": {a: float(v) for a, v in info["scale_px"].items()}, "rms_um": round(1e3 * rms, 6),
         "resolved_limit_um": {a: round(1e3 * v, 6) for a, v in info["resolved_limit_mm"].items()},
         "n_samples": info["n_samples"],
-        "spatial": MODEL_MAP_SPATIAL and any(np.isfinite(v) for v in info["scale_px"].values())})
+        "spatial": any(np.isfinite(v) for v in info["scale_px"].values())})

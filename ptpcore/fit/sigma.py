@@ -15,7 +15,6 @@ from ptpcore.io.samples import SampleStack
 
 __all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat", "stage_pose_sample_sigma",
            "stage_pose_sigma_maps", "add_stage_pose_sigma", "MODEL_MAP_SCALES_PX", "MODEL_MAP_SPATIAL", "MODEL_MAP_WORDS",
-           "correlation_length_px",
            "model_variance_map", "sigma_parts"]
 
 
@@ -241,12 +240,6 @@ MAP_BIN_PX = 2
 is 4 px, and the Gaussian blurs' maps at 12 MP would otherwise be 100 MB each."""
 
 
-def correlation_length_px(smoothing_scale_px: float) -> float:
-    """Correlation length (px) of a LUT's noise: ``sqrt(2) * s`` for a Gaussian smoothing of scale ``s``
-    (the autocorrelation of Gaussian-smoothed white noise) plus about 1 px of camera blur."""
-    return float(np.sqrt(2.0) * max(float(smoothing_scale_px), 0.0) + 1.0)
-
-
 def _gauss(a: np.ndarray, scale: float) -> np.ndarray:
     import cv2
 
@@ -282,21 +275,23 @@ def _local_mean(s_sum: np.ndarray, s_n: np.ndarray, scale: float) -> np.ndarray:
     return np.where(den > 1e-12, _gauss(s_sum, scale) / np.maximum(den, 1e-300), 0.0)
 
 
-def _split_half_scale(halves, scales) -> tuple[float, dict]:
+def _split_half_scale(halves, scales) -> tuple[float, dict, tuple]:
     """The kernel scale (in bins) whose map from one half of the held-out positions best predicts the
     other half's per-bin mean (both ways, count-weighted): the halves' noise is independent, so no
-    neighbourhood has to be left out and the smallest scales can win where the data resolve them."""
-    (e_even, n_even), (e_odd, n_odd) = halves
-    cv = {}
+    neighbourhood has to be left out and the smallest scales can win where the data resolve them.
+    Also the two halves' maps at that scale (for the map's own error)."""
+    cv, best = {}, None
     for s in scales:
         err, wsum = 0.0, 0.0
-        for (e_a, n_a), (e_b, n_b) in (((e_even, n_even), (e_odd, n_odd)), ((e_odd, n_odd), (e_even, n_even))):
-            pred = _local_mean(e_a, n_a, s)
+        maps = tuple(_local_mean(e_a, n_a, s) for e_a, n_a in halves)
+        for pred, (e_b, n_b) in zip(maps, halves[::-1]):
             have = n_b > 0
             err += float(np.sum(n_b[have] * (e_b[have] / n_b[have] - pred[have]) ** 2))
             wsum += float(n_b[have].sum())
         cv[float(s)] = err / wsum if wsum > 0 else float("inf")
-    return min(cv, key=cv.get), cv
+        if best is None or cv[float(s)] < cv[best[0]]:
+            best = (float(s), maps)  # only the best scale's maps are kept
+    return best[0], cv, best[1]
 
 
 def _lognormal_posterior_mean(m: np.ndarray, se: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -340,25 +335,24 @@ def _posterior_map(e: np.ndarray, n: np.ndarray, odd: tuple, scales_px) -> tuple
     b = MAP_BIN_PX
     odd_half = (_binned(odd[0], b), _binned(odd[1], b))
     halves = [(_binned(e, b) - odd_half[0], _binned(n, b) - odd_half[1]), odd_half]
-    scale, cv = _split_half_scale(halves, [s / b for s in scales_px])
+    scale, cv, (m0, m1) = _split_half_scale(halves, [s / b for s in scales_px])
     (e0, n0), (e1, n1) = halves
-    g0, g1 = _gauss(n0, scale), _gauss(n1, scale)
-    m = _local_mean(e0 + e1, n0 + n1, scale)
-    # The map's own variance from the halves' difference: Var(m0 - m1) = Var(m0) + Var(m1), and m
-    # (the count-weighted mean of the two) has g0 g1 / (g0 + g1)^2 of it; averaged over 4 scales
-    # (the noise level changes slowly: vignetting, modulation), where one scale's square is noisy.
-    frac = g0 * g1 / np.maximum((g0 + g1) ** 2, 1e-300)
-    d2 = (_local_mean(e0, n0, scale) - _local_mean(e1, n1, scale)) ** 2
     n_all = n0 + n1
-    se = np.sqrt(np.maximum(_local_mean(d2 * n_all, n_all, 4 * scale) * frac, 0.0))
-    have = (n_all > 0) & (g0 > 1e-12) & (g1 > 1e-12)
+    m = _local_mean(e0 + e1, n_all, scale)
+    # The map's own variance from the halves' difference: Var(m0 - m1) = Var(m0) + Var(m1), and m
+    # (the count-weighted mean of the two, half 0's kernel weight p) has p (1 - p) of it; averaged
+    # over 4 scales (the noise level changes slowly: vignetting, modulation), where one scale's
+    # square is noisy.
+    p = _local_mean(n0, n_all, scale)
+    frac = p * (1.0 - p)
+    se = np.sqrt(np.maximum(_local_mean((m0 - m1) ** 2 * n_all, n_all, 4 * scale) * frac, 0.0))
+    have = (n_all > 0) & (frac > 0)
     post = np.zeros_like(m)
     post[have] = _lognormal_posterior_mean(m[have], se[have], n_all[have])
     return np.maximum(_unbinned(post, b, e.shape), 0.0), float(scale * b), {float(k * b): v for k, v in cv.items()}
 
 
-def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scale_px: float = 0.0,
-                       scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None,
+def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, scales_px=MODEL_MAP_SCALES_PX, excess_sq_sum: np.ndarray | None = None,
                        odd: tuple | None = None, spatial: bool | None = None) -> tuple[np.ndarray, float, dict]:
     """The model's own error variance per pixel, from held-out residuals' excess over their noise.
 
@@ -384,8 +378,6 @@ def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, smoothing_scal
     ----------
     excess_sum : (H, W) float64, mm^2
     count : (H, W) int
-    smoothing_scale_px : float
-        The LUT's smoothing scale (kept for the provenance; the split-half validation does not need it).
     scales_px : sequence of float
     excess_sq_sum : (H, W) float64, mm^4, optional
         Per pixel the sum of ``x^2``, for the standard error of the image-wide mean.

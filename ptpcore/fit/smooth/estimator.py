@@ -8,7 +8,7 @@ from typing import Callable
 import numpy as np
 
 from ptpcore.fit.perpixel import _z_normalisation, fit_lut
-from ptpcore.fit.sigma import MODEL_MAP_SPATIAL, MODEL_MAP_WORDS
+from ptpcore.fit.sigma import MODEL_MAP_WORDS
 from ptpcore.fit.smooth.global_model import GlobalRays, global_pinhole
 from ptpcore.fit.smooth.leave_one_out import LooSetup
 from ptpcore.fit.smooth.noise import check_noise, sigma_scale_from
@@ -247,7 +247,7 @@ def _add_model_part(lut: Lut, merr, valid) -> None:
                   + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
         "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6),
-        "spatial": MODEL_MAP_SPATIAL and any(np.isfinite(v) for v in (merr.scale_px or {}).values())})
+        "spatial": any(np.isfinite(v) for v in (merr.scale_px or {}).values())})
 
 
 def _assemble_lut(degree: int, z_norm, z, coef: dict, valid, fits: "PixelFits", q: dict, loo: dict, sig: dict,

@@ -122,7 +122,7 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     for a in "xy":
         with np.errstate(all="ignore"):
             loo[a] = np.where(sums.count > 0, np.sqrt(sums.get("loo_sq", a) / sums.count), np.nan).astype(np.float32)
-    return loo, model_error(sums, s.scale)
+    return loo, model_error(sums)
 
 
 def downdated_fits(coefs, cov: np.ndarray, n: np.ndarray, weight: np.ndarray, values, powers: np.ndarray):
@@ -347,7 +347,7 @@ class LooSums:
         return self._sums.plane(self._index(name, axis))
 
 
-def model_error(sums: "LooSums", smoothing_scale_px: float = 0.0) -> ModelError:
+def model_error(sums: "LooSums") -> ModelError:
     """The model-error variance per pixel from the leave-one-out residuals' excess over the noise.
 
     A left-out sample's residual ``r`` is its own noise, the left-out fit's
@@ -369,7 +369,7 @@ def model_error(sums: "LooSums", smoothing_scale_px: float = 0.0) -> ModelError:
     count = sums.n_model
     var, limits, scales = {}, [], {}
     for a in "xy":
-        var[a], scales[a], info = model_variance_map(sums.get("excess", a), count, smoothing_scale_px,
+        var[a], scales[a], info = model_variance_map(sums.get("excess", a), count,
                                                      excess_sq_sum=sums.get("excess_sq", a),
                                                      odd=(sums.get("excess_odd", a), sums.n_odd))
         if np.isfinite(info["limit"]):

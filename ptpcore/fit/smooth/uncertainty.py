@@ -344,7 +344,7 @@ def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None
     run_blocks(block, row_blocks(h, w))
     var, scales, limits = {}, {}, {}
     for a in "xy":
-        v, scales[a], info = model_variance_map(sums[a].reshape(h, w), count.reshape(h, w), 0.0,
+        v, scales[a], info = model_variance_map(sums[a].reshape(h, w), count.reshape(h, w),
                                                 excess_sq_sum=sums_sq[a].reshape(h, w),
                                                 odd=(sums_odd[a].reshape(h, w), count_odd.reshape(h, w)))
         var[a] = np.where(lut.valid, v, np.nan)
