@@ -3,7 +3,8 @@
     python -m benchmarks.trust_split OUT_DIR [--kind realistic] [--seed 1] [--model auto] [--degree 3]
 
 Two sweeps of the same drawn rig (:func:`benchmarks.trust_mc.drawn_rig`: same lens, field, glass,
-stage errors and poses) with independent image noise (``noise_seed`` = seed and 1000 + seed) are
+stage errors and poses; the simulator's seed :func:`benchmarks.trust_mc.simulator_seed`) with
+independent image noise (noise seeds that seed and it + 1000) are
 calibrated as ``ptp calibrate --model M`` writes them; both LUTs are evaluated at 7 heights over each
 pixel's calibrated range and compared with the exact rays. What the two sweeps share cancels in
 their difference, so per pixel and height
@@ -38,10 +39,11 @@ def sweeps(out: Path, kind: str, seed: int, model: str, degree: int) -> tuple[Pa
     """Simulate (once) and calibrate the two sweeps; the folders of LUTs ``NAME.lut.h5``."""
     rig, settings = trust_mc.drawn_rig(kind, seed)
     folders = []
-    for tag, noise_seed in (("a", seed), ("b", 1000 + seed)):
+    sim = trust_mc.simulator_seed(kind, seed)
+    for tag, noise_seed in (("a", sim), ("b", sim + 1000)):
         folder = out / f"{kind}-{seed}-{tag}"
         if not (folder / "rig.toml").exists():
-            trust_mc.simulate(folder, rig, settings, seed, noise_seed)
+            trust_mc.simulate(folder, rig, settings, sim, noise_seed)
         if not (folder / f"{model}.lut.h5").exists():
             trust_mc.calibrate(folder, [(model, model, degree)], settings.stage_error_um)
         folders.append(folder)

@@ -153,14 +153,15 @@ def test_row_spill_dropped_unread_closes_its_file():
     assert not [w for w in caught if issubclass(w.category, ResourceWarning)]
 
 
-def test_laplacian_of_one_edge_row_is_the_whole_images():
-    """:func:`ptpcore.fit.smooth.global_model._laplacian` of one-row blocks (sample blocks at 12 MP and 31 positions
-    are one row) equals the whole image's, edge rows included."""
+def test_second_differences_of_one_edge_row_are_the_whole_images():
+    """:func:`ptpcore.fit.smooth.global_model._second_differences` of one-row blocks (sample blocks at 12 MP and 31
+    positions are one row) equal the whole image's, edge rows included, for all three."""
     rng = np.random.default_rng(1)
     a = rng.standard_normal((6, 5))
-    whole = global_model._laplacian(a, 0, 6)
-    rows = np.concatenate([global_model._laplacian(a, r, r + 1) for r in range(6)])
-    np.testing.assert_array_equal(rows, whole)
+    whole = global_model._second_differences(a, 0, 6)
+    rows = [global_model._second_differences(a, r, r + 1) for r in range(6)]
+    for i in range(3):
+        np.testing.assert_array_equal(np.concatenate([r[i] for r in rows]), whole[i])
 
 
 def _whole_map_upsample(coarse, b, h, w):
