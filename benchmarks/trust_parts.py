@@ -26,35 +26,9 @@ import json
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from benchmarks.trust_split import FRACTIONS
-
-
-def lut_degree(path: Path) -> int:
-    """The polynomial degree in z of a written LUT (its provenance's chosen model, else its model group)."""
-    with h5py.File(path, "r") as f:
-        attrs = f["provenance"].attrs
-        if "model_choice" in attrs:
-            return int(json.loads(attrs["model_choice"])["chosen"]["degree"])
-        return int(f["model"].attrs["degree"])
-
-
-def stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray) -> tuple:
-    """The realised height error a degree-``degree`` fit passes on at ``heights`` (mm, same shape),
-    and the leverage of those heights (the expected variance's factor per unit stage variance).
-
-    ``readings``, ``z_true`` : (K,) mm.
-    """
-    lo, hi = readings.min(), readings.max()
-    t = (readings - lo) / (hi - lo) * 2 - 1
-    v = np.vander(t, degree + 1)
-    coef = np.linalg.lstsq(v, z_true - readings, rcond=None)[0]
-    th = (heights - lo) / (hi - lo) * 2 - 1
-    vh = np.vander(th.ravel(), degree + 1)
-    leverage = np.einsum("ij,jk,ik->i", vh, np.linalg.inv(v.T @ v), vh).reshape(heights.shape)
-    return np.polyval(coef, th), leverage
+from benchmarks.trust_split import FRACTIONS, lut_degree, stage_terms
 
 
 def shared_fields(folder_a: Path, folder_b: Path, model: str) -> dict:

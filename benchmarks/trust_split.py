@@ -10,12 +10,13 @@ pixel's calibrated range and compared with the exact rays. What the two sweeps s
 their difference, so per pixel and height
 
 - ``(e_A - e_B) / sqrt(2)`` is the error from the image noise alone: its RMS is what the LUT's noise
-  part of sigma (``sigma_parts``: the total less the model part) must predict;
+  part of sigma (``sigma_parts``: the total less the model part, less the stage term, which the sweeps
+  share: declared stage sigma x |ray slope - travel direction| x sqrt(the LUT's leverage)) must predict;
 - ``(e_A + e_B) / 2`` holds the shared error (model, stage errors, LCD) plus half the noise's
   variance: the common part ``sqrt(mean((e_A + e_B)^2 / 4) - mean(noise^2) / 2)``.
 
 Reported (stdout and ``OUT_DIR/split.json``): per axis the measured and predicted noise part and the
-common part against the model part, over the image's inner 80 % and its border; per decile of the
+common part against the model part and the stage term, over the image's inner 80 % and its border; per decile of the
 predicted total sigma; per block of a 4 x 4 grid; and the noise part's RMS after a Gaussian low-pass
 of 2 to 96 px (the scale at which the noise differs). No constant is fitted: this is a diagnosis.
 """
@@ -27,6 +28,7 @@ import json
 import sys
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from benchmarks import trust_mc
@@ -50,16 +52,49 @@ def sweeps(out: Path, kind: str, seed: int, model: str, degree: int) -> tuple[Pa
     return folders[0], folders[1]
 
 
+def lut_degree(path: Path) -> int:
+    """The polynomial degree in z of a written LUT (its provenance's chosen model, else its model group)."""
+    with h5py.File(path, "r") as f:
+        attrs = f["provenance"].attrs
+        if "model_choice" in attrs:
+            return int(json.loads(attrs["model_choice"])["chosen"]["degree"])
+        return int(f["model"].attrs["degree"])
+
+
+def stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray) -> tuple:
+    """The realised height error a degree-``degree`` fit passes on at ``heights`` (mm, same shape),
+    and the leverage of those heights (the expected variance's factor per unit stage variance).
+
+    ``readings``, ``z_true`` : (K,) mm.
+    """
+    lo, hi = readings.min(), readings.max()
+    t = (readings - lo) / (hi - lo) * 2 - 1
+    v = np.vander(t, degree + 1)
+    coef = np.linalg.lstsq(v, z_true - readings, rcond=None)[0]
+    th = (heights - lo) / (hi - lo) * 2 - 1
+    vh = np.vander(th.ravel(), degree + 1)
+    leverage = np.einsum("ij,jk,ik->i", vh, np.linalg.inv(v.T @ v), vh).reshape(heights.shape)
+    return np.polyval(coef, th), leverage
+
+
 def load(folder_a: Path, folder_b: Path, model: str) -> tuple:
-    """The two sweeps' LUTs and the rig's truth (read once for both axes)."""
+    """The two sweeps' LUTs, the rig's truth, and what sigma's stage term is made of: ``(readings (K,) mm,
+    travel direction (3,), declared stage sigma mm, the LUT's degree)`` (read once for both axes)."""
     from ptpcore.io.lutfile import load_lut
+    from ptpcore.rig.rigfile import load_rig
     from ptpcore.simulate import load_truth
 
-    return load_lut(folder_a / f"{model}.lut.h5"), load_lut(folder_b / f"{model}.lut.h5"), load_truth(folder_a)[0]
+    truth, s, _ = load_truth(folder_a)
+    rig = load_rig(folder_a / "rig.toml")
+    stage = (np.asarray(rig.stage.z_mm, float), rig.stage.direction, s.stage_error_um * 1e-3,
+             lut_degree(folder_a / f"{model}.lut.h5"))
+    return load_lut(folder_a / f"{model}.lut.h5"), load_lut(folder_b / f"{model}.lut.h5"), truth, stage
 
 
-def errors(a, b, truth, axis: str) -> dict:
-    """Both LUTs' errors (mm) at :data:`FRACTIONS` of each pixel's range, and the first one's sigma parts."""
+def errors(a, b, truth, stage, axis: str) -> dict:
+    """Both LUTs' errors (mm) at :data:`FRACTIONS` of each pixel's range, and the first one's sigma parts:
+    the model part, the stage term (declared sigma, the LUT's leverage at those heights, the exact ray's
+    slope against the travel direction) and the noise part (what is left of sigma)."""
     from ptpcore.fit.sigma import sigma_parts
 
     valid = a.valid.astype(bool) & b.valid.astype(bool)
@@ -75,9 +110,17 @@ def errors(a, b, truth, axis: str) -> dict:
     total, noise, model_part = sigma_parts(a, axis)
     if noise is None:  # no model part: the total is the noise alone
         noise, model_part = total.astype(np.float64), np.zeros(total.shape)
+    readings, direction, sigma_mm, degree = stage
+    i = "xy".index(axis)
+    # The leverage alone (z_true = readings: no realised error), averaged over the scoring heights.
+    leverage = np.mean([stage_terms(readings, readings, degree, lo + f * (hi - lo))[1] for f in FRACTIONS], axis=0)
+    stage_part = np.abs((truth.sx, truth.sy)[i] - direction[i]) * sigma_mm * np.sqrt(leverage)
+    # sigma's "noise" (total less model) holds the stage term; the two sweeps share the stage errors.
+    noise = np.sqrt(np.maximum(np.square(noise) - np.square(stage_part), 0.0))
     ok = valid & np.isfinite(ea).all(0) & np.isfinite(eb).all(0) & np.isfinite(total)
     return {"noise": (ea - eb) / np.sqrt(2), "mean": (ea + eb) / 2, "err_a": ea, "ok": ok,
-            "total": total.astype(float), "noise_pred": noise, "model_pred": model_part.astype(float)}
+            "total": total.astype(float), "noise_pred": noise, "model_pred": model_part.astype(float),
+            "stage_pred": stage_part}
 
 
 def _parts(e: dict, where: np.ndarray) -> dict:
@@ -88,6 +131,7 @@ def _parts(e: dict, where: np.ndarray) -> dict:
     return {"pixels": int(where.sum()), "noise_measured_um": um(noise2),
             "noise_predicted_um": um(np.mean(e["noise_pred"][where] ** 2)),
             "common_measured_um": um(common2), "model_predicted_um": um(np.mean(e["model_pred"][where] ** 2)),
+            "stage_predicted_um": um(np.mean(e["stage_pred"][where] ** 2)),
             "error_um": um(np.mean(e["err_a"][:, where] ** 2)),
             "rms_z": round(float(np.sqrt(np.mean((e["err_a"][:, where] / e["total"][where]) ** 2))), 3)}
 
@@ -125,7 +169,8 @@ def report(axis: str, r: dict) -> list[str]:
     """Text lines of one axis's split."""
     def line(name, p):
         return (f"  {name:<10} noise {p['noise_measured_um']:.3f} measured / {p['noise_predicted_um']:.3f} predicted;"
-                f" common {p['common_measured_um']:.3f} / model part {p['model_predicted_um']:.3f};"
+                f" common {p['common_measured_um']:.3f} / model part {p['model_predicted_um']:.3f}"
+                f" + stage {p['stage_predicted_um']:.3f};"
                 f" error {p['error_um']:.3f} um, RMS(z) {p['rms_z']:.2f}")
     out = [f"axis {axis}"] + [line(n, r[n]) for n in ("all", "inner", "border")]
     out += [line(f"decile {q}", p) for q, p in enumerate(r["deciles"])]
