@@ -331,9 +331,10 @@ class CalibratePage(StudioPage):
                                    " (about -0.0015 LCD px). Off for a display that dithers.")
         self.footprint = QCheckBox("footprint")
         self.footprint.setChecked(True)
-        self.footprint.setToolTip("Smooth: move each sample from its pixel's footprint centroid to the pixel's centre"
-                                  " ray (size read from the fringe contrast). Off when ambient light or a camera"
-                                  " black level lower the contrast.")
+        self.footprint.setToolTip("Smooth: move each sample from where its pixel's footprint decodes (its average fringe,"
+                                  " off the centre ray where the lens bends) to the pixel's centre ray (size read"
+                                  " from the fringe contrast). Off when ambient light or a camera black level"
+                                  " lower the contrast.")
         self.refine_stage = QCheckBox("refine stage")
         self.refine_stage.setToolTip("Estimate each position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from"
                                      " the straightness of the rays many pixels see, up to a common offset, scale"

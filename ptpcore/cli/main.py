@@ -812,8 +812,9 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--no-level-bias", action="store_true",
                    help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")
     c.add_argument("--no-footprint", action="store_true",
-                   help="smooth: keep each pixel's footprint-centroid bias (its size is read from the fringe"
-                        " contrast; turn off when ambient light or a camera black level lower the contrast)")
+                   help="smooth: keep each pixel's footprint bias (where the lens bends, a pixel decodes its footprint's"
+                        " average fringe, off its centre ray; the footprint's size is read from the fringe"
+                        " contrast: turn off when ambient light or a camera black level lower the contrast)")
     c.add_argument("--refine-stage", action="store_true",
                    help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
                         " straightness of the rays, up to a common offset, scale and linear trend, and correct"
