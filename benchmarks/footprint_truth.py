@@ -60,11 +60,12 @@ def compare(folder: Path, session) -> dict:
     inner = np.zeros((h, w), bool)
     inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
     keep &= inner.ravel()[None]
+    exact_xy = [truth.xy(np.full((h, w), zt)) for zt in truth.z_true]  # (K,) of both axes' (H, W) maps
     out = {}
     for i, ax in enumerate("xy"):
         values = getattr(sm, f"{ax}_ref").reshape(-1)[None] + read_block(getattr(sm, ax), 0, h * w, sel).astype(float)
         remove_level_bias(values, rig, ax, np.asarray(sm.z), _lcd_shift(sm, i, slice(0, h * w)))
-        exact = np.stack([truth.xy(np.full((h, w), zt))[i].ravel() for zt in truth.z_true])
+        exact = np.stack([xy[i].ravel() for xy in exact_xy])
         ok = keep & np.isfinite(values)
         shift = (values - exact)[ok]
         shift -= np.median(shift)

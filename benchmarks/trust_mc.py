@@ -27,8 +27,8 @@ with a declared 1.1 mm cover glass): sweep A against B (same rig and heights, ot
 
 Draws are split into halves: draw ``i`` (0, 1, ...) has seed ``i + 1``, half A when ``i`` is
 even, B when odd; the simulator's own seed (field modes, stage errors, noise) mixes in the rig
-type (:func:`simulator_seed`), so no two rig types share a draw. ``--half A`` (default) is for development; B is kept aside until the code is
-frozen. Results are written per task (``tasks/*.json``, ``*.npz``; an existing task is not run
+type (:func:`simulator_seed`), so no two rig types share a draw. ``--half A`` (default) is for
+development; B is kept aside until the code is frozen. Results are written per task (``tasks/*.json``, ``*.npz``; an existing task is not run
 again, so a run can be resumed or extended with more draws), then pooled into ``results.json``
 and ``table.md`` with a PASS/FAIL column against the issue's Must-show bounds.
 """
@@ -277,10 +277,10 @@ def diff_task(kind: str, seed: int, work: Path, pairs=tuple(PAIRS)) -> tuple[dic
     bare = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=None))
     needed = {"A"} | {PAIRS[p].split("_")[0] for p in pairs}
     luts = {}
+    sim = simulator_seed(kind, seed)
     for i, (name, (r, st)) in enumerate(sweeps.items()):
         if name not in needed:
             continue
-        sim = simulator_seed(kind, seed)
         folder = clock(f"simulate_{name}", simulate, work / name, r, st, sim, sim + 1_000_000 * i)
         models = [DEFAULT] + ([("undeclared", "auto", 3, bare)] if name == "B" else [])
         fitted = clock(f"calibrate_{name}", calibrate, folder, models, sigma)

@@ -31,20 +31,23 @@ import numpy as np
 from benchmarks.trust_split import FRACTIONS, lut_degree, stage_terms
 
 
-def shared_fields(folder_a: Path, folder_b: Path, model: str) -> dict:
+def shared_fields(folder_a: Path, folder_b: Path, model: str) -> tuple[dict, dict]:
     """Per axis, over valid pixels and :data:`FRACTIONS`: the shared error, the realised stage and bow
-    terms, the stage term sigma expects, and the LUT's sigma (flat arrays, mm)."""
+    terms, the stage term sigma expects, and the LUT's sigma (flat arrays, mm); and the rig's numbers."""
     from ptpcore.fit.sigma import sigma_parts
     from ptpcore.io.lutfile import load_lut
     from ptpcore.rig.rigfile import load_rig
     from ptpcore.simulate import load_truth
+    from ptpcore.simulate.lcd_physics import LcdPhysics
 
     truth, s, _ = load_truth(folder_a)
     rig = load_rig(folder_a / "rig.toml")
     a, b = load_lut(folder_a / f"{model}.lut.h5"), load_lut(folder_b / f"{model}.lut.h5")
     degree = lut_degree(folder_a / f"{model}.lut.h5")
     readings = np.asarray(rig.stage.z_mm, float)
-    size = ((rig.lcd.width - 1) * rig.lcd.pitch_mm[0], (rig.lcd.height - 1) * rig.lcd.pitch_mm[1])
+    panel = LcdPhysics(bow_mm=s.bow_um * 1e-3, size_mm=((rig.lcd.width - 1) * rig.lcd.pitch_mm[0],
+                                                       (rig.lcd.height - 1) * rig.lcd.pitch_mm[1]))
+    sigma = {ax: sigma_parts(a, ax)[0].astype(float) for ax in "xy"}
     ok = a.valid.astype(bool) & b.valid.astype(bool)
     lo, hi = a.pixel_z_min, a.pixel_z_max
     out = {ax: {k: [] for k in ("shared", "stage", "stage_expected", "bow", "sigma")} for ax in "xy"}
@@ -53,8 +56,7 @@ def shared_fields(folder_a: Path, folder_b: Path, model: str) -> dict:
         true_xy = truth.xy(z)
         ea, eb = a.evaluate(z), b.evaluate(z)
         dz, leverage = stage_terms(readings, truth.z_true, degree, z)
-        xn, yn = 2 * true_xy[0] / size[0] - 1, 2 * true_xy[1] / size[1] - 1
-        bow = s.bow_um * 1e-3 * (1 - xn ** 2) * (1 - yn ** 2)
+        bow = panel.bow(*true_xy)
         for i, ax in enumerate("xy"):
             slope = (truth.sx, truth.sy)[i]
             rel = slope - rig.stage.direction[i]
@@ -65,7 +67,7 @@ def shared_fields(folder_a: Path, folder_b: Path, model: str) -> dict:
             o["stage"].append((rel * dz)[m])
             o["stage_expected"].append((np.abs(rel) * s.stage_error_um * 1e-3 * np.sqrt(leverage))[m])
             o["bow"].append((slope * bow)[m])
-            o["sigma"].append(sigma_parts(a, ax)[0][m].astype(float))
+            o["sigma"].append(sigma[ax][m])
     info = {"degree": degree, "stage_declared_um": s.stage_error_um,
             "stage_realised_um": float(np.sqrt(np.mean(np.square(truth.z_true - readings))) * 1e3),
             "bow_um": s.bow_um}

@@ -61,20 +61,29 @@ def lut_degree(path: Path) -> int:
         return int(f["model"].attrs["degree"])
 
 
+def _normalised(z, readings: np.ndarray):
+    """Heights ``z`` (mm) on the readings' range mapped to [-1, 1]."""
+    lo, hi = readings.min(), readings.max()
+    return (np.asarray(z, float) - lo) / (hi - lo) * 2 - 1
+
+
+def fit_leverage(readings: np.ndarray, degree: int, heights: np.ndarray) -> np.ndarray:
+    """The leverage of a degree-``degree`` fit through ``readings`` (K,) at ``heights`` (mm, any shape):
+    the stage term's variance per unit stage variance."""
+    v = np.vander(_normalised(readings, readings), degree + 1)
+    vh = np.vander(_normalised(heights, readings).ravel(), degree + 1)
+    return np.einsum("ij,jk,ik->i", vh, np.linalg.inv(v.T @ v), vh).reshape(np.shape(heights))
+
+
 def stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray) -> tuple:
     """The realised height error a degree-``degree`` fit passes on at ``heights`` (mm, same shape),
-    and the leverage of those heights (the expected variance's factor per unit stage variance).
+    and the leverage of those heights (:func:`fit_leverage`).
 
     ``readings``, ``z_true`` : (K,) mm.
     """
-    lo, hi = readings.min(), readings.max()
-    t = (readings - lo) / (hi - lo) * 2 - 1
-    v = np.vander(t, degree + 1)
+    v = np.vander(_normalised(readings, readings), degree + 1)
     coef = np.linalg.lstsq(v, z_true - readings, rcond=None)[0]
-    th = (heights - lo) / (hi - lo) * 2 - 1
-    vh = np.vander(th.ravel(), degree + 1)
-    leverage = np.einsum("ij,jk,ik->i", vh, np.linalg.inv(v.T @ v), vh).reshape(heights.shape)
-    return np.polyval(coef, th), leverage
+    return np.polyval(coef, _normalised(heights, readings)), fit_leverage(readings, degree, heights)
 
 
 def load(folder_a: Path, folder_b: Path, model: str) -> tuple:
@@ -112,8 +121,7 @@ def errors(a, b, truth, stage, axis: str) -> dict:
         noise, model_part = total.astype(np.float64), np.zeros(total.shape)
     readings, direction, sigma_mm, degree = stage
     i = "xy".index(axis)
-    # The leverage alone (z_true = readings: no realised error), averaged over the scoring heights.
-    leverage = np.mean([stage_terms(readings, readings, degree, lo + f * (hi - lo))[1] for f in FRACTIONS], axis=0)
+    leverage = np.mean([fit_leverage(readings, degree, lo + f * (hi - lo)) for f in FRACTIONS], axis=0)
     stage_part = np.abs((truth.sx, truth.sy)[i] - direction[i]) * sigma_mm * np.sqrt(leverage)
     # sigma's "noise" (total less model) holds the stage term; the two sweeps share the stage errors.
     noise = np.sqrt(np.maximum(np.square(noise) - np.square(stage_part), 0.0))
