@@ -5,8 +5,9 @@ import numpy as np
 from benchmarks import trust_split
 
 
-def _errors(noise_um: float, common_um: float, shape=(60, 80), heights=7, seed=0) -> dict:
-    """Two sweeps' errors: a shared part and independent noise, with predicted parts to match."""
+def _errors(noise_um: float, common_um: float, stage_um: float = 0.0, shape=(60, 80), heights=7, seed=0) -> dict:
+    """Two sweeps' errors: a shared part and independent noise, with predicted parts to match (the shared
+    part predicted as the model part; ``stage_um`` is the stage term's prediction, reported beside it)."""
     rng = np.random.default_rng(seed)
     common = rng.normal(size=(heights, *shape)) * common_um * 1e-3
     ea = common + rng.normal(size=(heights, *shape)) * noise_um * 1e-3
@@ -16,23 +17,24 @@ def _errors(noise_um: float, common_um: float, shape=(60, 80), heights=7, seed=0
     ea[:, :3] = eb[:, :3] = 1.0
     total = np.hypot(noise_um, common_um) * 1e-3 * (1 + 1e-6 * rng.uniform(size=shape))  # ten deciles
     return {"noise": (ea - eb) / np.sqrt(2), "mean": (ea + eb) / 2, "err_a": ea, "ok": ok, "total": total,
-            "noise_pred": np.full(shape, noise_um * 1e-3), "model_pred": np.full(shape, common_um * 1e-3)}
+            "noise_pred": np.full(shape, noise_um * 1e-3), "model_pred": np.full(shape, common_um * 1e-3),
+            "stage_pred": np.full(shape, stage_um * 1e-3)}
 
 
 def test_the_split_recovers_the_noise_and_the_shared_part():
-    r = trust_split.split(_errors(noise_um=0.1, common_um=0.5))
+    r = trust_split.split(_errors(noise_um=0.1, common_um=0.5, stage_um=0.2))
     for part in ("all", "inner", "border"):
         p = r[part]
         assert abs(p["noise_measured_um"] / 0.1 - 1) < 0.03 and p["noise_predicted_um"] == 0.1
         assert abs(p["common_measured_um"] / 0.5 - 1) < 0.03 and p["model_predicted_um"] == 0.5
-        assert abs(p["rms_z"] - 1) < 0.03
+        assert abs(p["rms_z"] - 1) < 0.03 and p["stage_predicted_um"] == 0.2
     assert [d["pixels"] > 400 for d in r["deciles"]] == [True] * 10
     assert len(r["deciles"]) == 10 and len(r["blocks"]) == 4 and all(len(row) == 4 for row in r["blocks"])
     assert r["all"]["pixels"] == 57 * 80
     # White noise loses most of its amplitude to a low-pass filter
     assert r["noise_low_pass_um"]["2px"] < 0.5 * r["all"]["noise_measured_um"]
     lines = trust_split.report("x", r)
-    assert lines[0] == "axis x" and "measured" in lines[1] and "low-pass" in lines[-1]
+    assert lines[0] == "axis x" and "measured" in lines[1] and "+ stage 0.200" in lines[1] and "low-pass" in lines[-1]
 
 
 def test_the_smooth_noise_tool_draws_white_noise_of_each_samples_predicted_sigma():
