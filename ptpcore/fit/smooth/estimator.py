@@ -13,7 +13,7 @@ from ptpcore.fit.smooth.global_model import GlobalRays, global_pinhole
 from ptpcore.fit.smooth.leave_one_out import LooSetup
 from ptpcore.fit.smooth.noise import check_noise, sigma_scale_from
 from ptpcore.fit.smooth.pixel_fits import PixelFits, SmoothPass, residual_maps, smoothed_coefficients, smoothing_weights
-from ptpcore.fit.smooth.uncertainty import smooth_sigma_maps, stage_variance, uncertainty_maps
+from ptpcore.fit.smooth.uncertainty import noise_polynomial, smooth_sigma_maps, stage_variance, uncertainty_maps
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
 from ptpcore.pinhole.camera import PinholeModel
@@ -148,7 +148,9 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
     rays = None
     # What only the uncertainty needs goes in with it (released there once used); the LUT's
     # coefficients wait in a file while its leave-one-out runs: 440 MB at 5 MP and degree 3.
-    inputs = {"leak_w": leak_w, "noise": _propagated_noise(fits, z_norm, degree, noise_scale)}
+    noise, setup.noise_poly = _propagated_noise(fits, z_norm, degree, noise_scale, uncertainty)
+    inputs = {"leak_w": leak_w, "noise": noise}
+    noise = None
     leak_w = coef = None
     fits.park("fit")
     release_free_memory()  # the pass's freed heap, before the uncertainty's peak (the leak variance)
@@ -226,13 +228,15 @@ def _smooth_at_scale(fits: PixelFits, gfit, shape, scale: float, b: int, z_norm)
     return coef, rays, leak_w
 
 
-def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float) -> np.ndarray:
-    """The smoothed LUT's propagated phase noise, (H, W) float32 mm (:func:`smooth_sigma_maps`); the
-    variance maps it reads are released."""
+def _propagated_noise(fits: PixelFits, z_norm, degree: int, noise_scale: float, per_height: bool):
+    """The smoothed LUT's propagated phase noise, (H, W) float32 mm (:func:`smooth_sigma_maps`), and with
+    ``per_height`` its variance as a polynomial in ``t`` (:func:`noise_polynomial`, for the leave-one-out;
+    else None); the variance maps they read are released."""
     fits.load("own_var", "own_diag")
     noise = smooth_sigma_maps(fits, *z_norm, degree, noise_scale, {})["x"]
+    poly = noise_polynomial(fits, degree, noise_scale) if per_height else None
     fits.var = fits.own_var = fits.own_diag = fits.cov_off = None
-    return noise
+    return noise, poly
 
 
 def _add_model_part(lut: Lut, merr, valid) -> None:
@@ -243,7 +247,7 @@ def _add_model_part(lut: Lut, merr, valid) -> None:
     lut.sigma_model_x, lut.sigma_model_y = (np.where(valid, merr.sigma[a], np.float32(np.nan)) for a in "xy")
     lut.provenance["model_error"] = json.dumps({
         "method": "smooth leave-one-position-out: per interior held-out sample, residual^2 minus its noise"
-                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted noise; " + MODEL_MAP_WORDS
+                  " (own fit r^2 / (1 - h)) minus the left-out fit's predicted variance at that height; " + MODEL_MAP_WORDS
                   + "; added to the noise in quadrature",
         "scale_px": {a: float(v) for a, v in (merr.scale_px or {}).items()},
         "rms_um": round(1e3 * merr.rms_mm, 6), "resolved_limit_um": round(1e3 * merr.limit_mm, 6),

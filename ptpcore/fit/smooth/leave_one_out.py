@@ -42,6 +42,10 @@ class LooSetup:
     level_bias: bool
     footprint: bool
     noise_scale: float
+    noise_poly: object = None
+    """The LUT's propagated noise variance per height, ``(2D+1, H, W)`` row store of coefficients in
+    ``t`` (:func:`ptpcore.fit.smooth.uncertainty.noise_polynomial`); None: judge the left-out fits by
+    the range's RMS noise times ``K / (K - 1)``."""
 
 
 @dataclass
@@ -224,8 +228,9 @@ class OwnFits:
 
 def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
     """The smooth LUT's coefficients ``{"x", "y"}`` (D+1, H, W) without calibration position ``k``; for an
-    ``interior`` position its samples' noise estimates ``r_own^2 / (1 - h)`` ((2, H, W) row store, X and Y;
-    NaN where the pixel has no freedom left or did not use the sample), else None; and position ``k``'s
+    ``interior`` position its samples' noise estimates ``r_own^2 / (1 - h)`` and the left-out fit's
+    variance factor (:func:`_left_out_inflation`) ((4, H, W) row store: X, Y, the factor and a scratch
+    plane; NaN where the pixel has no freedom left or did not use the sample), else None; and position ``k``'s
     corrected samples X, Y and validity (1.0 / 0.0) as a (3, H, W) row store, for
     :func:`_accumulate_left_out` (correcting them again cost a pass over the position: 0.55 CPU-s at 2 MP).
 
@@ -237,7 +242,7 @@ def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
     pos, zk = s.sel[k:k + 1], s.z[k:k + 1]
     powers = ((s.z[k] - s.z_norm[0]) / s.z_norm[1]) ** np.arange(d1)
     fits = PixelFits.empty((h, w), d1, own=False)
-    noise = row_store((2, h, w)) if interior else None
+    noise = row_store((4, h, w)) if interior else None
     kept = row_store((3, h, w))
 
     def block(r0, r1):
@@ -253,12 +258,49 @@ def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
             # As the model error has always estimated a sample's noise: from the fit with it.
             use = (wts[0] > 0) & (n > d1) & (lev < 1.0 - 1e-9)
             with np.errstate(all="ignore"):
-                noise[:, r0:r1] = np.stack([np.where(use, r * r / (1.0 - lev), np.nan)
-                                            for r in r_own]).reshape(2, rows, w)
+                own_var = [np.where(use, r * r / (1.0 - lev), np.nan) for r in r_own]
+                # The sample's weight and the own fit's precision at z_k (w / h): _left_out_inflation.
+                precision = np.where(use, wts[0] / lev, 0.0)
+                noise[:, r0:r1] = np.stack(own_var + [np.where(use, wts[0], 0.0), precision]).reshape(4, rows, w)
 
     run_blocks(block, row_blocks(h, w))
+    if noise is not None:
+        noise[2, 0:h] = _left_out_inflation(noise.plane(2), noise.plane(3), s.scale)
     coef = smoothed_coefficients(fits, s.scale, s.cv_bin, s.rays, *s.z_norm, variance=False)[0]
     return coef, noise, kept
+
+
+def _left_out_inflation(weight: np.ndarray, precision: np.ndarray, scale: float) -> np.ndarray:
+    """How much the smoothed fit's variance at ``z_k`` grows without position ``k``: ``1 / (1 - h_bar)``.
+
+    A pixel's own fit without its sample ``k`` predicts ``z_k`` with variance ``var / (1 - h)`` (``h``
+    the sample's leverage, ``h = w / P`` with ``w`` its weight and ``P`` the fit's precision there). The
+    smoothing averages neighbours by their precision, so the smoothed fit's precision loses the
+    precision-weighted mean leverage, ``h_bar = G * w / G * P`` (``G`` a Gaussian at the smoothing
+    scale): a pixel whose own fit leans hard on the sample (few positions) is outweighed by its
+    neighbours, and its own ``1 / (1 - h)`` (up to 30x the true growth on the x/y-symmetric rig at
+    2 px) would overstate it. At scale 0 the pixel's own.
+
+    Parameters
+    ----------
+    weight, precision : (H, W) float64
+        ``w`` and ``P`` (0 where the pixel did not use the sample).
+    scale : float
+        The LUT's smoothing scale (Gaussian sigma, px).
+
+    Returns
+    -------
+    (H, W) float64; NaN where the pixel did not use the sample.
+    """
+    from ptpcore.fit.sigma import _gauss
+
+    use = weight > 0
+    if scale > 0:
+        weight = _gauss(weight.astype(np.float32), scale)
+        precision = _gauss(precision.astype(np.float32), scale)
+    with np.errstate(all="ignore"):
+        h_bar = weight / precision
+        return np.where(use & (h_bar < 1.0), 1.0 / (1.0 - h_bar), np.nan)
 
 
 def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
@@ -266,12 +308,14 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
 
     ``loo_sq`` and ``count`` (the leave-one-out map) always. For an interior position (``own_noise``
-    given) also, per sample, ``x = r^2 - r_own^2 / (1 - h) - grow fit_var`` (:func:`model_error`)
+    given) also, per sample, ``x = r^2 - r_own^2 / (1 - h) - v_k`` (:func:`model_error`)
     into ``excess`` and ``x^2`` into ``excess_sq`` (``n_model`` counts them): ``r_own`` is the
     sample's residual against its pixel's own weighted fit through all calibration positions and
     ``h`` its leverage there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever
-    the noise model's scale (``own_noise``, (2, H, W) from :func:`_fit_without`); ``grow`` scales
-    ``fit_var`` to a fit with one position less. ``kept``: position ``k``'s corrected samples and
+    the noise model's scale (``own_noise``, (4, H, W) from :func:`_fit_without`, with the left-out
+    variance factor);
+    ``v_k`` is the left-out fit's predicted variance at ``z_k`` (:func:`_left_out_variance`).
+    ``kept``: position ``k``'s corrected samples and
     validity (:func:`_fit_without`). ``odd``: the position's rank among the interior ones is odd; its
     ``x`` go to ``excess_odd`` and ``n_odd`` as well (the halves of :func:`model_error`'s map).
     """
@@ -282,7 +326,7 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     def block(r0, r1):
         corrected = kept.row_block(r0, r1).reshape(3, -1)
         ok_s = corrected[2] > 0
-        own = own_noise.row_block(r0, r1).reshape(2, -1) if own_noise is not None else None
+        own = own_noise.row_block(r0, r1).reshape(4, -1) if own_noise is not None else None
         for i_axis, a in enumerate("xy"):
             pred = np.einsum("j,jp->p", powers, coef[a][:, r0:r1].reshape(s.degree + 1, -1))
             r = corrected[i_axis] - pred
@@ -292,7 +336,7 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
                 sums.count[r0:r1] += ok.reshape(r1 - r0, w)
             if own is None:
                 continue
-            x = r * r - own[i_axis] - (sums.rows("fit_var", a, r0, r1) * grow).reshape(-1)
+            x = r * r - own[i_axis] - _left_out_variance(s, sums, a, r0, r1, t_all[k], own[2], grow)
             ok &= np.isfinite(x)
             sums.add("excess", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
             sums.add("excess_sq", a, r0, r1, np.where(ok, x * x, 0.0).reshape(r1 - r0, w))
@@ -306,10 +350,34 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     run_blocks(block, row_blocks(h, w))
 
 
+def _left_out_variance(s: LooSetup, sums: "LooSums", axis: str, r0: int, r1: int, t_k: float,
+                       inflate: np.ndarray, grow: float) -> np.ndarray:
+    """The predicted variance of the fit without position ``k`` at its height, rows ``[r0, r1)`` flat, mm^2.
+
+    Its noise part is the LUT's noise variance at ``t_k`` (``s.noise_poly``) times ``1 / (1 - h_bar)``
+    (``inflate``, :func:`_left_out_inflation`): a least-squares fit without a sample predicts it with
+    variance ``var_full / (1 - h)``. Not the range's RMS times ``K / (K - 1)``: that is
+    up to 1.5x low next to the ends and 0.8x high in the middle, and the difference passed for a model
+    error of 0.1-0.15 um on white noise at the 2 px scale (issue 30, the x/y-symmetric rig). The stage
+    and global-model parts of ``fit_var`` keep the ``grow = K / (K - 1)`` scaling (they are shared by
+    all pixels of a position, and small). Where the polynomial gives no finite positive value, the
+    range's RMS form.
+    """
+    fit_var = sums.rows("fit_var", axis, r0, r1).reshape(-1)
+    if s.noise_poly is None:
+        return fit_var * grow
+    coeffs = s.noise_poly.row_block(r0, r1).reshape(s.noise_poly.shape[0], -1)
+    at_k = np.einsum("m,mp->p", t_k ** np.arange(coeffs.shape[0]), coeffs)
+    noise_range = sums.rows("noise_var", axis, r0, r1).reshape(-1)
+    with np.errstate(invalid="ignore"):
+        left_out = grow * (fit_var - noise_range) + at_k * inflate
+    return np.where(np.isfinite(left_out) & (at_k > 0), left_out, fit_var * grow)
+
+
 class LooSums:
     """The leave-one-out's per-pixel float64 sums, X and Y (``loo_sq``, ``excess``, ``excess_sq``, and
     ``excess_odd`` over the interior positions of odd rank) and the predicted variance they are judged
-    by (``fit_var``), with the counts ``count``, ``n_model`` and ``n_odd`` ((H, W) int32, in memory).
+    by (``fit_var``, and ``noise_var``: its propagated-noise part), with the counts ``count``, ``n_model`` and ``n_odd`` ((H, W) int32, in memory).
 
     The sums are one row store (:func:`ptpcore.store.row_store`): above
     :data:`ptpcore.store.SPILL_PIXELS` they wait in a temporary file while the left-out fits run, and
@@ -317,7 +385,7 @@ class LooSums:
     fit's own maps would otherwise sit on top of.
     """
 
-    NAMES = ("loo_sq", "excess", "excess_sq", "excess_odd", "fit_var")
+    NAMES = ("loo_sq", "excess", "excess_sq", "excess_odd", "fit_var", "noise_var")
 
     def __init__(self, shape):
         h, w = shape
@@ -357,7 +425,8 @@ def model_error(sums: "LooSums") -> ModelError:
     weighted fit through all positions, ``E[r_own^2 / (1 - h)] = sigma^2``
     (exact for any scale of the noise model: a 1 % error of that scale would
     otherwise pass for a model error of 0.7 um on the mild preset at 320 px),
-    ``sigma_fit^2`` is the predicted noise of the left-out fit. The mean of
+    ``sigma_fit^2`` is the left-out fit's predicted variance at the left-out height
+    (:func:`_left_out_variance`: the LUT's at that height over ``1 - h``). The mean of
     ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``; it is mapped over the image by
     :func:`ptpcore.fit.sigma.model_variance_map` (kernel regression at a scale chosen by split-half
     cross-validation, each pixel's posterior mean given the map's own error; 0 where the image-wide

@@ -24,7 +24,8 @@ from ptpcore.io.samples import SampleStack
 from ptpcore.pinhole.camera import PinholeModel
 from ptpcore.rig.rigfile import Rig
 
-__all__ = ["uncertainty_maps", "stage_variance", "global_leak_variance", "smooth_sigma_maps", "poly_sigma_maps",
+__all__ = ["uncertainty_maps", "stage_variance", "global_leak_variance", "smooth_sigma_maps", "noise_polynomial",
+           "poly_sigma_maps",
            "poly_model_variance",
            "LEAK_GRID_PX"]
 
@@ -71,8 +72,11 @@ def uncertainty_maps(setup: LooSetup, gfit, inputs: dict, fits: "PixelFits", val
     inputs.clear()
     sums = LooSums(valid.shape)
     for a in "xy":
-        sums.put("fit_var", a, np.square(noise.astype(np.float64)) + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
+        noise_var = np.square(noise.astype(np.float64))
+        sums.put("fit_var", a, noise_var + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
                  + np.nan_to_num(leak.pop(a, 0.0), nan=0.0))
+        sums.put("noise_var", a, noise_var)
+        del noise_var
     del noise, leak
     if full:
         loo, merr = leave_one_out(s, valid, sums, lambda f, m: report(0.92 + 0.07 * f, m))
@@ -224,6 +228,37 @@ def smooth_sigma_maps(fits: PixelFits, zc: float, zs: float, degree: int, noise_
     for a, sv in stage_var.items():
         sig[a] = np.sqrt(np.square(sig[a]) + np.nan_to_num(sv, nan=0.0)).astype(np.float32)
     return sig
+
+
+def noise_polynomial(fits: PixelFits, degree: int, noise_scale: float):
+    """The smoothed LUT's propagated noise variance at any height, as a polynomial in ``t``.
+
+    ``var(t) = sum_m c_m t**m`` with ``c_m = noise_scale**2 sum_(i+j=m) C_ij``, ``C`` the smoothed
+    coefficients' covariance (``fits.var``, ``fits.cov_off``): the same variance
+    :func:`smooth_sigma_maps` averages over each pixel's range, here kept per height for the
+    leave-one-out, whose left-out fit must be judged at the left-out height
+    (:func:`ptpcore.fit.smooth.leave_one_out.model_error`).
+
+    Returns
+    -------
+    (2D+1, H, W) float64 row store, mm^2 per ``t**m`` (a file above :data:`ptpcore.store.SPILL_PIXELS`
+    pixels), or None without the covariances.
+    """
+    if fits.cov_off is None:
+        return None
+    d1 = degree + 1
+    h, w = fits.pz_min.shape
+    out = row_store((2 * d1 - 1, h, w))
+    pairs = np.triu_indices(d1, 1)
+    for r0, r1 in row_blocks(h, w):
+        var, cov = fits.var.row_block(r0, r1), fits.cov_off.row_block(r0, r1)
+        c = np.zeros((2 * d1 - 1, r1 - r0, w))
+        for j in range(d1):
+            c[2 * j] += var[j]
+        for p, (i, j) in enumerate(zip(*pairs)):
+            c[i + j] += 2.0 * cov[p]
+        out[:, r0:r1] = c * noise_scale ** 2
+    return out
 
 
 def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
