@@ -1,0 +1,213 @@
+"""The smooth LUT's leave-one-out excess, term by term, against the exact rays (issue 30's diagnosis).
+
+    python -m benchmarks.loo_terms OUT_DIR [--kind symmetric] [--seed 1] [--sweep noisy|noiseless|white]
+                                   [--degree 2] [--scale 2]
+
+Renders sweep A of the harness's draw (:func:`benchmarks.trust_mc.drawn_rig`, the folder
+:mod:`benchmarks.trust_split` names ``KIND-SEED-a``; ``noiseless``: no image noise, no stage errors) and
+fits it as ``ptp calibrate --model smooth`` does at one fixed degree and smoothing scale. ``white``
+replaces the noisy sweep's values by the exact rays plus white noise of each sample's predicted sigma (no
+model error exists there; no level-bias, footprint or glass correction). At every interior position ``k``
+the model error's estimate is ``x = r^2 - own - v`` (:func:`ptpcore.fit.smooth.leave_one_out.model_error`):
+``r`` the left-out residual, ``own`` the sample's noise from its pixel's own fit, ``v`` the left-out fit's
+predicted variance. Beside each, what it estimates, from the truth ``T`` (the exact ray at the position's
+true height): ``(s - T)^2`` for ``own`` (``s`` the corrected sample) and ``(p - T)^2`` for ``v`` (``p`` the
+left-out prediction). Also the correlation of ``s - T`` between neighbouring positions (independent noise:
+0 within about 0.002), and the LUT's error at 7 heights over each pixel's range against its sigma maps
+(RMS(z), per decile of sigma, the noise and model parts). Pixels 3 px or more inside the image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import trust_mc
+
+FRACTIONS = np.linspace(0.05, 0.95, 7)
+EDGE_PX = 3
+
+
+def sweep_folder(out: Path, kind: str, seed: int, noiseless: bool) -> Path:
+    """The rendered sweep (once): ``KIND-SEED-a`` or ``KIND-SEED-noiseless``."""
+    rig, settings = trust_mc.drawn_rig(kind, seed)
+    sim = trust_mc.simulator_seed(kind, seed)
+    folder = out / f"{kind}-{seed}-{'noiseless' if noiseless else 'a'}"
+    if not (folder / "rig.toml").exists():
+        if noiseless:
+            settings = replace(settings, noise=False, stage_error_um=0.0)
+        trust_mc.simulate(folder, rig, settings, sim, sim)
+    return folder
+
+
+class TermCatcher:
+    """Wraps the leave-one-out's accumulation: per interior position and axis, the excess's terms and
+    what they estimate, from the truth."""
+
+    def __init__(self, truth, white: bool):
+        import ptpcore.fit.smooth.leave_one_out as loo
+
+        self.loo, self.truth, self.white = loo, truth, white
+        self.rows, self.errors, self.pred_errors = [], {"x": {}, "y": {}}, {"x": {}, "y": {}}
+        self.original = loo._accumulate_left_out
+
+    def __enter__(self):
+        self.loo._accumulate_left_out = self.accumulate
+        return self
+
+    def __exit__(self, *exc):
+        self.loo._accumulate_left_out = self.original
+
+    def accumulate(self, s, k, coef, valid, sums, grow, own_noise, kept, odd=False):
+        self.original(s, k, coef, valid, sums, grow, own_noise, kept, odd)
+        if own_noise is None:
+            return
+        h, w = s.samples.shape
+        t_k = (s.z[k] - s.z_norm[0]) / s.z_norm[1]
+        powers = t_k ** np.arange(s.degree + 1)
+        values = kept.row_block(0, h).reshape(3, h, w)
+        own = own_noise.row_block(0, h).reshape(own_noise.shape[0], h, w)
+        z_true = s.z[k] if self.white else self.truth.z_true[s.sel[k]]
+        exact = self.truth.xy(np.full((h, w), z_true))
+        inner = np.zeros((h, w), bool)
+        inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
+        for i, a in enumerate("xy"):
+            pred = np.einsum("j,jhw->hw", powers, coef[a])
+            v = self.loo._left_out_variance(s, sums, a, 0, h, t_k, own[2].ravel(), grow).reshape(h, w)
+            se, pe, r = values[i] - exact[i], pred - exact[i], values[i] - pred
+            ok = (values[2] > 0) & valid & np.isfinite(r) & np.isfinite(own[i]) & inner
+            self.rows.append({"k": int(k), "axis": a, "r2": _um2(r * r, ok), "own": _um2(own[i], ok),
+                              "v": _um2(v, ok), "s_T2": _um2(se * se, ok), "p_T2": _um2(pe * pe, ok)})
+            self.errors[a][int(k)] = np.where(ok, se, np.nan).astype(np.float32)
+            self.pred_errors[a][int(k)] = np.where(ok, pe, np.nan).astype(np.float32)
+
+    def left_out_noise(self, other: "TermCatcher", axis: str) -> dict:
+        """Per interior position, the left-out fits' realised noise variance (um^2): half the mean square
+        difference of this fit's and ``other``'s predictions, two fits of the same rig with independent
+        noise (what they share, the model error, cancels)."""
+        out = {}
+        for k, pe in self.pred_errors[axis].items():
+            d = (pe - other.pred_errors[axis][k]).astype(np.float64)
+            out[k] = float(np.nanmean(d * d)) / 2 * 1e6
+        return out
+
+    def neighbour_correlations(self, axis: str) -> list[float]:
+        """Correlation over the pixels of ``s - T`` between neighbouring interior positions (each
+        position's mean over the image removed)."""
+        ks = sorted(self.errors[axis])
+        stack = np.stack([self.errors[axis][k] for k in ks])
+        ok = np.isfinite(stack).all(axis=0)
+        e = stack[:, ok].astype(np.float64)
+        e -= e.mean(axis=1, keepdims=True)
+        c = np.corrcoef(e)
+        return [round(float(c[i, i + 1]), 4) for i in range(len(ks) - 1)]
+
+
+def _um2(values: np.ndarray, ok: np.ndarray) -> float:
+    return float(np.mean(values[ok])) * 1e6
+
+
+def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: float, truth):
+    """The LUT (``degree``, smoothing ``scale`` px fixed) and the caught terms (:class:`TermCatcher`)."""
+    import ptpcore.fit.kinds as kinds
+    from ptpcore.fit.corrected import fit_corrected
+    from ptpcore.fit.smooth.estimator import fit_smooth_lut
+    from ptpcore.run.session import new_session, run_session
+
+    session = new_session(folder, model="smooth", validate=False)
+    run_session(session, stop_after="samples", validate=False)
+    with TermCatcher(truth, sweep == "white") as caught:
+        if sweep == "white":
+            from benchmarks.smooth_noise import white_noise_stack
+
+            samples = white_noise_stack(session.samples, session.rig, truth, seed=7)
+            lut = fit_smooth_lut(samples, session.rig, degree, scales_px=(scale,), level_bias=False,
+                                 footprint=False)[0]
+        else:
+            original = kinds.fit_smooth_lut
+            kinds.fit_smooth_lut = partial(original, scales_px=(scale,))
+            try:
+                lut = fit_corrected(session.samples, session.rig, "smooth", degree,
+                                    stage_sigma_mm=stage_sigma_um * 1e-3).lut
+            finally:
+                kinds.fit_smooth_lut = original
+    return lut, caught
+
+
+def score(lut, truth) -> dict:
+    """Per axis: the LUT's error (um) at :data:`FRACTIONS` of each pixel's range, its sigma parts (um, RMS
+    over the pixels), RMS(z) and RMS(z) per decile of sigma."""
+    from ptpcore.fit.sigma import sigma_parts
+
+    valid = lut.valid.astype(bool)
+    lo, hi = np.where(valid, lut.pixel_z_min, 0.0), np.where(valid, lut.pixel_z_max, 0.0)
+    inner = np.zeros(valid.shape, bool)
+    inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
+    out = {}
+    for i, a in enumerate("xy"):
+        err = np.array([getattr(lut.evaluate(lo + f * (hi - lo)), a) - truth.xy(lo + f * (hi - lo))[i]
+                        for f in FRACTIONS])
+        total, noise, model = sigma_parts(lut, a)
+        ok = valid & inner & np.isfinite(err).all(axis=0) & np.isfinite(total)
+        um = lambda v: round(1e3 * float(np.sqrt(np.mean(np.square(v)))), 4)  # noqa: E731
+        edges = np.quantile(total[ok], np.linspace(0, 1, 11))
+        dec = np.clip(np.searchsorted(edges, total, side="right") - 1, 0, 9)
+        out[a] = {"error_um": um(err[:, ok]), "sigma_um": um(total[ok]),
+                  "noise_part_um": um(noise[ok]) if noise is not None else um(total[ok]),
+                  "model_part_um": um(model[ok]) if model is not None else 0.0,
+                  "rms_z": round(float(np.sqrt(np.mean((err[:, ok] / total[ok]) ** 2))), 3),
+                  "deciles": [round(float(np.sqrt(np.mean((err[:, ok & (dec == q)] / total[ok & (dec == q)]) ** 2))), 2)
+                              for q in range(10)]}
+    return out
+
+
+def report(caught: TermCatcher, scores: dict) -> list[str]:
+    """Text lines: the terms per position and axis, their means, the correlations and the LUT's score."""
+    lines = ["k axis |      r^2      own  (s-T)^2 |        v  (p-T)^2 |   excess   [um^2]"]
+    for r in caught.rows:
+        lines.append(f"{r['k']:2d} {r['axis']}    | {r['r2']:8.4f} {r['own']:8.4f} {r['s_T2']:8.4f} |"
+                     f" {r['v']:8.4f} {r['p_T2']:8.4f} | {r['r2'] - r['own'] - r['v']:8.4f}")
+    for a in "xy":
+        m = {key: np.mean([r[key] for r in caught.rows if r["axis"] == a]) for key in ("r2", "own", "s_T2", "v", "p_T2")}
+        lines.append(f"mean {a}: r^2 {m['r2']:.4f}, own {m['own']:.4f} against (s-T)^2 {m['s_T2']:.4f},"
+                     f" v {m['v']:.4f} against (p-T)^2 {m['p_T2']:.4f}; excess {m['r2'] - m['own'] - m['v']:.4f} um^2")
+        lines.append(f"  correlation of s - T between neighbouring positions: {caught.neighbour_correlations(a)}")
+        sc = scores[a]
+        lines.append(f"  LUT: error {sc['error_um']:.4f} um, sigma {sc['sigma_um']:.4f} (noise part {sc['noise_part_um']:.4f},"
+                     f" model part {sc['model_part_um']:.4f}); RMS(z) {sc['rms_z']:.3f}, per decile {sc['deciles']}")
+    return lines
+
+
+def main(argv=None) -> int:
+    from ptpcore.simulate import load_truth
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out")
+    ap.add_argument("--kind", default="symmetric", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--sweep", default="noisy", choices=["noisy", "noiseless", "white"])
+    ap.add_argument("--degree", type=int, default=2)
+    ap.add_argument("--scale", type=float, default=2.0, help="smoothing scale, px (fixed)")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    folder = sweep_folder(out, args.kind, args.seed, args.sweep == "noiseless")
+    truth, _, _ = load_truth(folder)
+    stage_um = 0.0 if args.sweep != "noisy" else trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
+    lut, caught = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth)
+    scores = score(lut, truth)
+    print(f"{args.kind}#{args.seed}, sweep {args.sweep}: smooth degree {args.degree} at {args.scale:g} px")
+    print("\n".join(report(caught, scores)))
+    (out / f"loo_terms-{args.kind}-{args.seed}-{args.sweep}.json").write_text(
+        json.dumps({"rows": caught.rows, "scores": scores}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
