@@ -113,7 +113,7 @@ def _um2(values: np.ndarray, ok: np.ndarray) -> float:
     return float(np.mean(values[ok])) * 1e6
 
 
-def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: float, truth):
+def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: float, truth, footprint: bool = True):
     """The LUT (``degree``, smoothing ``scale`` px fixed) and the caught terms (:class:`TermCatcher`)."""
     import ptpcore.fit.kinds as kinds
     from ptpcore.fit.corrected import fit_corrected
@@ -134,15 +134,20 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
             kinds.fit_smooth_lut = partial(original, scales_px=(scale,))
             try:
                 lut = fit_corrected(session.samples, session.rig, "smooth", degree,
-                                    stage_sigma_mm=stage_sigma_um * 1e-3).lut
+                                    stage_sigma_mm=stage_sigma_um * 1e-3, footprint=footprint).lut
             finally:
                 kinds.fit_smooth_lut = original
     return lut, caught
 
 
-def score(lut, truth) -> dict:
+def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) -> dict:
     """Per axis: the LUT's error (um) at :data:`FRACTIONS` of each pixel's range, its sigma parts (um, RMS
-    over the pixels), RMS(z) and RMS(z) per decile of sigma."""
+    over the pixels), RMS(z) and RMS(z) per decile of sigma. With the ``rig``, also the part of the error
+    that is this sweep's realised stage height errors (:func:`benchmarks.trust_split.stage_terms`: the
+    degree-``degree`` fit of them, times the exact ray's slope against the travel direction), and the
+    error without it, and sigma's stage term (the declared ``stage_sigma_um``, the fit's leverage) and
+    what is left of its noise part without it."""
+    from benchmarks.trust_split import fit_leverage, stage_terms
     from ptpcore.fit.sigma import sigma_parts
 
     valid = lut.valid.astype(bool)
@@ -158,7 +163,22 @@ def score(lut, truth) -> dict:
         um = lambda v: round(1e3 * float(np.sqrt(np.mean(np.square(v)))), 4)  # noqa: E731
         edges = np.quantile(total[ok], np.linspace(0, 1, 11))
         dec = np.clip(np.searchsorted(edges, total, side="right") - 1, 0, 9)
-        out[a] = {"error_um": um(err[:, ok]), "sigma_um": um(total[ok]),
+        if rig is not None:
+            readings = np.asarray(rig.stage.z_mm, float)
+            slope = np.abs((truth.sx, truth.sy)[i] - rig.stage.direction[i])
+            stage = np.array([stage_terms(readings, np.asarray(truth.z_true, float), degree,
+                                          lo + f * (hi - lo))[0] for f in FRACTIONS])
+            stage = stage * ((truth.sx, truth.sy)[i] - rig.stage.direction[i])
+            lev = np.mean([fit_leverage(readings, degree, lo + f * (hi - lo)) for f in FRACTIONS], axis=0)
+            predicted = slope * stage_sigma_um * 1e-3 * np.sqrt(lev)
+            rest = np.sqrt(np.maximum(np.square(noise if noise is not None else total) - predicted ** 2, 0))
+            extra = {"stage_realised_um": um(stage[:, ok]), "error_less_stage_um": um((err - stage)[:, ok]),
+                     "stage_predicted_um": um(predicted[ok]), "noise_less_stage_um": um(rest[ok]),
+                     "rms_z_less_stage": round(float(np.sqrt(np.mean(((err - stage)[:, ok] / np.hypot(
+                         rest, model if model is not None else 0)[ok]) ** 2))), 3)}
+        else:
+            extra = {}
+        out[a] = {**extra, "error_um": um(err[:, ok]), "sigma_um": um(total[ok]),
                   "noise_part_um": um(noise[ok]) if noise is not None else um(total[ok]),
                   "model_part_um": um(model[ok]) if model is not None else 0.0,
                   "rms_z": round(float(np.sqrt(np.mean((err[:, ok] / total[ok]) ** 2))), 3),
@@ -179,6 +199,10 @@ def report(caught: TermCatcher, scores: dict) -> list[str]:
                      f" v {m['v']:.4f} against (p-T)^2 {m['p_T2']:.4f}; excess {m['r2'] - m['own'] - m['v']:.4f} um^2")
         lines.append(f"  correlation of s - T between neighbouring positions: {caught.neighbour_correlations(a)}")
         sc = scores[a]
+        if "stage_realised_um" in sc:
+            lines.append(f"  the sweep's realised stage errors pass on {sc['stage_realised_um']:.4f} um (sigma's stage term"
+                         f" {sc['stage_predicted_um']:.4f}); without them the LUT's error is {sc['error_less_stage_um']:.4f} um"
+                         f" against {sc['noise_less_stage_um']:.4f} of noise part: RMS(z) {sc['rms_z_less_stage']:.3f}")
         lines.append(f"  LUT: error {sc['error_um']:.4f} um, sigma {sc['sigma_um']:.4f} (noise part {sc['noise_part_um']:.4f},"
                      f" model part {sc['model_part_um']:.4f}); RMS(z) {sc['rms_z']:.3f}, per decile {sc['deciles']}")
     return lines
@@ -194,14 +218,17 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep", default="noisy", choices=["noisy", "noiseless", "white"])
     ap.add_argument("--degree", type=int, default=2)
     ap.add_argument("--scale", type=float, default=2.0, help="smoothing scale, px (fixed)")
+    ap.add_argument("--no-footprint", action="store_true", help="fit without the footprint correction")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     folder = sweep_folder(out, args.kind, args.seed, args.sweep == "noiseless")
     truth, _, _ = load_truth(folder)
     stage_um = 0.0 if args.sweep != "noisy" else trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
-    lut, caught = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth)
-    scores = score(lut, truth)
+    lut, caught = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth, not args.no_footprint)
+    from ptpcore.rig.rigfile import load_rig
+
+    scores = score(lut, truth, load_rig(folder / "rig.toml"), args.degree, stage_um)
     print(f"{args.kind}#{args.seed}, sweep {args.sweep}: smooth degree {args.degree} at {args.scale:g} px")
     print("\n".join(report(caught, scores)))
     (out / f"loo_terms-{args.kind}-{args.seed}-{args.sweep}.json").write_text(
