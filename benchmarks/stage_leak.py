@@ -1,0 +1,81 @@
+"""How the smooth LUT passes a sweep's stage height errors on (issue 30's diagnosis of the mild preset).
+
+    python -m benchmarks.stage_leak OUT_DIR [--kind mild] [--seed 3] [--scale 64] [--degree 2]
+
+Sweep A of the harness's draw (:func:`benchmarks.loo_terms.sweep_folder`), its masks and predicted sigmas kept,
+its values replaced by the exact rays at each position's TRUE height (the sweep's stage errors), alone ("stage
+alone") and plus white noise of each sample's predicted sigma ("stage + white noise"), fitted smooth at one
+degree and scale without level-bias or footprint correction, with the declared stage sigma. Scored by
+:func:`benchmarks.loo_terms.score`: the LUT's error beside the realised stage errors' first-order part (their
+degree-D fit times the exact ray's slope against the travel direction), sigma's stage term, and the error left
+without that first-order part against the noise part.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import loo_terms, trust_mc
+
+
+def exact_at_true_heights(samples, rig, truth, rng=None):
+    """``samples`` with every valid value replaced by the exact ray at its position's true height, plus white
+    noise of the sample's predicted sigma when ``rng`` is given."""
+    from ptpcore.fit.smooth.noise import position_sigma_from_noise
+    from ptpcore.store import read_block
+
+    h, w = samples.shape
+    xs, ys = np.empty((samples.z.size, h, w), np.float32), np.empty((samples.z.size, h, w), np.float32)
+    for k in range(samples.z.size):
+        ok = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w) == 0
+        tx, ty = truth.xy(np.full((h, w), truth.z_true[k]))
+        nx = ny = 0.0
+        if rng is not None:
+            sig = position_sigma_from_noise(samples, rig, k)
+            nx, ny = sig * rng.standard_normal((h, w)), sig * rng.standard_normal((h, w))
+        xs[k] = np.where(ok, tx + nx - samples.x_ref, np.nan)
+        ys[k] = np.where(ok, ty + ny - samples.y_ref, np.nan)
+    return replace(samples, x=xs, y=ys)
+
+
+def main(argv=None) -> int:
+    from ptpcore.fit.smooth.estimator import fit_smooth_lut
+    from ptpcore.rig.rigfile import load_rig
+    from ptpcore.run.session import new_session, run_session
+    from ptpcore.simulate import load_truth
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out")
+    ap.add_argument("--kind", default="mild", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--degree", type=int, default=2)
+    ap.add_argument("--scale", type=float, default=64.0, help="smoothing scale, px (fixed)")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    folder = loo_terms.sweep_folder(out, args.kind, args.seed, False)
+    truth, _, _ = load_truth(folder)
+    rig = load_rig(folder / "rig.toml")
+    stage_um = trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
+    session = new_session(folder, model="smooth", validate=False)
+    run_session(session, stop_after="samples", validate=False)
+    for label, rng in (("stage alone", None), ("stage + white noise", np.random.default_rng(5))):
+        samples = exact_at_true_heights(session.samples, rig, truth, rng)
+        lut = fit_smooth_lut(samples, rig, args.degree, scales_px=(args.scale,), level_bias=False, footprint=False,
+                             stage_sigma_mm=stage_um * 1e-3)[0]
+        scores = loo_terms.score(lut, truth, rig, args.degree, stage_um)
+        for a in "xy":
+            s = scores[a]
+            print(f"{label}, {a}: error {s['error_um']:.4f} um; realised stage, first order {s['stage_realised_um']:.4f}"
+                  f" (sigma's stage term {s['stage_predicted_um']:.4f}); without it {s['error_less_stage_um']:.4f}"
+                  f" against a noise part of {s['noise_less_stage_um']:.4f}; RMS(z) {s['rms_z']:.3f}, deciles {s['deciles']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
