@@ -147,6 +147,7 @@ def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) ->
     degree-``degree`` fit of them, times the exact ray's slope against the travel direction), and the
     error without it, and sigma's stage term (the declared ``stage_sigma_um``, the fit's leverage) and
     what is left of its noise part without it."""
+    from benchmarks.trust_excess import deciles
     from benchmarks.trust_split import fit_leverage, stage_terms
     from ptpcore.fit.sigma import sigma_parts
 
@@ -161,8 +162,7 @@ def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) ->
         total, noise, model = sigma_parts(lut, a)
         ok = valid & inner & np.isfinite(err).all(axis=0) & np.isfinite(total)
         um = lambda v: round(1e3 * float(np.sqrt(np.mean(np.square(v)))), 4)  # noqa: E731
-        edges = np.quantile(total[ok], np.linspace(0, 1, 11))
-        dec = np.clip(np.searchsorted(edges, total, side="right") - 1, 0, 9)
+        rms_z, per_decile, _beyond = deciles(err, total, ok)
         if rig is not None:
             readings = np.asarray(rig.stage.z_mm, float)
             slope = np.abs((truth.sx, truth.sy)[i] - rig.stage.direction[i])
@@ -181,9 +181,7 @@ def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) ->
         out[a] = {**extra, "error_um": um(err[:, ok]), "sigma_um": um(total[ok]),
                   "noise_part_um": um(noise[ok]) if noise is not None else um(total[ok]),
                   "model_part_um": um(model[ok]) if model is not None else 0.0,
-                  "rms_z": round(float(np.sqrt(np.mean((err[:, ok] / total[ok]) ** 2))), 3),
-                  "deciles": [round(float(np.sqrt(np.mean((err[:, ok & (dec == q)] / total[ok & (dec == q)]) ** 2))), 2)
-                              for q in range(10)]}
+                  "rms_z": round(rms_z, 3), "deciles": [round(v, 2) for v in per_decile]}
     return out
 
 

@@ -26,21 +26,28 @@ import numpy as np
 FRACTIONS = np.linspace(0.05, 0.95, 7)
 
 
-def white_noise_stack(samples, rig, truth, seed: int):
-    """``samples`` with every valid value replaced by the truth plus noise of its predicted sigma."""
+def white_noise_stack(samples, rig, truth, seed: int | None, heights=None):
+    """``samples`` with every valid value replaced by the truth plus noise of its predicted sigma.
+
+    ``heights`` (K,) mm: where each position's truth is taken (default the readings ``samples.z``; the
+    simulator's true heights ``truth.z_true`` carry the sweep's stage errors). ``seed`` None: no noise."""
     from ptpcore.fit.smooth.noise import position_sigma_from_noise
     from ptpcore.store import read_block
 
     h, w = samples.shape
     k_all = samples.z.size
-    rng = np.random.default_rng(seed)
+    rng = None if seed is None else np.random.default_rng(seed)
+    heights = samples.z if heights is None else heights
     xs, ys = np.empty((k_all, h, w), np.float32), np.empty((k_all, h, w), np.float32)
     for k in range(k_all):
         ok = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w) == 0
-        sig = position_sigma_from_noise(samples, rig, k)
-        tx, ty = truth.xy(np.full((h, w), samples.z[k]))
-        xs[k] = np.where(ok, tx + sig * rng.standard_normal((h, w)) - samples.x_ref, np.nan)
-        ys[k] = np.where(ok, ty + sig * rng.standard_normal((h, w)) - samples.y_ref, np.nan)
+        tx, ty = truth.xy(np.full((h, w), heights[k]))
+        nx = ny = 0.0
+        if rng is not None:
+            sig = position_sigma_from_noise(samples, rig, k)
+            nx, ny = sig * rng.standard_normal((h, w)), sig * rng.standard_normal((h, w))
+        xs[k] = np.where(ok, tx + nx - samples.x_ref, np.nan)
+        ys[k] = np.where(ok, ty + ny - samples.y_ref, np.nan)
     return replace(samples, x=xs, y=ys)
 
 

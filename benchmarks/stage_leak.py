@@ -15,35 +15,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from benchmarks import loo_terms, trust_mc
 
 
-def exact_at_true_heights(samples, rig, truth, rng=None):
-    """``samples`` with every valid value replaced by the exact ray at its position's true height, plus white
-    noise of the sample's predicted sigma when ``rng`` is given."""
-    from ptpcore.fit.smooth.noise import position_sigma_from_noise
-    from ptpcore.store import read_block
-
-    h, w = samples.shape
-    xs, ys = np.empty((samples.z.size, h, w), np.float32), np.empty((samples.z.size, h, w), np.float32)
-    for k in range(samples.z.size):
-        ok = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w) == 0
-        tx, ty = truth.xy(np.full((h, w), truth.z_true[k]))
-        nx = ny = 0.0
-        if rng is not None:
-            sig = position_sigma_from_noise(samples, rig, k)
-            nx, ny = sig * rng.standard_normal((h, w)), sig * rng.standard_normal((h, w))
-        xs[k] = np.where(ok, tx + nx - samples.x_ref, np.nan)
-        ys[k] = np.where(ok, ty + ny - samples.y_ref, np.nan)
-    return replace(samples, x=xs, y=ys)
-
-
 def main(argv=None) -> int:
+    from benchmarks.smooth_noise import white_noise_stack
     from ptpcore.fit.smooth.estimator import fit_smooth_lut
     from ptpcore.rig.rigfile import load_rig
     from ptpcore.run.session import new_session, run_session
@@ -64,8 +42,8 @@ def main(argv=None) -> int:
     stage_um = trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
     session = new_session(folder, model="smooth", validate=False)
     run_session(session, stop_after="samples", validate=False)
-    for label, rng in (("stage alone", None), ("stage + white noise", np.random.default_rng(5))):
-        samples = exact_at_true_heights(session.samples, rig, truth, rng)
+    for label, noise_seed in (("stage alone", None), ("stage + white noise", 5)):
+        samples = white_noise_stack(session.samples, rig, truth, noise_seed, heights=truth.z_true)
         lut = fit_smooth_lut(samples, rig, args.degree, scales_px=(args.scale,), level_bias=False, footprint=False,
                              stage_sigma_mm=stage_um * 1e-3)[0]
         scores = loo_terms.score(lut, truth, rig, args.degree, stage_um)

@@ -71,13 +71,12 @@ def uncertainty_maps(setup: LooSetup, gfit, inputs: dict, fits: "PixelFits", val
     noise = inputs.pop("noise")
     inputs.clear()
     sums = LooSums(valid.shape)
+    noise_var = np.square(noise.astype(np.float64))  # the same for both axes
     for a in "xy":
-        noise_var = np.square(noise.astype(np.float64))
         sums.put("fit_var", a, noise_var + np.nan_to_num(stage_var.get(a, 0.0), nan=0.0)
                  + np.nan_to_num(leak.pop(a, 0.0), nan=0.0))
         sums.put("noise_var", a, noise_var)
-        del noise_var
-    del noise, leak
+    del noise, noise_var, leak
     if full:
         loo, merr = leave_one_out(s, valid, sums, lambda f, m: report(0.92 + 0.07 * f, m))
     else:
