@@ -113,8 +113,19 @@ def _um2(values: np.ndarray, ok: np.ndarray) -> float:
     return float(np.mean(values[ok])) * 1e6
 
 
+def fit_weights(samples, rig) -> np.ndarray:
+    """(K, H, W) float64: the weights ``1 / sigma^2`` each pixel's fit in z gives its samples (the smooth
+    fit's :func:`ptpcore.fit.smooth.global_model.global_residuals`), 0 where a sample is missing."""
+    from ptpcore.fit.smooth.noise import noise_rows
+
+    h, w = samples.shape
+    sig = noise_rows(samples, rig, list(range(samples.z.size)), 0, h * w)[3]
+    return np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.square(sig), 0.0).reshape(-1, h, w)
+
+
 def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: float, truth, footprint: bool = True):
-    """The LUT (``degree``, smoothing ``scale`` px fixed) and the caught terms (:class:`TermCatcher`)."""
+    """The LUT (``degree``, smoothing ``scale`` px fixed), the caught terms (:class:`TermCatcher`) and the
+    samples' fit weights (:func:`fit_weights`)."""
     import ptpcore.fit.kinds as kinds
     from ptpcore.fit.corrected import fit_corrected
     from ptpcore.fit.smooth.estimator import fit_smooth_lut
@@ -137,18 +148,20 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
                                     stage_sigma_mm=stage_sigma_um * 1e-3, footprint=footprint).lut
             finally:
                 kinds.fit_smooth_lut = original
-    return lut, caught
+    return lut, caught, fit_weights(session.samples, session.rig)
 
 
-def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) -> dict:
+def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0, weights=None) -> dict:
     """Per axis: the LUT's error (um) at :data:`FRACTIONS` of each pixel's range, its sigma parts (um, RMS
     over the pixels), RMS(z) and RMS(z) per decile of sigma. With the ``rig``, also the part of the error
     that is this sweep's realised stage height errors (:func:`benchmarks.trust_split.stage_terms`: the
     degree-``degree`` fit of them, times the exact ray's slope against the travel direction), and the
     error without it, and sigma's stage term (the declared ``stage_sigma_um``, the fit's leverage) and
-    what is left of its noise part without it."""
+    what is left of its noise part without it. ``weights`` ((K, H, W), :func:`fit_weights`): the realised
+    part through each pixel's weighted fit, as the LUT passes it on
+    (:func:`benchmarks.trust_split.weighted_stage_terms`); without, the unweighted fit's."""
     from benchmarks.trust_excess import deciles
-    from benchmarks.trust_split import fit_leverage, stage_terms
+    from benchmarks.trust_split import fit_leverage, stage_terms, weighted_stage_terms
     from ptpcore.fit.sigma import sigma_parts
 
     valid = lut.valid.astype(bool)
@@ -166,8 +179,10 @@ def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0) ->
         if rig is not None:
             readings = np.asarray(rig.stage.z_mm, float)
             slope = np.abs((truth.sx, truth.sy)[i] - rig.stage.direction[i])
-            stage = np.array([stage_terms(readings, np.asarray(truth.z_true, float), degree,
-                                          lo + f * (hi - lo))[0] for f in FRACTIONS])
+            z_true = np.asarray(truth.z_true, float)[:readings.size]
+            stage = np.array([stage_terms(readings, z_true, degree, lo + f * (hi - lo))[0] if weights is None
+                              else weighted_stage_terms(readings, z_true, degree, lo + f * (hi - lo), weights)
+                              for f in FRACTIONS])
             stage = stage * ((truth.sx, truth.sy)[i] - rig.stage.direction[i])
             lev = np.mean([fit_leverage(readings, degree, lo + f * (hi - lo)) for f in FRACTIONS], axis=0)
             predicted = slope * stage_sigma_um * 1e-3 * np.sqrt(lev)
@@ -223,10 +238,10 @@ def main(argv=None) -> int:
     folder = sweep_folder(out, args.kind, args.seed, args.sweep == "noiseless")
     truth, _, _ = load_truth(folder)
     stage_um = 0.0 if args.sweep != "noisy" else trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
-    lut, caught = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth, not args.no_footprint)
+    lut, caught, weights = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth, not args.no_footprint)
     from ptpcore.rig.rigfile import load_rig
 
-    scores = score(lut, truth, load_rig(folder / "rig.toml"), args.degree, stage_um)
+    scores = score(lut, truth, load_rig(folder / "rig.toml"), args.degree, stage_um, weights)
     print(f"{args.kind}#{args.seed}, sweep {args.sweep}: smooth degree {args.degree} at {args.scale:g} px")
     print("\n".join(report(caught, scores)))
     (out / f"loo_terms-{args.kind}-{args.seed}-{args.sweep}.json").write_text(

@@ -7,8 +7,8 @@ its values replaced by the exact rays at each position's TRUE height (the sweep'
 alone") and plus white noise of each sample's predicted sigma ("stage + white noise"), fitted smooth at one
 degree and scale without level-bias or footprint correction, with the declared stage sigma. Scored by
 :func:`benchmarks.loo_terms.score`: the LUT's error beside the realised stage errors' first-order part (their
-degree-D fit times the exact ray's slope against the travel direction), sigma's stage term, and the error left
-without that first-order part against the noise part.
+degree-D fit, weighted per pixel as the LUT's fit in z is, times the exact ray's slope against the travel
+direction), sigma's stage term, and the error left without that first-order part against the noise part.
 """
 
 from __future__ import annotations
@@ -42,11 +42,12 @@ def main(argv=None) -> int:
     stage_um = trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
     session = new_session(folder, model="smooth", validate=False)
     run_session(session, stop_after="samples", validate=False)
+    weights = loo_terms.fit_weights(session.samples, rig)
     for label, noise_seed in (("stage alone", None), ("stage + white noise", 5)):
         samples = white_noise_stack(session.samples, rig, truth, noise_seed, heights=truth.z_true)
         lut = fit_smooth_lut(samples, rig, args.degree, scales_px=(args.scale,), level_bias=False, footprint=False,
                              stage_sigma_mm=stage_um * 1e-3)[0]
-        scores = loo_terms.score(lut, truth, rig, args.degree, stage_um)
+        scores = loo_terms.score(lut, truth, rig, args.degree, stage_um, weights)
         for a in "xy":
             s = scores[a]
             print(f"{label}, {a}: error {s['error_um']:.4f} um; realised stage, first order {s['stage_realised_um']:.4f}"

@@ -44,7 +44,7 @@ def _record(seed, rng, sigma_scale):
                             "beyond3_x": int(np.sum(np.abs(z[0]) > 3)), "beyond3_y": int(np.sum(np.abs(z[1]) > 3)),
                             "median_sigma_x_um": 2.0, "median_sigma_y_um": 2.1, "model": "test"})
     kept = {"sigma_x": sig[0], "err_x": err[0], "sigma_y": sig[1], "err_y": err[1]}
-    return {"seed": seed, "luts": luts}, kept
+    return {"kind": "mild", "seed": seed, "luts": luts}, kept
 
 
 @pytest.mark.parametrize("scale, ok", [(1.0, True), (2.0, False)])
@@ -91,3 +91,27 @@ def test_reduced_run_writes_complete_finite_results(tmp_path):
     warn = subprocess.run([sys.executable, "-m", "benchmarks.trust_mc", str(out), "--half", "B", "--aggregate-only"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert warn.returncode == 0 and "held-aside" in warn.stderr
+
+
+def test_stage_luck_is_one_on_average_and_follows_the_drawn_stage():
+    """benchmarks/stage_luck.py: stages drawn at the declared sigma, equal weights, give a realised/expected
+    ratio of 1 on average (sigma's stage term is the unweighted fit's); a pool of 3 draws spreads widely
+    (the reason the note gives for not judging mild on 3 draws). trust_mc.stage_luck of a drawn rig is its
+    own stage's: the realised errors' mean square through the fit over the declared variance x leverage."""
+    from benchmarks import stage_luck
+    from benchmarks.trust_split import fit_leverage, stage_terms
+    from ptpcore.simulate import VirtualRig
+
+    lines = stage_luck.declared_spread([3.0] * 11, 2, [3], draws=60_000)
+    mean = float(lines[0].split("mean ratio ")[1].split(";")[0])
+    assert abs(mean - 1.0) < 0.02  # 60 000 draws of a ratio with sd ~0.8: standard error 0.003
+    lo, hi = (float(v) for v in lines[1].split("5-95 % ")[1].split(";")[0].split("-"))
+    assert lo < 0.5 and hi > 1.7
+    rig, s = trust_mc.drawn_rig("mild", 3)
+    readings = np.asarray(rig.stage.z_mm, float)
+    z_true = VirtualRig(rig, s, trust_mc.simulator_seed("mild", 3)).z_true[:readings.size]
+    heights = np.linspace(readings.min(), readings.max(), 257)
+    expected = np.mean(stage_terms(readings, z_true, 2, heights)[0] ** 2) / (
+        (s.stage_error_um * 1e-3) ** 2 * np.mean(fit_leverage(readings, 2, heights)))
+    assert math.isclose(trust_mc.stage_luck("mild", 3, 2, [2.5] * readings.size), expected, rel_tol=1e-6)
+    assert math.isnan(trust_mc.stage_luck("mild", 3, 2, None))

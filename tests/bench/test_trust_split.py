@@ -59,3 +59,22 @@ def test_the_smooth_noise_tool_draws_white_noise_of_each_samples_predicted_sigma
         z.append(((x - tx) / position_sigma_from_noise(samples, rig, k))[ok])
     z = np.concatenate(z)
     assert z.size > 10000 and abs(np.std(z) - 1) < 0.03 and abs(np.mean(z)) < 0.03
+
+
+def test_the_weighted_stage_projection_is_each_pixels_weighted_fit():
+    """benchmarks.trust_split.weighted_stage_terms: with equal weights the unweighted projection; with a pixel's
+    own weights, that pixel's weighted least-squares fit (numpy's polyfit, weights sqrt(w)) of the height
+    errors at its heights; a pixel without enough samples is NaN."""
+    rng = np.random.default_rng(4)
+    readings = np.linspace(0.0, 40.0, 11)
+    z_true = readings + rng.normal(0.0, 1e-3, 11)
+    heights = rng.uniform(0.0, 40.0, (3, 4))
+    equal = trust_split.weighted_stage_terms(readings, z_true, 2, heights, np.ones((11, 3, 4)))
+    assert np.allclose(equal, trust_split.stage_terms(readings, z_true, 2, heights)[0], rtol=1e-9, atol=1e-15)
+    weights = rng.uniform(0.2, 3.0, (11, 3, 4))
+    weights[:9, 2, 3] = 0.0  # two samples cannot fix a degree-2 fit
+    got = trust_split.weighted_stage_terms(readings, z_true, 2, heights, weights)
+    for r, c in [(0, 0), (1, 2), (2, 1)]:
+        coef = np.polyfit(readings, z_true - readings, 2, w=np.sqrt(weights[:, r, c]))
+        assert np.isclose(got[r, c], np.polyval(coef, heights[r, c]), rtol=1e-7, atol=1e-12)
+    assert np.isnan(got[2, 3]) and np.isfinite(got[:2]).all()
