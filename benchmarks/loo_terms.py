@@ -168,23 +168,23 @@ def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0, we
     lo, hi = np.where(valid, lut.pixel_z_min, 0.0), np.where(valid, lut.pixel_z_max, 0.0)
     inner = np.zeros(valid.shape, bool)
     inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
+    heights = lo + FRACTIONS[:, None, None] * (hi - lo)  # (F, H, W) mm
+    if rig is not None:  # the stage's part in heights: the same for both axes, each pixel's fit solved once
+        readings = np.asarray(rig.stage.z_mm, float)
+        z_true = np.asarray(truth.z_true, float)[:readings.size]
+        stage_z = (stage_terms(readings, z_true, degree, heights)[0] if weights is None
+                   else weighted_stage_terms(readings, z_true, degree, heights, weights))
+        lev = np.mean(fit_leverage(readings, degree, heights), axis=0)
     out = {}
     for i, a in enumerate("xy"):
-        err = np.array([getattr(lut.evaluate(lo + f * (hi - lo)), a) - truth.xy(lo + f * (hi - lo))[i]
-                        for f in FRACTIONS])
+        err = np.array([getattr(lut.evaluate(z), a) - truth.xy(z)[i] for z in heights])
         total, noise, model = sigma_parts(lut, a)
         ok = valid & inner & np.isfinite(err).all(axis=0) & np.isfinite(total)
         um = lambda v: round(1e3 * float(np.sqrt(np.mean(np.square(v)))), 4)  # noqa: E731
         rms_z, per_decile, _beyond = deciles(err, total, ok)
         if rig is not None:
-            readings = np.asarray(rig.stage.z_mm, float)
             slope = np.abs((truth.sx, truth.sy)[i] - rig.stage.direction[i])
-            z_true = np.asarray(truth.z_true, float)[:readings.size]
-            stage = np.array([stage_terms(readings, z_true, degree, lo + f * (hi - lo))[0] if weights is None
-                              else weighted_stage_terms(readings, z_true, degree, lo + f * (hi - lo), weights)
-                              for f in FRACTIONS])
-            stage = stage * ((truth.sx, truth.sy)[i] - rig.stage.direction[i])
-            lev = np.mean([fit_leverage(readings, degree, lo + f * (hi - lo)) for f in FRACTIONS], axis=0)
+            stage = stage_z * ((truth.sx, truth.sy)[i] - rig.stage.direction[i])
             predicted = slope * stage_sigma_um * 1e-3 * np.sqrt(lev)
             rest = np.sqrt(np.maximum(np.square(noise if noise is not None else total) - predicted ** 2, 0))
             extra = {"stage_realised_um": um(stage[:, ok]), "error_less_stage_um": um((err - stage)[:, ok]),

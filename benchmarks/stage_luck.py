@@ -34,11 +34,12 @@ def declared_spread(sigma_um, degree: int, pools, draws: int = 200_000, seed: in
 
     k = len(sigma_um)
     readings = np.linspace(0.0, 40.0, k)
-    heights = np.linspace(0.0, 40.0, 257)
-    weights = np.broadcast_to(1.0 / np.square(np.asarray(sigma_um, float))[:, None], (k, 257))
+    heights = np.linspace(0.0, 40.0, 257)[:, None]  # (F, 1): one "pixel"
+    weights = 1.0 / np.square(np.asarray(sigma_um, float))[:, None]  # (K, 1)
     lev = float(np.mean(fit_leverage(readings, degree, heights)))
     # The weighted fit is linear in the errors: its value at every height for each unit error, then all draws.
-    basis = np.array([weighted_stage_terms(readings, readings + e, degree, heights, weights) for e in np.eye(k)])
+    basis = np.array([weighted_stage_terms(readings, readings + e, degree, heights, weights)[:, 0]
+                      for e in np.eye(k)])
     errors = np.random.default_rng(seed).normal(size=(draws, k))
     ratio = np.mean(np.square(errors @ basis), axis=1) / lev
     lines = [f"errors at the declared sigma ({draws} draws): mean ratio {ratio.mean():.3f}; one draw 5-95 %"

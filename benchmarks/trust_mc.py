@@ -380,8 +380,8 @@ def stage_luck(kind: str, seed: int, degree: int, position_sigma_um) -> float:
         return float("nan")
     readings = np.asarray(rig.stage.z_mm, float)
     z_true = VirtualRig(rig, settings, simulator_seed(kind, seed)).z_true[:readings.size]
-    heights = np.linspace(readings.min(), readings.max(), 257)
-    weights = np.broadcast_to(1.0 / np.square(np.asarray(position_sigma_um, float))[:, None], (readings.size, 257))
+    heights = np.linspace(readings.min(), readings.max(), 257)[:, None]  # (F, 1): one "pixel"
+    weights = 1.0 / np.square(np.asarray(position_sigma_um, float))[:, None]  # (K, 1)
     passed = weighted_stage_terms(readings, np.asarray(z_true, float), degree, heights, weights)
     expected = (settings.stage_error_um * 1e-3) ** 2 * np.mean(fit_leverage(readings, degree, heights))
     return float(np.mean(passed ** 2) / expected)

@@ -88,11 +88,12 @@ def stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: 
 
 def weighted_stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray,
                          weights: np.ndarray) -> np.ndarray:
-    """:func:`stage_terms`' realised height error (mm, the shape of ``heights`` (H, W)) through each pixel's
-    own weighted fit, as the smooth LUT fits in z: ``weights`` (K, H, W), the fit's ``1 / sigma^2`` per
-    position (0 where a pixel has no sample). The unweighted projection is not what the LUT passes on: on
-    mild#3 (sample sigma 2.3 to 3.6 um over the sweep) the realised errors went through the weighted fit at
-    1.1x to 1.4x it (issue 30), while the expected leverage differs by 2 % only. NaN where a pixel's
+    """:func:`stage_terms`' realised height error (mm, the shape of ``heights``) through each pixel's own
+    weighted fit, as the smooth LUT fits in z: ``weights`` (K, *P), the fit's ``1 / sigma^2`` per position
+    for pixels of shape ``P`` (0 where a pixel has no sample); ``heights`` (*F, *P), any number of heights
+    per pixel (each pixel's system is solved once). The unweighted projection is not what the LUT passes
+    on: on mild#3 (sample sigma 2.3 to 3.6 um over the sweep) the realised errors went through the weighted
+    fit at 1.1x to 1.4x it (issue 30), while the expected leverage differs by 2 % only. NaN where a pixel's
     weighted system is singular."""
     k = readings.size
     v = np.vander(_normalised(readings, readings), degree + 1)  # (K, D+1)
@@ -102,8 +103,9 @@ def weighted_stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, 
     ok = np.linalg.cond(a) < 1e12
     coef = np.full(b.shape, np.nan)
     coef[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-    vh = np.vander(_normalised(heights, readings).ravel(), degree + 1)
-    return np.einsum("ni,ni->n", vh, coef).reshape(np.shape(heights))
+    t = _normalised(heights, readings).reshape(-1, w.shape[1])  # (F, N)
+    vh = t[..., None] ** np.arange(degree, -1, -1)  # np.vander's column order
+    return np.einsum("fni,ni->fn", vh, coef).reshape(np.shape(heights))
 
 
 def load(folder_a: Path, folder_b: Path, model: str) -> tuple:
