@@ -221,7 +221,7 @@ MODEL_MAP_SCALES_PX = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 MODEL_MAP_SPATIAL = True
 """Whether :func:`model_variance_map` maps the model variance over the image (True, the default, when
 the fit gives the excess split by the parity of the held-out position) or keeps the image-wide level
-everywhere (False). Issue 30's diagnosis (``python -m benchmarks.trust_excess``): the held-out excess
+everywhere (False). Issue 30's diagnosis (``python -m research.trust_excess``): the held-out excess
 sees the LUT's error well (without image noise its map follows the error at 0.99 correlation), but
 with noise the map's own error, about 0.1 um^2 at its best scale on the realistic preset at 640 px,
 is as large as the smallest model variances: a map floored at 0 then predicts almost nothing where

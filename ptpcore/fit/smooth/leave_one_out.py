@@ -23,7 +23,8 @@ from ptpcore.io.samples import SampleStack
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import release_free_memory, row_store
 
-__all__ = ["LooSetup", "LooSums", "ModelError", "OwnFits", "downdated_fits", "leave_one_out", "model_error"]
+__all__ = ["LooSetup", "LooSums", "ModelError", "OwnFits", "downdated_fits", "leave_one_out", "model_error",
+           "accumulate_left_out", "left_out_variance"]
 
 
 @dataclass
@@ -117,7 +118,7 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
         # range, and the fit without an end position extrapolates to it.
         interior = s.z.min() < s.z[k] < s.z.max()
         coef, own_noise, kept = _fit_without(s, k, own, interior)
-        _accumulate_left_out(s, k, coef, valid, sums, grow, own_noise, kept, odd=interior and rank % 2 == 1)
+        accumulate_left_out(s, k, coef, valid, sums, grow, own_noise, kept, odd=interior and rank % 2 == 1)
         rank += interior
         del coef, own_noise, kept
         release_free_memory()  # each left-out fit's maps (~50 MB resident at 5 MP otherwise)
@@ -232,7 +233,7 @@ def _fit_without(s: LooSetup, k: int, own: OwnFits, interior: bool):
     variance factor (:func:`_left_out_inflation`) ((4, H, W) row store: X, Y, the factor and a scratch
     plane; NaN where the pixel has no freedom left or did not use the sample), else None; and position ``k``'s
     corrected samples X, Y and validity (1.0 / 0.0) as a (3, H, W) row store, for
-    :func:`_accumulate_left_out` (correcting them again cost a pass over the position: 0.55 CPU-s at 2 MP).
+    :func:`accumulate_left_out` (correcting them again cost a pass over the position: 0.55 CPU-s at 2 MP).
 
     Every pixel's fit without ``k`` comes in closed form (:func:`downdated_fits`) from its fit
     through all positions (``own``) and position ``k``'s samples; then it is smoothed as the LUT is.
@@ -307,8 +308,8 @@ def _left_out_inflation(weight: np.ndarray, precision: np.ndarray, scale: float)
         return np.where(use & (h_bar < 1.0), np.float32(1.0) / (np.float32(1.0) - h_bar), np.float32(np.nan))
 
 
-def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
-                         own_noise, kept, odd: bool = False) -> None:
+def accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sums: "LooSums", grow: float,
+                        own_noise, kept, odd: bool = False) -> None:
     """Add position ``k``'s residuals against the fit ``coef`` made without it to the per-pixel ``sums``.
 
     ``loo_sq`` and ``count`` (the leave-one-out map) always. For an interior position (``own_noise``
@@ -318,7 +319,7 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     ``h`` its leverage there, so ``r_own^2 / (1 - h)`` estimates the sample's noise variance whatever
     the noise model's scale (``own_noise``, (4, H, W) from :func:`_fit_without`, with the left-out
     variance factor);
-    ``v_k`` is the left-out fit's predicted variance at ``z_k`` (:func:`_left_out_variance`).
+    ``v_k`` is the left-out fit's predicted variance at ``z_k`` (:func:`left_out_variance`).
     ``kept``: position ``k``'s corrected samples and
     validity (:func:`_fit_without`). ``odd``: the position's rank among the interior ones is odd; its
     ``x`` go to ``excess_odd`` and ``n_odd`` as well (the halves of :func:`model_error`'s map).
@@ -340,7 +341,7 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
                 sums.count[r0:r1] += ok.reshape(r1 - r0, w)
             if own is None:
                 continue
-            x = r * r - own[i_axis] - _left_out_variance(s, sums, a, r0, r1, t_all[k], own[2], grow)
+            x = r * r - own[i_axis] - left_out_variance(s, sums, a, r0, r1, t_all[k], own[2], grow)
             ok &= np.isfinite(x)
             sums.add("excess", a, r0, r1, np.where(ok, x, 0.0).reshape(r1 - r0, w))
             sums.add("excess_sq", a, r0, r1, np.where(ok, x * x, 0.0).reshape(r1 - r0, w))
@@ -354,8 +355,8 @@ def _accumulate_left_out(s: LooSetup, k: int, coef: dict, valid: np.ndarray, sum
     run_blocks(block, row_blocks(h, w))
 
 
-def _left_out_variance(s: LooSetup, sums: "LooSums", axis: str, r0: int, r1: int, t_k: float,
-                       inflate: np.ndarray, grow: float) -> np.ndarray:
+def left_out_variance(s: LooSetup, sums: "LooSums", axis: str, r0: int, r1: int, t_k: float,
+                      inflate: np.ndarray, grow: float) -> np.ndarray:
     """The predicted variance of the fit without position ``k`` at its height, rows ``[r0, r1)`` flat, mm^2.
 
     Its noise part is the LUT's noise variance at ``t_k`` (``s.noise_poly``) times ``1 / (1 - h_bar)``
@@ -430,7 +431,7 @@ def model_error(sums: "LooSums") -> ModelError:
     (exact for any scale of the noise model: a 1 % error of that scale would
     otherwise pass for a model error of 0.7 um on the mild preset at 320 px),
     ``sigma_fit^2`` is the left-out fit's predicted variance at the left-out height
-    (:func:`_left_out_variance`: the LUT's at that height over ``1 - h``). The mean of
+    (:func:`left_out_variance`: the LUT's at that height over ``1 - h``). The mean of
     ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` estimates ``b^2``; it is mapped over the image by
     :func:`ptpcore.fit.sigma.model_variance_map` (kernel regression at a scale chosen by split-half
     cross-validation, each pixel's posterior mean given the map's own error; 0 where the image-wide
