@@ -80,7 +80,7 @@ def quality_maps(lut) -> dict[str, tuple[str, np.ndarray, str, str, bool]]:
 
 def height_sweep_folder(session):
     """The dataset folder whose height sweep the Calibrate job fits (``[projector]`` and ``[height]`` in its
-    rig.toml, METHOD.md section 9), or None: a simulated session has no height sweep."""
+    rig.toml, docs/method.md section 9), or None: a simulated session has no height sweep."""
     rig = session.rig
     if session.source_kind not in ("folder", "live") or session.dataset_folder is None:
         return None
@@ -338,7 +338,7 @@ class CalibratePage(StudioPage):
         self.refine_stage = QCheckBox("refine stage")
         self.refine_stage.setToolTip("Estimate each position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from"
                                      " the straightness of the rays many pixels see, up to a common offset, scale"
-                                     " and linear trend, and correct the samples before fitting (METHOD.md section 8)."
+                                     " and linear trend, and correct the samples before fitting (docs/method.md section 8)."
                                      " The estimates and their 1-sigma go into the LUT's /provenance/stage_pose.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")

@@ -98,7 +98,7 @@ class FringesPage(StudioPage):
         self.carrier_x = _dspin(-100, 100, 0.0, 3, 0.1)
         self.carrier_y = _dspin(-100, 100, 0.0, 3, 0.1)
         self.gamma = _dspin(0.1, 5.0, 1.0, 2, 0.1)
-        # ptp-dataset/2 conventions (METHOD.md section 3)
+        # ptp-dataset/2 conventions (docs/method.md section 3)
         self.periods_y = QLineEdit()
         self.periods_y.setPlaceholderText("as x")
         self.periods_y.setToolTip("Periods of the y patterns when they differ from x ([fringes.y]); may be fractional")

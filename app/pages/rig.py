@@ -262,7 +262,7 @@ class RigPage(StudioPage):
 
     def _glass_rows(self, hf) -> None:
         """Cover glass thickness and index, with the datasheet tooltip and the bare-panel hint."""
-        # The cover glass (METHOD.md section 8): removed from every sample before any fit.
+        # The cover glass (docs/method.md section 8): removed from every sample before any fit.
         glass_tip = ("Everything between the LCD's pixel plane and the air, as one plate: top substrate,\n"
                      "polarizer and any cover glass (thickness in mm, refractive index). Find them in the\n"
                      "panel's datasheet (glass plus polarizer; often 0.7-1.5 mm, index about 1.5).\n"

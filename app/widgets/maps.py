@@ -2,7 +2,7 @@
 
 Every map is an ``(H, W)`` array indexed ``[row, col]`` (pyqtgraph runs in
 row-major mode) drawn so that view coordinates are camera pixel coordinates
-with pixel centres at integers (METHOD.md section 2). Large maps stay fluid:
+with pixel centres at integers (docs/method.md section 2). Large maps stay fluid:
 drawn reduced to about a megapixel (:func:`ptpcore.evaluate.views.prepare_display`, on
 the job's thread where a job made the map) and at camera resolution only for the part
 in view once zoomed in; ``ImageItem(autoDownsample=True)``; colour levels computed once
@@ -27,7 +27,7 @@ __all__ = ["MapView", "HeatmapPanel", "axis_label", "colormap", "legend_below", 
 
 PEN = "#3a3f44"
 
-# Every map in PTP Studio is indexed [row, col] (METHOD.md section 2).
+# Every map in PTP Studio is indexed [row, col] (docs/method.md section 2).
 pg.setConfigOptions(imageAxisOrder="row-major")
 
 

@@ -3,7 +3,7 @@
 What ``ptp calibrate --refine-stage`` prints (``describe_stage_pose``) and the
 LUT stores in ``/provenance/stage_pose`` and ``_sigma``: per position ``dx, dy,
 dz`` (um) and ``pitch, yaw, roll`` (urad), up to a common offset, scale and
-linear trend (METHOD.md section 8).
+linear trend (docs/method.md section 8).
 """
 
 from __future__ import annotations

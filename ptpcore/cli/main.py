@@ -169,7 +169,7 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         from ptpcore.run.scanner import calibrate_height
 
         bar = progress_bar(args)
-        try:  # the scanner's height sweep (METHOD.md section 9): the map goes into the LUT's /height
+        try:  # the scanner's height sweep (docs/method.md section 9): the map goes into the LUT's /height
             session.lut.height = calibrate_height(session.dataset, options=session.options, progress=bar)
         finally:
             bar.close()
@@ -818,7 +818,7 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--refine-stage", action="store_true",
                    help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
                         " straightness of the rays, up to a common offset, scale and linear trend, and correct"
-                        " the samples before fitting (METHOD.md section 8)")
+                        " the samples before fitting (docs/method.md section 8)")
     c.add_argument("--no-robust", action="store_true",
                    help="keep every sample (default: samples beyond 5 predicted sigmas of their pixel's curve are"
                         " left out and counted, a position rejected at most pixels is named suspect and left out)")
@@ -923,7 +923,7 @@ def _add_compare(sub) -> None:
     cm = sub.add_parser("compare", help="PTP against the 3DSTC pinhole calibration on held-out heights",
                         description="Calibrate a ptp-dataset/1 or /2 folder three ways (per-pixel LUT, smooth LUT and"
                                     " pinhole + Brown from feature points) on some positions, judge them at the others"
-                                    " (METHOD.md section 7) and write the report as JSON. A truth.h5 in the"
+                                    " (docs/method.md section 7) and write the report as JSON. A truth.h5 in the"
                                     " folder (simulated data) adds errors against the exact truth.")
     cm.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
     cm.add_argument("--out", required=True, metavar="REPORT.json")

@@ -1,4 +1,4 @@
-"""Decoding fringe images into LCD coordinates (METHOD.md sections 3 and 4).
+"""Decoding fringe images into LCD coordinates (docs/method.md sections 3 and 4).
 
 - :mod:`.patterns` — what the LCD shows, and the design check;
 - :mod:`.phase` — N-step phase, temporal unwrapping, validity reasons, LCD coordinates;

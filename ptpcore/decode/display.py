@@ -1,7 +1,7 @@
 """What the LCD's integer levels do to the decoded coordinates.
 
 The patterns are shown as 8-bit levels (``patterns.fringe_profile``), not as
-the continuous sinusoid of METHOD.md section 3. Rounding a level moves it by up
+the continuous sinusoid of docs/method.md section 3. Rounding a level moves it by up
 to half a grey level, and the N-step phase of the rounded levels differs from
 the ideal one by a deterministic error ``eps(j)`` for every LCD pixel ``j``:
 about 0.01 LCD px RMS for ``amplitude = 100`` and 8 steps. A camera pixel

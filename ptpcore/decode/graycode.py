@@ -1,4 +1,4 @@
-"""Gray-code unwrapping (METHOD.md section 4): the cycle index of the coarsest period.
+"""Gray-code unwrapping (docs/method.md section 4): the cycle index of the coarsest period.
 
 B binary-reflected Gray-code images (bit 0 the most significant) count the
 cycles ``m`` of the coarsest phase-shifted period ``T_0``: cycle ``m`` covers

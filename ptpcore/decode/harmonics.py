@@ -1,4 +1,4 @@
-"""Camera noise with the display's harmonics taken out (METHOD.md section 4).
+"""Camera noise with the display's harmonics taken out (docs/method.md section 4).
 
 A display whose response differs from the gamma pre-compensation puts
 harmonics ``h = 2 .. N//2`` into the fringes. The N-step phase is immune to

@@ -6,7 +6,7 @@ pixel, once the display's harmonics are taken out of it
 (:mod:`ptpcore.decode.harmonics`).
 Pooled over millions of pixels and binned by grey level it gives the sensor's
 photon-transfer curve ``var = read_var + gain * level`` without any dark or
-flat frames. The phase noise of every sample then follows from METHOD.md
+flat frames. The phase noise of every sample then follows from docs/method.md
 section 4: ``sigma_phi = sqrt(2/N) * sigma / B``.
 """
 

@@ -1,4 +1,4 @@
-"""Fringe patterns shown on the LCD (METHOD.md section 3) and the design check.
+"""Fringe patterns shown on the LCD (docs/method.md section 3) and the design check.
 
 A pattern varies along one LCD axis only, so the engine works with 1-D
 profiles (one value per LCD column for direction ``x``, per row for ``y``);
@@ -328,7 +328,7 @@ def heterodyne_rig(rig: Rig, periods, steps=None) -> Rig:
 
 
 def phase_noise_rad(noise_dn, modulation_dn, n_steps: int):
-    """Phase noise of N-step retrieval: ``sqrt(2/N) * sigma / B`` (METHOD.md section 4)."""
+    """Phase noise of N-step retrieval: ``sqrt(2/N) * sigma / B`` (docs/method.md section 4)."""
     return np.sqrt(2.0 / n_steps) * np.asarray(noise_dn, dtype=float) / np.asarray(modulation_dn, dtype=float)
 
 
@@ -367,7 +367,7 @@ class DesignReport:
 
 
 def blind_origin_shifts(periods, tol: float = 1e-6) -> tuple[float, ...] | None:
-    """Origin errors that hierarchical unwrapping cannot see (METHOD.md section 4).
+    """Origin errors that hierarchical unwrapping cannot see (docs/method.md section 4).
 
     A wrong origin adds the same ``e`` to the phase of every level; level ``j``
     then disagrees with the one above by ``(r_j - 1) * e (mod 2 pi)``,

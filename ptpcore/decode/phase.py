@@ -114,7 +114,7 @@ class WrappedPhase:
 
 def apply_convention(wp: WrappedPhase, shift_sign: int = 1, phase_origin_rad: float = 0.0) -> WrappedPhase:
     """Turn the N-step phase of frames shown as ``cos(theta + origin + sign * 2 pi n / N)``
-    into ``theta`` (METHOD.md section 3), in place; the identity for ``(1, 0)``.
+    into ``theta`` (docs/method.md section 3), in place; the identity for ``(1, 0)``.
 
     With ``sign = -1`` the N-step estimate is ``-(theta + origin)``; the origin is
     then subtracted and the phase wrapped back into ``[-pi, pi)``.
@@ -475,7 +475,7 @@ def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -
 
 
 def unwrap_hierarchical(phases, periods) -> tuple[np.ndarray, np.ndarray]:
-    """Hierarchical temporal unwrapping (METHOD.md section 4).
+    """Hierarchical temporal unwrapping (docs/method.md section 4).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Spatial consistency of a decoded coordinate map (METHOD.md section 4).
+"""Spatial consistency of a decoded coordinate map (docs/method.md section 4).
 
 A pixel whose decoded coordinate departs from a smooth fit over its
 neighbourhood by more than ``k`` sigma of its predicted noise is flagged: dust

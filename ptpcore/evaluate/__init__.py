@@ -1,6 +1,6 @@
 """Judging LUTs: the 3DSTC comparison, accuracy against truth, and the arrays the GUI draws.
 
-- :mod:`.protocol` — the evaluation protocol (METHOD.md section 7): folds, feature points,
+- :mod:`.protocol` — the evaluation protocol (docs/method.md section 7): folds, feature points,
   fitting every method on the calibration positions, judging them on the held-out ones;
 - :mod:`.statistics` — error statistics, distance pairs and curves, the verdict;
 - :mod:`.report` — the comparison's result objects, JSON and text summary;

@@ -1,4 +1,4 @@
-"""The comparison: point-to-point LUTs against 3DSTC on held-out heights (METHOD.md sections 6-7).
+"""The comparison: point-to-point LUTs against 3DSTC on held-out heights (docs/method.md sections 6-7).
 
 All methods (:data:`METHODS`) are calibrated on the same calibration positions
 of one :class:`~ptpcore.io.SampleStack` and judged at the held-out positions only:
@@ -70,7 +70,7 @@ Progress = Callable[[float, str], None]
 
 
 def split_positions(n_positions: int, split: str = "alternate") -> list[tuple[np.ndarray, np.ndarray]]:
-    """Calibration / held-out folds of the positions (METHOD.md section 7).
+    """Calibration / held-out folds of the positions (docs/method.md section 7).
 
     Held-out positions are always interior (neither the first nor the last
     position), so the LUT never has to extrapolate.
@@ -111,7 +111,7 @@ def draw_features(samples: SampleStack, positions, n_points: int, rng: np.random
     Every valid (position, pixel) sample is equally likely; no sample is drawn twice.
     The draw runs over the whole grid of (position, pixel) slots, keeping the valid
     ones in the order drawn: two datasets whose valid pixels differ a little (the
-    same rig with and without cover glass, METHOD.md section 8) get the same feature
+    same rig with and without cover glass, docs/method.md section 8) get the same feature
     points wherever both are valid, so their fits differ only by what differs.
 
     Parameters
@@ -170,7 +170,7 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
             with_smooth: bool = True, smooth_degree: int | None = None, level_bias: bool = True,
             footprint: bool = True, n_pairs: int = 20000, n_bins: int = 20,
             progress: Progress | None = None) -> CompareResult:
-    """Run the evaluation protocol of METHOD.md section 7 for PTP, PTP smooth and 3DSTC.
+    """Run the evaluation protocol of docs/method.md section 7 for PTP, PTP smooth and 3DSTC.
 
     Parameters
     ----------

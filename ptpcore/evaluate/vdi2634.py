@@ -1,4 +1,4 @@
-"""Acceptance of an optical 3D scanner by VDI/VDE 2634 Part 2 (METHOD.md section 9).
+"""Acceptance of an optical 3D scanner by VDI/VDE 2634 Part 2 (docs/method.md section 9).
 
 On artefacts of calibrated geometry, from the point cloud of one scan (one *pose* of the artefact):
 

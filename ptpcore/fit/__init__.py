@@ -1,4 +1,4 @@
-"""Fitting LUTs to samples (METHOD.md section 5).
+"""Fitting LUTs to samples (docs/method.md section 5).
 
 - :mod:`.perpixel` — the per-pixel ``poly``, ``pchip`` and ``linear`` LUTs with residual and LOO;
 - :mod:`.sigma` — each sample's noise propagated through a per-pixel fit;

@@ -1,4 +1,4 @@
-"""One call from decoded samples to a LUT with every correction of METHOD.md section 8.
+"""One call from decoded samples to a LUT with every correction of docs/method.md section 8.
 
 ``ptp calibrate`` (through :mod:`ptpcore.run.session`) and the wizard's
 Calibrate page both fit through :func:`fit_corrected`: the cover glass and a
@@ -103,7 +103,7 @@ def fit_corrected(samples: SampleStack, rig: Rig, model: str = "auto", degree: i
                   refine_stage: bool = False, stage_sigma_mm: float = 0.0, level_bias: bool = True,
                   footprint: bool = True, robust: bool = True,
                   progress: Callable[[float, str], None] | None = None) -> CorrectedFit:
-    """Correct the samples (METHOD.md section 8), fit the LUT, record the corrections and their uncertainty.
+    """Correct the samples (docs/method.md section 8), fit the LUT, record the corrections and their uncertainty.
 
     Parameters
     ----------

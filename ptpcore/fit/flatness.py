@@ -1,9 +1,9 @@
-"""A measured panel flatness applied to the samples' heights (METHOD.md section 8, FORMATS.md ``[lcd]``).
+"""A measured panel flatness applied to the samples' heights (docs/method.md section 8, FORMATS.md ``[lcd]``).
 
 A panel may bow: the pixel plane at LCD point ``(u, v)`` lies ``w(u, v)`` (um,
 ``+`` = farther from the camera) off the plane the stage reading places it in,
 so a sample decoded there was seen at height ``z + w`` along the stage's axis
-(METHOD's Z grows away from the camera), not at ``z``. Moved back along its
+(docs/method.md section 2: Z grows away from the camera), not at ``z``. Moved back along its
 pixel's ray to the reading, its ``X`` changes by ``-dX/dZ * w`` (and ``Y`` by
 ``-dY/dZ * w``): with ``w`` nearly the same at every position (a ray crosses
 the panel at nearly the same point), a constant offset per pixel that no
@@ -64,7 +64,7 @@ def flatness_um(lcd: Lcd, u_px, v_px) -> np.ndarray:
 
 
 def away_sign(samples: SampleStack, slopes) -> int:
-    """+1 when Z grows away from the camera (METHOD.md section 2), -1 when toward it.
+    """+1 when Z grows away from the camera (docs/method.md section 2), -1 when toward it.
 
     Parameters
     ----------
@@ -76,7 +76,7 @@ def away_sign(samples: SampleStack, slopes) -> int:
     -------
     int
         From where the rays converge (at most ~20000 pixels, the position with
-        most valid pixels); METHOD's +1 when they are nearly parallel (the side
+        most valid pixels); docs/method.md section 2's +1 when they are nearly parallel (the side
         then moves nothing a flatness or a plate offset could show).
     """
     sx, sy = slopes

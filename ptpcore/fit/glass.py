@@ -1,4 +1,4 @@
-"""The LCD's cover glass, removed from every sample before any fit (METHOD.md section 8).
+"""The LCD's cover glass, removed from every sample before any fit (docs/method.md section 8).
 
 The pixel plane sits behind a plane-parallel plate (thickness ``t``, index
 ``n``: top substrate, polarizer, cover glass). A ray meeting the LCD at
@@ -17,7 +17,7 @@ offsets (and any spill file) untouched.
 (:func:`smoothed_slopes`: the rays' directions vary slowly, a pixel's own line
 carries its samples' noise into the correction of every one of its samples). The correction being constant per pixel, the
 slopes of the corrected samples are those of the raw ones: the second pass
-METHOD asks for would give the same ``theta``, so it is not run. Which way the
+one might add would give the same ``theta``, so it is not run. Which way the
 foot of the normal lies along ``(sx, sy)`` depends on the camera's side of the
 LCD, read from where the rays converge (:func:`ptpcore.fit.flatness.away_sign`).
 
@@ -218,7 +218,7 @@ def correct_cover_glass(samples: SampleStack, t_mm: float, index: float, t_sigma
     with np.errstate(invalid="ignore", divide="ignore"):
         ux = np.where(ok & (tan > 0), sx / tan, 0.0)
         uy = np.where(ok & (tan > 0), sy / tan, 0.0)
-    # METHOD section 2: Z grows away from the camera (away = +1), so away * (sx, sy) points away from
+    # docs/method.md section 2: Z grows away from the camera (away = +1), so away * (sx, sy) points away from
     # the foot of the normal; the decoded point lies delta closer to that foot than the air ray's
     # point: move it back. (run.sanity refuses readings whose sense says otherwise; away is read
     # from the rays all the same, so data on the other side is corrected the right way too.)

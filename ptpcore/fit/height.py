@@ -1,4 +1,4 @@
-"""The per-pixel height map ``u_p -> Z`` of a scanner's projector (METHOD.md section 9).
+"""The per-pixel height map ``u_p -> Z`` of a scanner's projector (docs/method.md section 9).
 
 Along one camera pixel's ray, a pinhole projector's coordinate ``u_p`` and the height are related by
 a linear fractional function; distortion and defocus bend it slightly:

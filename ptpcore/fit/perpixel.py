@@ -1,4 +1,4 @@
-"""Per-pixel LUT fitting (METHOD.md section 5): ``poly``, ``pchip`` and ``linear``.
+"""Per-pixel LUT fitting (docs/method.md section 5): ``poly``, ``pchip`` and ``linear``.
 
 Pixels may have any subset of valid positions. Fitting groups pixels by
 their pattern of valid positions: all pixels of one pattern share one design

@@ -1,7 +1,7 @@
 """Predicted noise of a per-pixel fit: each sample's phase noise propagated through it.
 
 For a linear fit ``c = P x`` the value at ``z`` is ``v(z)^T P x`` with variance
-``sum_k (v(z)^T P)_k^2 sigma_k^2`` (METHOD.md section 4 gives the phase noise).
+``sum_k (v(z)^T P)_k^2 sigma_k^2`` (docs/method.md section 4 gives the phase noise).
 Used by the fits' sigma maps, ``ptp demo`` and the accuracy tests.
 """
 
@@ -418,7 +418,7 @@ def model_variance_map(excess_sum: np.ndarray, count: np.ndarray, scales_px=MODE
 
 
 def sigma_parts(lut, axis: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """A LUT's predicted 1-sigma along ``axis`` and its two parts (METHOD.md section 5).
+    """A LUT's predicted 1-sigma along ``axis`` and its two parts (docs/method.md section 5).
 
     The total is written (``/quality/sigma_x``); the model's part too when the fit estimated it
     (``/quality/sigma_model_x``); the noise part is what the total holds beside it in quadrature.

@@ -1,6 +1,6 @@
 """Stage pose refinement: each position's six pose errors from the straightness of the rays.
 
-METHOD.md section 8. At stage position ``k`` the LCD may sit off its reading
+docs/method.md section 8. At stage position ``k`` the LCD may sit off its reading
 ``z_k`` by a rigid pose error: ``dx, dy`` (run-out, um), ``dz`` (height error,
 um) and ``pitch, yaw, roll`` (urad, about the LCD centre). A sample decoded at
 LCD-frame point ``(u, v)`` (mm from the LCD centre) then lies, to first order, at

@@ -1,4 +1,4 @@
-"""The per-pixel height map ``u_p -> Z`` (METHOD.md section 9) in memory and in the LUT file's ``/height``.
+"""The per-pixel height map ``u_p -> Z`` (docs/method.md section 9) in memory and in the LUT file's ``/height``.
 
 ``Z = (p_0 + p_1 s + ... + p_D s^D) / (1 + q_1 s)``, ``s = (u_p - u_center) / u_scale`` per pixel
 (FORMATS.md, ``ptp-lut/1``). Fitting lives in :mod:`ptpcore.fit.height`; this module holds,

@@ -1,6 +1,6 @@
 """The per-pixel LUT Z -> (X, Y) in memory (:class:`Lut`), its evaluation, and ``ptp-lut/1`` files.
 
-Models (METHOD.md section 5)
+Models (docs/method.md section 5)
 ---------------------------
 ``poly``
     Polynomial of degree D in ``t = (z - z_center)/z_scale``.
@@ -130,7 +130,7 @@ class Lut:
     sigma_model_x: np.ndarray | None = None
     sigma_model_y: np.ndarray | None = None
     height: HeightMap | None = None
-    """The scanner's height map ``u_p -> Z`` (optional ``/height``, METHOD.md section 9)."""
+    """The scanner's height map ``u_p -> Z`` (optional ``/height``, docs/method.md section 9)."""
 
     @property
     def shape(self) -> tuple[int, int]:

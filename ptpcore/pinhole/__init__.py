@@ -1,7 +1,7 @@
 """The pinhole camera with Brown distortion (OpenCV's convention): the lens model, DLT
-initial guess and Levenberg-Marquardt calibration (METHOD.md section 6). Used by 3DSTC, by
+initial guess and Levenberg-Marquardt calibration (docs/method.md section 6). Used by 3DSTC, by
 the smooth LUT's global model and by the conventional structured-light calibration (camera and
-projector as two pinholes, METHOD.md section 9).
+projector as two pinholes, docs/method.md section 9).
 
 Imports nothing of ptpcore but the base modules.
 """

@@ -1,4 +1,4 @@
-"""Pinhole camera with Brown distortion: the "3DSTC" baseline (METHOD.md section 6).
+"""Pinhole camera with Brown distortion: the "3DSTC" baseline (docs/method.md section 6).
 
 The model follows OpenCV exactly: world points ``Xw`` (mm) go to the camera frame
 by ``Xc = R(rvec) Xw + tvec``, to normalised coordinates ``(Xc/Zc, Yc/Zc)``, are

@@ -1,4 +1,4 @@
-"""The conventional structured-light calibration: camera and projector as two pinholes (METHOD.md section 9).
+"""The conventional structured-light calibration: camera and projector as two pinholes (docs/method.md section 9).
 
 The comparison for the per-pixel scanner calibration. Camera and projector are each a pinhole with
 Brown distortion (:class:`~ptpcore.pinhole.camera.PinholeModel`, OpenCV's convention) in the stage's

@@ -1,4 +1,4 @@
-"""The acceptance scans through both scanner calibrations (METHOD.md section 9, issue 35).
+"""The acceptance scans through both scanner calibrations (docs/method.md section 9, issue 35).
 
 Every scan is decoded once (:func:`ptpcore.run.scanner.reconstruct`, the height sweep's decoder and
 noise model); the same decoded ``u_p`` of every pixel then goes through

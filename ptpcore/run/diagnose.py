@@ -1,11 +1,11 @@
-"""Never silent: what a decode or calibration reports about each position (METHOD.md section 4).
+"""Never silent: what a decode or calibration reports about each position (docs/method.md section 4).
 
 - A position that keeps less than :data:`MIN_VALID_FRACTION` of its pixels is
   reported with its dominant reason; a run that keeps no pixel at all fails.
 - A wrong ``phase_origin_rad`` or ``shift_sign`` is recognised from the data:
   the wrapped phases are unwrapped again under other conventions on a sample
   of well-modulated pixels. The conventions the design cannot tell apart
-  (METHOD.md section 4, :func:`ptpcore.decode.patterns.equivalent_conventions`)
+  (docs/method.md section 4, :func:`ptpcore.decode.patterns.equivalent_conventions`)
   are all scored; those that agree as well (unwrapping consistent, residuals as
   small, coordinates on the LCD) form a set, never narrowed to one by taste:
   one member is the fix, several are listed with why the data cannot tell.
@@ -229,7 +229,7 @@ def _why(periods, kept: list[tuple[int, float]]) -> str:
     if any(sum(1 for s, _o in kept if s == sign) > 1 for sign in (1, -1)):
         nonzero = sorted({round(math.degrees(e) % 360.0, 4) % 360.0 for e in blind_origin_shifts(periods)} - {0.0})
         hidden = f" by {', '.join(f'{x:g}' for x in nonzero)} degrees" if nonzero else ""
-        parts.append(f"an origin wrong{hidden} unwraps as consistently (period ratios {ratios}; METHOD.md section 4):"
+        parts.append(f"an origin wrong{hidden} unwraps as consistently (period ratios {ratios}; docs/method.md section 4):"
                      " a level whose period ratio to the coarser one is 2 reveals every wrong origin")
     if len({s for s, _o in kept}) > 1:
         parts.append("the other shift sign (with another origin) mirrors the map without an unwrapping disagreement"
@@ -245,7 +245,7 @@ def _same(a: tuple[int, float], b: tuple[int, float]) -> bool:
 def _direction_finding(d: str, raw, periods, s0: int, o0: float, shift: float, extent: float,
                        tol: float) -> ConventionFinding | None:
     """The finding of one direction from its sampled plain N-step phases ``raw`` (per level)."""
-    # The design's equivalence class of each sign's best origin (METHOD.md section 4), each
+    # The design's equivalence class of each sign's best origin (docs/method.md section 4), each
     # member then scored on the data: what stays as consistent on the LCD is the set.
     members: list[tuple[int, float]] = [(s0, o0)]
     for sign in (s0, -s0):

@@ -31,7 +31,7 @@ __all__ = ["check_samples", "convergence_z", "STUCK_RATIO", "CAMERA_SIDE"]
 CAMERA_SIDE = -1
 """The side of the screen positions the camera's centre is on: -1 below the smallest reading, +1 above the largest.
 
-METHOD.md section 2: the camera at Z < 0, readings growing as the screen moves
+docs/method.md section 2: the camera at Z < 0, readings growing as the screen moves
 away from it. The engine's virtual rig (``ptpcore.simulate``) follows it.
 """
 

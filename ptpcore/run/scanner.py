@@ -1,4 +1,4 @@
-"""The whole scanner (METHOD.md section 9): the height sweep's map, and a scan's point cloud.
+"""The whole scanner (docs/method.md section 9): the height sweep's map, and a scan's point cloud.
 
 - :func:`decode_projector`: the projector coordinate ``u_p`` and its predicted sigma at every
   position of a height sweep or a scan, with the calibration's own decoder;
@@ -230,7 +230,7 @@ def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray
 def calibrate_height(dataset_dir, *, degree: int | None = None, positions=None,
                      options: DecodeOptions = DecodeOptions(), progress: Progress | None = None,
                      decoded: ProjectorDecode | None = None) -> HeightMap:
-    """A dataset's height sweep -> the per-pixel height map (METHOD.md section 9).
+    """A dataset's height sweep -> the per-pixel height map (docs/method.md section 9).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""The conventional structured-light calibration of a dataset (METHOD.md section 9, "The comparison").
+"""The conventional structured-light calibration of a dataset (docs/method.md section 9, "The comparison").
 
 The same sweeps as the per-pixel calibration, the same decoders, the same noise:
 

@@ -3,7 +3,7 @@ stage errors, rendering the same datasets a real capture writes, plus every pixe
 
 May import :mod:`ptpcore.fit` and everything below it (today it needs only
 :mod:`ptpcore.pinhole`, :mod:`ptpcore.decode` and :mod:`ptpcore.rig`). :mod:`.scanner` adds the
-scanner's projector, its height sweep and object scans (METHOD.md section 9).
+scanner's projector, its height sweep and object scans (docs/method.md section 9).
 """
 
 from . import virtual_rig

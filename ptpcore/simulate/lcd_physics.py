@@ -1,4 +1,4 @@
-"""A real LCD on a real stage: cover glass, carriage pose and panel bow (METHOD.md section 8).
+"""A real LCD on a real stage: cover glass, carriage pose and panel bow (docs/method.md section 8).
 
 Exact geometry for the simulator. Each stage position places the LCD with a
 small rigid pose: translation ``(dx, dy, dz)`` (run-out and height error) and

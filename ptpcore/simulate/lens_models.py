@@ -276,7 +276,7 @@ def project_world(vr, points, *, iterations: int = 100) -> tuple[np.ndarray, np.
     ----------
     vr : VirtualRig
     points : (..., 3) float64, mm
-        World points (LCD frame at stage reading 0, METHOD.md section 2).
+        World points (LCD frame at stage reading 0, docs/method.md section 2).
     iterations : int
         Fixed-point iterations for the non-central pupil and the image-side fields
         (each a contraction: the fields' gradients stay below 0.5).

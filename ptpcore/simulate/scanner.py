@@ -1,6 +1,6 @@
 """The whole scanner in the simulator: a projector fixed to the camera, its height sweep, object scans.
 
-METHOD.md section 9. The camera is a :class:`~ptpcore.simulate.virtual_rig.VirtualRig` (its lens,
+docs/method.md section 9. The camera is a :class:`~ptpcore.simulate.virtual_rig.VirtualRig` (its lens,
 pose, noise model); the projector is a pinhole with its own Brown distortion, an optional smooth
 non-parametric field (projector px, added to the Brown image point), a response gamma and a black
 level. What the camera sees of a surface lit by the projector: for every sub-pixel sample, the

@@ -9,7 +9,7 @@ quantisation to 8-16 bits, saturation, stage position error, stage travel
 skew and the dark bezel around the screen.
 
 Ground truth is each camera pixel's ray, a straight line in the world frame
-(METHOD.md section 2): ``X(z) = x0 + sx * z``, ``Y(z) = y0 + sy * z``.
+(docs/method.md section 2): ``X(z) = x0 + sx * z``, ``Y(z) = y0 + sy * z``.
 
 Everything is seeded: the same settings and seed give the same images, bit
 for bit, in any order (each frame has its own random stream).
@@ -116,7 +116,7 @@ class SimSettings:
     noise: bool = True
     stage_error_um: float = 0.0
     skew: tuple[float, float] = (0.0, 0.0)
-    # A real LCD on a real stage (METHOD.md section 8; ptpcore.simulate.lcd_physics).
+    # A real LCD on a real stage (docs/method.md section 8; ptpcore.simulate.lcd_physics).
     cover_glass_mm: float = 0.0
     cover_glass_index: float = 1.52
     tilt_urad: float = 0.0
@@ -276,7 +276,7 @@ def scale_rig(rig: Rig, s: SimSettings, width: int, height: int | None = None,
 def _rotation(rx: float, ry: float, rz: float) -> np.ndarray:
     """Small tilts (degrees) applied to a camera that looks straight at the screen's face, along +Z.
 
-    METHOD.md section 2: the camera's centre has Z < 0 and the stage readings
+    docs/method.md section 2: the camera's centre has Z < 0 and the stage readings
     grow as the LCD moves away from it; the camera sees the screen unmirrored
     (image columns along LCD columns, image rows along LCD rows).
     """
@@ -361,7 +361,7 @@ class VirtualRig:
         lcd_centre = np.array([(rig.lcd.width - 1) / 2 * rig.lcd.pitch_mm[0],
                                (rig.lcd.height - 1) / 2 * rig.lcd.pitch_mm[1], 0.0])
         z_mid = 0.5 * (min(rig.stage.z_mm) + max(rig.stage.z_mm))
-        # METHOD section 2: the camera in front of the screen's face, at Z < 0.
+        # docs/method.md section 2: the camera in front of the screen's face, at Z < 0.
         self.centre = lcd_centre + np.array([settings.offset_mm[0], settings.offset_mm[1],
                                              z_mid - settings.distance_mm])
         # Smooth non-parametric distortion: a few low-frequency modes (pixels).

@@ -27,7 +27,7 @@ uncertainty maps ``sigma_x``, ``sigma_y`` for plain and smooth LUTs.
 
 Its modules are the estimator's steps, in the order :func:`fit_smooth_lut` runs them:
 
-- :mod:`.noise` — each sample's predicted noise (METHOD.md section 4) and its calibration
+- :mod:`.noise` — each sample's predicted noise (docs/method.md section 4) and its calibration
   (:func:`sigma_scale`), the stage readings' leverage;
 - :mod:`.global_model` — step 1: the global pinhole + Brown model, its rays, the level and
   footprint biases, every sample's residual to the model;

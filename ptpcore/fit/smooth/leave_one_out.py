@@ -84,7 +84,7 @@ def leave_one_out(setup: LooSetup, valid: np.ndarray, sums: "LooSums", report) -
     error common to all pixels (stage reading, a smooth pattern) is not smoothed into it.
 
     Every pixel's fit without ``k`` is a linear least-squares fit with one sample less: it comes in
-    closed form from the pixel's fit through all positions (:func:`downdated_fits`, METHOD.md
+    closed form from the pixel's fit through all positions (:func:`downdated_fits`, docs/method.md
     section 5), from one pass over the samples (:class:`OwnFits`) and position ``k``'s samples;
     only the smoothing (the same weights the refit would use, ``1 / var`` of the fit without ``k``)
     is done again for each ``k``.
@@ -136,7 +136,7 @@ def downdated_fits(coefs, cov: np.ndarray, n: np.ndarray, weight: np.ndarray, va
     With ``A`` a pixel's normal matrix, ``p`` the left-out sample's powers of ``t``, ``w`` its weight,
     ``u = A^-1 p`` and ``h = w p'u`` its leverage, the fit without the sample is (Sherman-Morrison)
     ``c - u w r / (1 - h)``, ``r`` the sample's residual to ``c``, and its inverse normal matrix is
-    ``A^-1 + w u u' / (1 - h)``: no refit (METHOD.md section 5's ``r / (1 - h)``).
+    ``A^-1 + w u u' / (1 - h)``: no refit (docs/method.md section 5's ``r / (1 - h)``).
 
     Parameters
     ----------

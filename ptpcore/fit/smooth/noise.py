@@ -1,6 +1,6 @@
 """Each calibration sample's predicted noise, and its calibration against the fit residuals.
 
-``sigma_X = sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` for the finest period (METHOD.md
+``sigma_X = sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` for the finest period (docs/method.md
 section 4): :func:`phase_sigma_mm` from the camera noise measured in the data
 (:mod:`ptpcore.decode.noise`). :func:`sigma_scale` calibrates it against the residuals of every
 pixel's own fit; :func:`stage_leverage` carries the stage readings' error, common to every pixel
@@ -24,7 +24,7 @@ __all__ = ["phase_sigma_mm", "check_noise", "noise_rows", "sample_sigma_from_noi
 
 
 def phase_sigma_mm(samples: SampleStack, rig: Rig, background, modulation) -> np.ndarray:
-    """``sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` (mm) for the finest period (METHOD.md section 4)."""
+    """``sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` (mm) for the finest period (docs/method.md section 4)."""
     f = rig.fringes
     with np.errstate(divide="ignore", invalid="ignore"):
         return (np.sqrt(2.0 / f.steps[-1]) * samples.noise.sigma_dn(background)
@@ -55,7 +55,7 @@ def sample_sigma_from_noise(samples: SampleStack, rig: Rig) -> np.ndarray:
     """Predicted 1-sigma error (mm) of every sample, from the measured camera noise.
 
     ``sigma_X = sqrt(2/N) * sigma(A) / B * T / (2 pi) * pitch`` for the finest
-    period (METHOD.md section 4), with ``sigma(A)`` from ``samples.noise``.
+    period (docs/method.md section 4), with ``sigma(A)`` from ``samples.noise``.
     The stage readings' error is not in it: it is common to every pixel of a
     position (:func:`stage_leverage`, :func:`poly_sigma_maps`).
 
