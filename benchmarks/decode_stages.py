@@ -27,16 +27,33 @@ from pathlib import Path
 
 import numpy as np
 
+RECIPE_MODULES = ("ptpcore.decode.position", "ptpcore.run.pipeline")
+"""Where the per-position decode recipe calls the decoder's steps (the first that exists: it moved from
+``run/`` to ``decode/``); ``RECIPE`` in :data:`STAGES` stands for it."""
+
 STAGES = {  # (module, attribute): label
-    ("ptpcore.run.pipeline", "wrapped_phase"): "N-step sums (wrapped_phase)",
-    ("ptpcore.run.pipeline", "harmonic_noise_samples"): "noise samples (harmonic_noise_samples)",
-    ("ptpcore.run.pipeline", "black_clipped"): "black clipping",
-    ("ptpcore.run.pipeline", "decode_and_finish"): "unwrapping + classification (decode_and_finish)",
+    ("RECIPE", "wrapped_phase"): "N-step sums (wrapped_phase)",
+    ("RECIPE", "harmonic_noise_samples"): "noise samples (harmonic_noise_samples)",
+    ("RECIPE", "black_clipped"): "black clipping",
+    ("RECIPE", "decode_and_finish"): "unwrapping + classification (decode_and_finish)",
     ("ptpcore.decode.spatial", "spatial_outliers"): "spatial check (spatial_outliers)",
     ("ptpcore.run.decoding", "direction_reasons"): "per-direction reasons (spatial check included)",
     ("ptpcore.run.decoding", "_position_maps"): "the file's maps (_position_maps)",
     ("ptpcore.run.decoding", "convention_check"): "convention check (first position)",
 }
+
+
+def recipe_module():
+    """The module of :data:`RECIPE_MODULES` whose functions the decode calls (its steps are patched there)."""
+    import importlib
+    import importlib.util
+
+    for name in RECIPE_MODULES:
+        if importlib.util.find_spec(name) is not None:
+            module = importlib.import_module(name)
+            if hasattr(module, "wrapped_phase"):
+                return module
+    raise ImportError(f"none of {RECIPE_MODULES} holds the per-position decode recipe")
 
 
 class _Timer:
@@ -103,7 +120,7 @@ def measure(folder, positions, compression: str = "none", out_dir=None) -> dict:
     timer = _Timer()
     saved = []
     for (mod, name), label in STAGES.items():
-        m = importlib.import_module(mod)
+        m = recipe_module() if mod == "RECIPE" else importlib.import_module(mod)
         saved.append((m, name, getattr(m, name)))
         setattr(m, name, timer.wrap(label, getattr(m, name)))
     write = decodedfile.DecodedWriter.write

@@ -3,11 +3,11 @@
     python -m benchmarks.smooth_fit --sizes 0.3,5 --positions 21            # every task, a fresh process each
     python -m benchmarks.smooth_fit --task smooth --mp 5 --positions 21     # one measurement (one JSON line)
 
-The samples are built straight from the true rays of :mod:`benchmarks.synth`
-(no images): X, Y with Gaussian noise of each sample's own predicted sigma
-(from its modulation, background and a :class:`ptpcore.decode.noise.NoiseModel`), a
-few % of invalid samples in regions that move with z. Above 256 MiB they are
-spilled to a temporary file exactly as :func:`ptpcore.run.pipeline.collect_samples`
+The samples are built straight from the true rays
+(:func:`ptpcore.simulate.synthetic.synthetic_photometric_samples`, no images): X, Y with Gaussian
+noise of each sample's own predicted sigma (from its modulation, background and a
+:class:`ptpcore.decode.noise.NoiseModel`), a few % of invalid samples in regions that move with z.
+Above 256 MiB they are spilled to a temporary file exactly as :func:`ptpcore.run.pipeline.collect_samples`
 does (``numpy.memmap`` arrays), so the peak RSS is the fit's own, not the
 samples' (``--in-memory`` keeps them in the process instead).
 
@@ -39,7 +39,6 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-SPILL_BYTES = 256 * 2**20
 
 
 def rss_mb() -> float:
@@ -78,61 +77,6 @@ def maxrss_mb() -> float:
     return kb / 1024.0 if sys.platform != "darwin" else kb / 2**20
 
 
-def synthetic_photometric_samples(mp: float, k: int, seed: int = 0, spill: bool | None = None):
-    """(SampleStack with modulation, background and noise model, Rig, Truth)."""
-    from benchmarks.synth import SyntheticStack, make_rig
-    from ptpcore.io import SampleStack
-    from ptpcore.decode import NoiseModel
-
-    rig = make_rig(mp, k)
-    synth = SyntheticStack(rig, seed)
-    truth = synth.truth
-    h, w = rig.camera.shape
-    z = np.asarray(rig.stage.z_mm, dtype=float)
-    noise = NoiseModel(read_var=1.5 ** 2, gain=0.02)
-    f = rig.fringes
-    bg = synth.a.astype(np.float32)
-    mod = synth.b.astype(np.float32)
-    # The smooth fit's own noise prediction (ptpcore.fit.smooth.sample_sigma_from_noise).
-    sig = (np.sqrt(2.0 / f.steps[-1]) * noise.sigma_dn(bg) / mod * f.periods_px[-1] / (2 * np.pi)
-           * max(rig.lcd.pitch_mm)).astype(np.float32)
-    del synth
-    spill = k * h * w * 17 > SPILL_BYTES if spill is None else spill
-    fields = {"x": np.float32, "y": np.float32, "reasons": np.uint8, "modulation": np.float32,
-              "background": np.float32}
-    if spill:
-        from ptpcore.io import SpillStore
-
-        store = SpillStore(k, (h, w), fields, {})
-    else:
-        arrays = {n: np.empty((k, h, w), dt) for n, dt in fields.items()}
-    rng = np.random.default_rng(seed)
-    x_ref, y_ref = truth.x0.copy(), truth.y0.copy()
-    for i in range(k):
-        reasons = np.zeros((h, w), np.uint8)
-        # Invalid samples come in regions (bezel, border, saturation) that move with z.
-        reasons[: int(h * (0.02 + 0.002 * i))] = 1
-        reasons[:, w - int(w * (0.03 - 0.001 * (i % 7))):] = 8
-        m = (mod * np.float32(1.0 - 0.01 * i)).astype(np.float32)  # a little defocus with z
-        s = sig / np.float32(1.0 - 0.01 * i)
-        pos = {"x": (truth.sx * z[i] + s * rng.standard_normal((h, w), np.float32)).astype(np.float32),
-               "y": (truth.sy * z[i] + s * rng.standard_normal((h, w), np.float32)).astype(np.float32),
-               "reasons": reasons, "modulation": m, "background": bg}
-        pos["x"][reasons != 0] = np.nan
-        pos["y"][reasons != 0] = np.nan
-        for n, a in pos.items():
-            if spill:
-                store.write(n, i, a)
-            else:
-                arrays[n][i] = a
-        del pos
-    if spill:
-        arrays = store.arrays()
-    samples = SampleStack(z, arrays["x"], arrays["y"], x_ref, y_ref, arrays["reasons"], arrays["modulation"],
-                          arrays["background"], noise)
-    return samples, rig, truth
-
-
 def _copy_floor(samples) -> None:
     """Every sample array once, block by block (file reads when spilled), into one buffer."""
     from ptpcore.io import read_block
@@ -149,6 +93,8 @@ def _copy_floor(samples) -> None:
 
 
 def run_task(task: str, mp: float, k: int, spill: bool | None, degree: int = 2) -> dict:
+    from ptpcore.simulate.synthetic import synthetic_photometric_samples
+
     samples, rig, truth = synthetic_photometric_samples(mp, k, spill=spill)
     gc.collect()
     base = rss_mb()

@@ -23,6 +23,13 @@
     ``def`` line (decorators excluded) to its last line, except in generated files (a module whose
     docstring's first line says ``GENERATED``).
 (c) No module in ``ptpcore/fit/`` (recursively) over :data:`MAX_FIT_MODULE_LINES` lines.
+(d) No import cycle anywhere in the repository: the same rule over the modules of ``ptpcore``,
+    ``app`` (as ``ptp_studio``), ``benchmarks`` and ``research`` taken together, so a cycle through
+    two of them is found too.
+(e) No test imports the research folder or a diagnosis script: no file under ``tests/`` imports
+    ``research`` (or a module under it), or a ``benchmarks`` module that is not a measurement tool
+    (:data:`DIAGNOSIS_SCRIPTS`, the scripts that moved to ``research/``), whether by an ``import``
+    statement, ``importlib.import_module`` / ``pytest.importorskip`` or ``python -m`` in a command list.
 """
 
 from __future__ import annotations
@@ -33,6 +40,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 MAX_FUNCTION_LINES = 120
 MAX_FIT_MODULE_LINES = 700
+PACKAGES = (("ptpcore", "ptpcore"), ("app", "ptp_studio"), ("benchmarks", "benchmarks"), ("research", "research"))
+"""Every package of the repository: folder, and the name it is imported as."""
+DIAGNOSIS_SCRIPTS = ("trust_mc", "trust_split", "trust_excess", "trust_parts", "loo_terms", "stage_leak", "stage_luck",
+                     "footprint_truth", "real_bow", "smooth_noise", "scoring", "rigs")
+"""The research tools' names (``research/``): a ``benchmarks.NAME`` of one of them is a diagnosis script."""
 
 
 def _modules(folder: Path, name: str) -> dict[str, Path]:
@@ -226,3 +238,86 @@ def test_engine_functions_fit_a_reading():
 
 def test_fit_modules_fit_a_reading():
     assert long_modules(ROOT / "ptpcore" / "fit") == []
+
+
+def repository_import_cycles(packages=PACKAGES, root: Path = ROOT) -> list[list[str]]:
+    """Every import cycle (rule (a)) between the modules of all ``packages`` ((folder, name) pairs) taken
+    together."""
+    mods: dict[str, Path] = {}
+    for folder, name in packages:
+        if (root / folder).is_dir():
+            mods.update(_modules(root / folder, name))
+    return _cycles(_import_graph(mods))
+
+
+def _is_research(module: str) -> bool:
+    parts = module.split(".")
+    return parts[0] == "research" or (parts[0] == "benchmarks" and len(parts) > 1 and parts[1] in DIAGNOSIS_SCRIPTS)
+
+
+def _named_modules(tree: ast.AST) -> list[tuple[int, str]]:
+    """``(line, module)`` of every module a test file reaches: imports (``from benchmarks import x``
+    names ``benchmarks.x``), ``import_module``/``importorskip`` calls and ``-m MODULE`` in a list."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out.append((node.lineno, node.module))
+            out += [(node.lineno, f"{node.module}.{alias.name}") for alias in node.names]
+        elif isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant):
+            func = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            if func in ("import_module", "importorskip", "__import__") and isinstance(node.args[0].value, str):
+                out.append((node.lineno, node.args[0].value))
+        elif isinstance(node, (ast.List, ast.Tuple)):
+            items = node.elts
+            for flag, value in zip(items, items[1:]):
+                if (isinstance(flag, ast.Constant) and flag.value == "-m" and isinstance(value, ast.Constant)
+                        and isinstance(value.value, str)):
+                    out.append((node.lineno, value.value))
+    return out
+
+
+def research_imports(folder: Path) -> list[str]:
+    """``path:line module`` of every place a file under ``folder`` reaches the research folder or a
+    diagnosis script (rule (e))."""
+    out = []
+    for path in sorted(folder.rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        out += [f"{path.relative_to(folder.parent)}:{line} {module}" for line, module in _named_modules(tree)
+                if _is_research(module)]
+    return out
+
+
+def test_the_repository_has_no_import_cycle():
+    assert repository_import_cycles() == []
+
+
+def test_cycle_finder_sees_cycles_between_packages(tmp_path):
+    """Rule (d) on two small packages: a cycle through both is found, and none once it is broken."""
+    for pkg in ("one", "two"):
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "one" / "a.py").write_text("from two.b import g\n\ndef f():\n    return g()\n")
+    (tmp_path / "two" / "b.py").write_text("def g():\n    from one.a import f\n    return f\n")
+    pairs = (("one", "one"), ("two", "two"))
+    assert repository_import_cycles(pairs, tmp_path) == [["one.a", "two.b"]]
+    (tmp_path / "two" / "b.py").write_text("def g():\n    return 1\n")
+    assert repository_import_cycles(pairs, tmp_path) == []
+
+
+def test_no_test_imports_research_or_a_diagnosis_script():
+    assert research_imports(ROOT / "tests") == []
+
+
+def test_research_import_finder_sees_every_form(tmp_path):
+    """Rule (e) on small files: import statements, ``from benchmarks import NAME``, importorskip,
+    ``python -m`` in a command list; a measurement tool of ``benchmarks`` is allowed."""
+    tests = tmp_path / "tests"
+    tests.mkdir()
+    (tests / "test_a.py").write_text(
+        "import research.trust_mc\nfrom benchmarks import trust_split, synth\nimport benchmarks.commands\n"
+        "import pytest\nx = pytest.importorskip('benchmarks.stage_luck')\n"
+        "cmd = ['python', '-m', 'research.real_bow', 'OUT']\nok = ['python', '-m', 'benchmarks.measure']\n")
+    assert research_imports(tests) == ["tests/test_a.py:1 research.trust_mc", "tests/test_a.py:2 benchmarks.trust_split",
+                                       "tests/test_a.py:5 benchmarks.stage_luck", "tests/test_a.py:6 research.real_bow"]

@@ -52,13 +52,12 @@ def test_decode_and_the_wizards_jobs_run_in_fresh_processes(tmp_path):
 def test_decode_stages_benchmark_runs_on_a_tiny_dataset(tmp_path):
     """``benchmarks.decode_stages``: every stage of a tiny decode is timed, and the patches undone."""
     decode_stages = pytest.importorskip("benchmarks.decode_stages")
-    import ptpcore.run.pipeline as pipeline
-
     rig = synth.make_rig(0.005, 2, steps=(4, 4, 8))  # 80 x 64 px, 2 positions (the first warms up)
     data = synth.write_dataset(tmp_path / "tiny", rig)
-    before = pipeline.wrapped_phase
+    recipe = decode_stages.recipe_module()
+    before = recipe.wrapped_phase
     res = decode_stages.measure(data, [0, 1], "gzip")
-    assert pipeline.wrapped_phase is before
+    assert recipe.wrapped_phase is before
     assert res["positions"] == 1 and res["frames"] == 32 and res["file_mb_per_position"] > 0
     stages = res["stages"]
     for label in ("N-step sums (wrapped_phase)", "spatial check (spatial_outliers)", "the file (gzip)"):

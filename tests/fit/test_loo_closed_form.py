@@ -60,9 +60,9 @@ def _refit_without(s, k, own, interior):
 
 @pytest.fixture(scope="module")
 def small_stack():
-    """:mod:`benchmarks.smooth_fit`'s photometric samples (exact rays, each sample's own predicted noise,
-    invalid regions that move with z) at 112 x 96 px, 9 positions: fast to make and to fit."""
-    from benchmarks.smooth_fit import synthetic_photometric_samples
+    """:func:`ptpcore.simulate.synthetic.synthetic_photometric_samples` (exact rays, each sample's own
+    predicted noise, invalid regions that move with z) at 112 x 96 px, 9 positions: fast to make and to fit."""
+    from ptpcore.simulate.synthetic import synthetic_photometric_samples
 
     samples, rig, _truth = synthetic_photometric_samples(0.01, 9, spill=False)
     return samples, rig

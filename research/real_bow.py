@@ -1,10 +1,10 @@
 """The `real` rig's sigma with and without its panel bow declared (issue 30).
 
-    python -m benchmarks.real_bow OUT_DIR [--seed 1] [--grid 17]
+    python -m research.real_bow OUT_DIR [--seed 1] [--grid 17]
 
-Sweep A of the harness's draw of ``real`` (:func:`benchmarks.loo_terms.sweep_folder`, the folder
-``real-SEED-a`` that :mod:`benchmarks.trust_split` also renders), calibrated as ``ptp calibrate`` does
-(:func:`benchmarks.trust_mc.calibrate`: auto, the drawn stage sigma declared) twice: as the preset is
+Sweep A of the harness's draw of ``real`` (:func:`research.rigs.sweep_folder`, the folder
+``real-SEED-a`` that :mod:`research.trust_split` also renders), calibrated as ``ptp calibrate`` does
+(:func:`research.rigs.calibrate`: auto, the drawn stage sigma declared) twice: as the preset is
 (``asis.lut.h5``: the bow undeclared), and with the drawn bow declared as a measured map
 (``bow.lut.h5``: ``[lcd] flatness_*`` on a ``--grid`` x ``--grid`` grid of the simulator's own bow,
 which the existing flatness correction applies). Existing LUTs are scored again, not refitted. Scored
@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import loo_terms, trust_mc
+from research.rigs import calibrate, drawn_rig, sweep_folder
+from research.scoring import deciles
 
 
 def bow_declared(rig, bow_um: float, n: int):
@@ -36,7 +37,6 @@ def bow_declared(rig, bow_um: float, n: int):
 
 def score(path: Path, truth, seed: int = 1) -> list[str]:
     """One line per axis for the LUT at ``path``."""
-    from benchmarks.trust_excess import deciles
     from ptpcore.fit.sigma import sigma_parts
     from ptpcore.io.lutfile import load_lut
 
@@ -69,15 +69,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    folder = loo_terms.sweep_folder(out, "real", args.seed, False)
-    _, settings = trust_mc.drawn_rig("real", args.seed)
+    folder = sweep_folder(out, "real", args.seed, False)
+    _, settings = drawn_rig("real", args.seed)
     rig = load_rig(folder / "rig.toml")
     fits = {"asis": (rig, "as the preset is (bow undeclared)"),
             "bow": (bow_declared(rig, settings.bow_um, args.grid),
                     f"the drawn {settings.bow_um:.2f} um bow declared ({args.grid} x {args.grid} grid)")}
     missing = [(name, "auto", 3, r) for name, (r, _) in fits.items() if not (folder / f"{name}.lut.h5").exists()]
     if missing:
-        trust_mc.calibrate(folder, missing, settings.stage_error_um)
+        calibrate(folder, missing, settings.stage_error_um)
     truth = load_truth(folder)[0]
     print(f"real#{args.seed}: stage sigma {settings.stage_error_um:.2f} um, tilt {settings.tilt_urad:.1f} urad,"
           f" run-out {settings.runout_um:.2f} um (undeclared), bow {settings.bow_um:.2f} um")

@@ -1,4 +1,4 @@
-"""benchmarks/loo_terms.py (issue 30's diagnosis) and what it showed: the smooth fit's leave-one-out judges each
+"""research/loo_terms.py (issue 30's diagnosis) and what it showed: the smooth fit's leave-one-out judges each
 left-out fit by its own predicted variance at the left-out height."""
 
 import pytest
@@ -9,8 +9,8 @@ def _white(seed: int):
     predicted sigma (``seed``), fitted smooth at degree 2 and 2 px with the terms caught. (Whether the
     excess then resolves the smoothing's own model error in y, about 0.7 um under 1.4 um of noise, is
     chance at this size: its 2 standard errors are about 1 um^2; the harness judges the sigma maps.)"""
-    from benchmarks.loo_terms import TermCatcher, score
-    from benchmarks.smooth_noise import white_noise_stack
+    from ptpcore.simulate.synthetic import white_noise_samples
+    from research.loo_terms import TermCatcher, score
     from ptpcore.fit.smooth.estimator import fit_smooth_lut
     from ptpcore.io import SimulatedSource
     from ptpcore.run import collect_samples
@@ -19,7 +19,7 @@ def _white(seed: int):
     rig, settings = scaled_preset("realistic", 128, positions=11)
     vr = VirtualRig(rig, settings, 3)
     truth = vr.truth()
-    samples = white_noise_stack(collect_samples(SimulatedSource(vr)), rig, truth, seed=seed)
+    samples = white_noise_samples(collect_samples(SimulatedSource(vr)), rig, truth, seed=seed)
     with TermCatcher(truth, white=True) as caught:
         lut = fit_smooth_lut(samples, rig, 2, scales_px=(2.0,), level_bias=False, footprint=False)[0]
     return caught, score(lut, truth)

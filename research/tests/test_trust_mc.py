@@ -1,4 +1,4 @@
-"""The trust Monte Carlo (benchmarks/trust_mc.py, issue 30) works: its halves, its pooling, its run.
+"""The trust Monte Carlo (research/trust_mc.py, issue 30) works: its halves, its pooling, its run.
 
 These check the harness, not the estimator: today's estimator fails several of the issue's bounds,
 and the harness must say so. The slow test runs the reduced harness end to end (at 640 x 480 px,
@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import trust_mc
+from research import trust_mc
+from research.rigs import RIG_TYPES, drawn_rig, simulator_seed
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -29,7 +30,7 @@ def test_halves_are_disjoint_deterministic_and_b_is_asked_for():
     both = trust_mc.task_list(False, 2, "all")
     assert {t[2] for t in both} == {1, 2, 3, 4}
     kinds = {t[1] for t in a if t[0] == "accuracy"}
-    assert kinds == set(trust_mc.RIG_TYPES) and {t[1] for t in a if t[0] == "diff"} == set(trust_mc.DIFF_PRESETS)
+    assert kinds == set(RIG_TYPES) and {t[1] for t in a if t[0] == "diff"} == set(trust_mc.DIFF_PRESETS)
 
 
 def _record(seed, rng, sigma_scale):
@@ -64,7 +65,7 @@ def test_pooling_judges_z_against_the_bounds(scale, ok):
 @pytest.mark.slow
 def test_reduced_run_writes_complete_finite_results(tmp_path):
     out = tmp_path / "trust"
-    run = subprocess.run([sys.executable, "-m", "benchmarks.trust_mc", str(out), "--reduced", "--jobs", "2"],
+    run = subprocess.run([sys.executable, "-m", "research.trust_mc", str(out), "--reduced", "--jobs", "2"],
                          cwd=ROOT, capture_output=True, text=True, timeout=3600)
     assert run.returncode == 0, run.stderr[-2000:]
     results = json.loads((out / "results.json").read_text())
@@ -88,18 +89,18 @@ def test_reduced_run_writes_complete_finite_results(tmp_path):
     assert len(results["times"]) == n_tasks and all(t["cpu_s"] > 0 for t in results["times"])
     table = (out / "table.md").read_text()
     assert table.count("PASS") + table.count("FAIL") >= 2 * len(size["rig_types"]) + len(size["pairs"])
-    warn = subprocess.run([sys.executable, "-m", "benchmarks.trust_mc", str(out), "--half", "B", "--aggregate-only"],
+    warn = subprocess.run([sys.executable, "-m", "research.trust_mc", str(out), "--half", "B", "--aggregate-only"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert warn.returncode == 0 and "held-aside" in warn.stderr
 
 
 def test_stage_luck_is_one_on_average_and_follows_the_drawn_stage():
-    """benchmarks/stage_luck.py: stages drawn at the declared sigma, equal weights, give a realised/expected
+    """research/stage_luck.py: stages drawn at the declared sigma, equal weights, give a realised/expected
     ratio of 1 on average (sigma's stage term is the unweighted fit's); a pool of 3 draws spreads widely
-    (the reason the note gives for not judging mild on 3 draws). trust_mc.stage_luck of a drawn rig is its
+    (the reason the note gives for not judging mild on 3 draws). drawn_stage_luck of a drawn rig is its
     own stage's: the realised errors' mean square through the fit over the declared variance x leverage."""
-    from benchmarks import stage_luck
-    from benchmarks.trust_split import fit_leverage, stage_terms
+    from research import stage_luck
+    from research.scoring import fit_leverage, stage_terms
     from ptpcore.simulate import VirtualRig
 
     lines = stage_luck.declared_spread([3.0] * 11, 2, [3], draws=60_000)
@@ -107,11 +108,11 @@ def test_stage_luck_is_one_on_average_and_follows_the_drawn_stage():
     assert abs(mean - 1.0) < 0.02  # 60 000 draws of a ratio with sd ~0.8: standard error 0.003
     lo, hi = (float(v) for v in lines[1].split("5-95 % ")[1].split(";")[0].split("-"))
     assert lo < 0.5 and hi > 1.7
-    rig, s = trust_mc.drawn_rig("mild", 3)
+    rig, s = drawn_rig("mild", 3)
     readings = np.asarray(rig.stage.z_mm, float)
-    z_true = VirtualRig(rig, s, trust_mc.simulator_seed("mild", 3)).z_true[:readings.size]
+    z_true = VirtualRig(rig, s, simulator_seed("mild", 3)).z_true[:readings.size]
     heights = np.linspace(readings.min(), readings.max(), 257)
     expected = np.mean(stage_terms(readings, z_true, 2, heights)[0] ** 2) / (
         (s.stage_error_um * 1e-3) ** 2 * np.mean(fit_leverage(readings, 2, heights)))
-    assert math.isclose(trust_mc.stage_luck("mild", 3, 2, [2.5] * readings.size), expected, rel_tol=1e-6)
-    assert math.isnan(trust_mc.stage_luck("mild", 3, 2, None))
+    assert math.isclose(stage_luck.drawn_stage_luck("mild", 3, 2, [2.5] * readings.size), expected, rel_tol=1e-6)
+    assert math.isnan(stage_luck.drawn_stage_luck("mild", 3, 2, None))

@@ -1,9 +1,9 @@
 """What the error two sweeps share is made of (issue 30): the realised stage errors, the panel's bow, the rest.
 
-    python -m benchmarks.trust_parts SPLIT_DIR --kind real [--seed 1] [--model auto]
+    python -m research.trust_parts SPLIT_DIR --kind real [--seed 1] [--model auto]
 
-Reads the two sweeps and LUTs that :mod:`benchmarks.trust_split` wrote (``SPLIT_DIR/KIND-SEED-a``, ``-b``,
-``MODEL.lut.h5``) and the simulator's truth. At :data:`benchmarks.trust_split.FRACTIONS` of each pixel's
+Reads the two sweeps and LUTs that :mod:`research.trust_split` wrote (``SPLIT_DIR/KIND-SEED-a``, ``-b``,
+``MODEL.lut.h5``) and the simulator's truth. At :data:`research.scoring.FRACTIONS` of each pixel's
 range, the error the two LUTs share, ``(e_A + e_B) / 2``, is regressed on two fields known exactly from
 the truth, which no per-pixel residual can show:
 
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.trust_split import FRACTIONS, lut_degree, stage_terms
+from research.scoring import FRACTIONS, lut_degree, stage_terms
 
 
 def shared_fields(folder_a: Path, folder_b: Path, model: str) -> tuple[dict, dict]:

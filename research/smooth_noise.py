@@ -1,6 +1,6 @@
 """Is the smooth LUT's predicted noise part right for its own fit? (issue 30's diagnosis)
 
-    python -m benchmarks.smooth_noise SWEEP_DIR [--scale 16] [--degree 2]
+    python -m research.smooth_noise SWEEP_DIR [--scale 16] [--degree 2]
 
 On a simulated sweep (a ``ptp simulate`` folder with its ``truth.h5``), the decoded samples keep
 their masks, heights and predicted sigmas, but their values are replaced by the exact rays plus
@@ -18,37 +18,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 FRACTIONS = np.linspace(0.05, 0.95, 7)
-
-
-def white_noise_stack(samples, rig, truth, seed: int | None, heights=None):
-    """``samples`` with every valid value replaced by the truth plus noise of its predicted sigma.
-
-    ``heights`` (K,) mm: where each position's truth is taken (default the readings ``samples.z``; the
-    simulator's true heights ``truth.z_true`` carry the sweep's stage errors). ``seed`` None: no noise."""
-    from ptpcore.fit.smooth.noise import position_sigma_from_noise
-    from ptpcore.store import read_block
-
-    h, w = samples.shape
-    k_all = samples.z.size
-    rng = None if seed is None else np.random.default_rng(seed)
-    heights = samples.z if heights is None else heights
-    xs, ys = np.empty((k_all, h, w), np.float32), np.empty((k_all, h, w), np.float32)
-    for k in range(k_all):
-        ok = read_block(samples.reasons, 0, h * w, [k])[0].reshape(h, w) == 0
-        tx, ty = truth.xy(np.full((h, w), heights[k]))
-        nx = ny = 0.0
-        if rng is not None:
-            sig = position_sigma_from_noise(samples, rig, k)
-            nx, ny = sig * rng.standard_normal((h, w)), sig * rng.standard_normal((h, w))
-        xs[k] = np.where(ok, tx + nx - samples.x_ref, np.nan)
-        ys[k] = np.where(ok, ty + ny - samples.y_ref, np.nan)
-    return replace(samples, x=xs, y=ys)
 
 
 def predictions(fits, zc: float, zs: float, degree: int, noise_scale: float) -> dict:
@@ -69,6 +43,7 @@ def main(argv=None) -> int:
     from ptpcore.fit.smooth import fit_smooth_lut
     from ptpcore.run.session import new_session, run_session
     from ptpcore.simulate import load_truth
+    from ptpcore.simulate.synthetic import white_noise_samples
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sweep")
@@ -88,7 +63,7 @@ def main(argv=None) -> int:
 
     estimator.smooth_sigma_maps = keep
     try:
-        luts = [fit_smooth_lut(white_noise_stack(session.samples, session.rig, truth, seed), session.rig, args.degree,
+        luts = [fit_smooth_lut(white_noise_samples(session.samples, session.rig, truth, seed), session.rig, args.degree,
                                scales_px=(args.scale,), uncertainty=False, level_bias=False, footprint=False)[0]
                 for seed in (1, 2)]
     finally:

@@ -1,9 +1,9 @@
 """Where a LUT's error comes from (issue 30): two sweeps of one drawn rig, the error split into its parts.
 
-    python -m benchmarks.trust_split OUT_DIR [--kind realistic] [--seed 1] [--model auto] [--degree 3]
+    python -m research.trust_split OUT_DIR [--kind realistic] [--seed 1] [--model auto] [--degree 3]
 
-Two sweeps of the same drawn rig (:func:`benchmarks.trust_mc.drawn_rig`: same lens, field, glass,
-stage errors and poses; the simulator's seed :func:`benchmarks.trust_mc.simulator_seed`) with
+Two sweeps of the same drawn rig (:func:`research.rigs.drawn_rig`: same lens, field, glass,
+stage errors and poses; the simulator's seed :func:`research.rigs.simulator_seed`) with
 independent image noise (noise seeds that seed and it + 1000) are
 calibrated as ``ptp calibrate --model M`` writes them; both LUTs are evaluated at 7 heights over each
 pixel's calibrated range and compared with the exact rays. What the two sweeps share cancels in
@@ -28,84 +28,25 @@ import json
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from benchmarks import trust_mc
-
-FRACTIONS = np.linspace(0.05, 0.95, 7)
-"""Heights at which each pixel's LUT is evaluated, as fractions of its calibrated range."""
+from research.rigs import RIG_TYPES, calibrate, drawn_rig, simulate, simulator_seed
+from research.scoring import FRACTIONS, fit_leverage, lut_degree
 
 
 def sweeps(out: Path, kind: str, seed: int, model: str, degree: int) -> tuple[Path, Path]:
     """Simulate (once) and calibrate the two sweeps; the folders of LUTs ``NAME.lut.h5``."""
-    rig, settings = trust_mc.drawn_rig(kind, seed)
+    rig, settings = drawn_rig(kind, seed)
     folders = []
-    sim = trust_mc.simulator_seed(kind, seed)
+    sim = simulator_seed(kind, seed)
     for tag, noise_seed in (("a", sim), ("b", sim + 1000)):
         folder = out / f"{kind}-{seed}-{tag}"
         if not (folder / "rig.toml").exists():
-            trust_mc.simulate(folder, rig, settings, sim, noise_seed)
+            simulate(folder, rig, settings, sim, noise_seed)
         if not (folder / f"{model}.lut.h5").exists():
-            trust_mc.calibrate(folder, [(model, model, degree)], settings.stage_error_um)
+            calibrate(folder, [(model, model, degree)], settings.stage_error_um)
         folders.append(folder)
     return folders[0], folders[1]
-
-
-def lut_degree(path: Path) -> int:
-    """The polynomial degree in z of a written LUT (its provenance's chosen model, else its model group)."""
-    with h5py.File(path, "r") as f:
-        attrs = f["provenance"].attrs
-        if "model_choice" in attrs:
-            return int(json.loads(attrs["model_choice"])["chosen"]["degree"])
-        return int(f["model"].attrs["degree"])
-
-
-def _normalised(z, readings: np.ndarray):
-    """Heights ``z`` (mm) on the readings' range mapped to [-1, 1]."""
-    lo, hi = readings.min(), readings.max()
-    return (np.asarray(z, float) - lo) / (hi - lo) * 2 - 1
-
-
-def fit_leverage(readings: np.ndarray, degree: int, heights: np.ndarray) -> np.ndarray:
-    """The leverage of a degree-``degree`` fit through ``readings`` (K,) at ``heights`` (mm, any shape):
-    the stage term's variance per unit stage variance."""
-    v = np.vander(_normalised(readings, readings), degree + 1)
-    vh = np.vander(_normalised(heights, readings).ravel(), degree + 1)
-    return np.einsum("ij,jk,ik->i", vh, np.linalg.inv(v.T @ v), vh).reshape(np.shape(heights))
-
-
-def stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray) -> tuple:
-    """The realised height error a degree-``degree`` fit passes on at ``heights`` (mm, same shape),
-    and the leverage of those heights (:func:`fit_leverage`).
-
-    ``readings``, ``z_true`` : (K,) mm.
-    """
-    v = np.vander(_normalised(readings, readings), degree + 1)
-    coef = np.linalg.lstsq(v, z_true - readings, rcond=None)[0]
-    return np.polyval(coef, _normalised(heights, readings)), fit_leverage(readings, degree, heights)
-
-
-def weighted_stage_terms(readings: np.ndarray, z_true: np.ndarray, degree: int, heights: np.ndarray,
-                         weights: np.ndarray) -> np.ndarray:
-    """:func:`stage_terms`' realised height error (mm, the shape of ``heights``) through each pixel's own
-    weighted fit, as the smooth LUT fits in z: ``weights`` (K, *P), the fit's ``1 / sigma^2`` per position
-    for pixels of shape ``P`` (0 where a pixel has no sample); ``heights`` (*F, *P), any number of heights
-    per pixel (each pixel's system is solved once). The unweighted projection is not what the LUT passes
-    on: on mild#3 (sample sigma 2.3 to 3.6 um over the sweep) the realised errors went through the weighted
-    fit at 1.1x to 1.4x it (issue 30), while the expected leverage differs by 2 % only. NaN where a pixel's
-    weighted system is singular."""
-    k = readings.size
-    v = np.vander(_normalised(readings, readings), degree + 1)  # (K, D+1)
-    w = weights.reshape(k, -1)
-    a = np.einsum("ki,kn,kj->nij", v, w, v)  # (N, D+1, D+1): each pixel's normal matrix
-    b = np.einsum("ki,kn,k->ni", v, w, z_true - readings)
-    ok = np.linalg.cond(a) < 1e12
-    coef = np.full(b.shape, np.nan)
-    coef[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-    t = _normalised(heights, readings).reshape(-1, w.shape[1])  # (F, N)
-    vh = t[..., None] ** np.arange(degree, -1, -1)  # np.vander's column order
-    return np.einsum("fni,ni->fn", vh, coef).reshape(np.shape(heights))
 
 
 def load(folder_a: Path, folder_b: Path, model: str) -> tuple:
@@ -211,7 +152,7 @@ def report(axis: str, r: dict) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
-    ap.add_argument("--kind", default="realistic", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--kind", default="realistic", choices=RIG_TYPES)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--model", default="auto")
     ap.add_argument("--degree", type=int, default=3)

@@ -1,6 +1,6 @@
 """Trust on every rig (issue 30): a Monte Carlo over drawn rigs, judged against the exact truth.
 
-    python -m benchmarks.trust_mc OUT_DIR [--reduced] [--draws N] [--half A|B|all] [--jobs J]
+    python -m research.trust_mc OUT_DIR [--reduced] [--draws N] [--half A|B|all] [--jobs J]
 
 Each draw is a new rig (:func:`ptpcore.simulate.draw_rig`: lens, field, glass, stage errors and
 pose drawn from the seed, not only the noise) of one of :data:`RIG_TYPES`: every noisy preset,
@@ -18,9 +18,10 @@ Scoring (no constant is fitted here): every pixel valid in every LUT gets
 ``/quality/z_min .. z_max``); the truth rays give the exact X, Y there. Per axis ``z = error /
 sigma`` of the default LUT (``/quality/sigma_x``, ``sigma_y``); RMS(z), RMS(z) per decile of
 predicted sigma (decile edges over the pooled draws), the fraction of ``|z| > 3``; the held-out
-RMS error of each LUT; the medians of sigma_x and sigma_y; and, to read RMS(z) by, the draws' realised
-stage errors against their expectation (:func:`stage_luck`, from the truth: one draw of 11 errors is
-shared by every pixel, so on a rig whose sigma is mostly the stage term three draws cannot judge it).
+RMS error of each LUT; the medians of sigma_x and sigma_y; and, to read RMS(z) by, the draws'
+realised stage errors against their expectation (:func:`research.stage_luck.drawn_stage_luck`, from
+the truth: one draw of 11 errors is shared by every pixel, so on a rig whose sigma is mostly the
+stage term three draws cannot judge it).
 
 Drift checks (``ptp diff``, default LUTs, stage refinement off, on :data:`DIFF_PRESETS` drawn
 with a declared 1.1 mm cover glass): sweep A against B (same rig and heights, other noise), C
@@ -29,7 +30,7 @@ with a declared 1.1 mm cover glass): sweep A against B (same rig and heights, ot
 
 Draws are split into halves: draw ``i`` (0, 1, ...) has seed ``i + 1``, half A when ``i`` is
 even, B when odd; the simulator's own seed (field modes, stage errors, noise) mixes in the rig
-type (:func:`simulator_seed`), so no two rig types share a draw. ``--half A`` (default) is for
+type (:func:`research.rigs.simulator_seed`), so no two rig types share a draw. ``--half A`` (default) is for
 development; B is kept aside until the code is frozen. Results are written per task (``tasks/*.json``, ``*.npz``; an existing task is not run
 again, so a run can be resumed or extended with more draws), then pooled into ``results.json``
 and ``table.md`` with a PASS/FAIL column against the issue's Must-show bounds.
@@ -46,20 +47,21 @@ import sys
 import tempfile
 import time
 import warnings
-import zlib
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-RIG_TYPES = ("mild", "realistic", "rough", "real", "symmetric", "fisheye", "prism", "ripple")
+from research import rigs
+from research.rigs import RIG_TYPES, calibrate, drawn_rig, simulate, simulator_seed
+from research.stage_luck import drawn_stage_luck
+
 DIFF_PRESETS = ("realistic", "rough")
 CANDIDATES = (("poly1", "poly", 1), ("poly2", "poly", 2), ("poly3", "poly", 3), ("smooth", "smooth", 3))
 DEFAULT = ("default", "auto", 3)
 HEIGHTS_PER_PIXEL = 3
 KEEP_PER_DRAW = 60000
 """(sigma, error) pairs kept per draw and axis for the deciles pooled over draws."""
-GLASS_MM, GLASS_INDEX = 1.1, 1.52
 MOVES_UM = (("move2um", 2.0), ("move05um", 0.5))
 
 # The issue's Must-show bounds.
@@ -83,91 +85,7 @@ REDUCED = {"accuracy_draws": 1, "diff_draws": 1, "rig_types": ("realistic",),
 ``--jobs 2``; with ripple too it was 687 s beside the other slow tests, over the issue's 10 minutes)."""
 
 
-# ---- the rigs ----------------------------------------------------------------------------
-
-def symmetric_rig():
-    """The realistic preset made x/y-symmetric (no tilt, offset, skew, principal-point offset,
-    tangential distortion; equal carriers) with a declared 1.1 mm cover glass."""
-    from ptpcore.simulate import preset
-
-    rig, s = preset("realistic")
-    lens = replace(s.lens, principal_offset_px=(0.0, 0.0), dist=(s.lens.dist[0], s.lens.dist[1], 0.0, 0.0,
-                                                                  s.lens.dist[4]))
-    rig = replace(rig, stage=replace(rig.stage, direction=(0.0, 0.0, 1.0)),
-                  fringes=replace(rig.fringes, carrier_px_per_mm=(1.5, 1.5)),
-                  lcd=replace(rig.lcd, cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX))
-    s = replace(s, name="symmetric", lens=lens, tilt_deg=(0.0, 0.0, 0.0), offset_mm=(0.0, 0.0),
-                skew=(0.0, 0.0), cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX)
-    return rig, s
-
-
-WIDTH = 640
-"""Sensor width of every draw (``--width`` only for a quick check of the harness itself)."""
-
-
-def drawn_rig(kind: str, seed: int, glass: bool = False):
-    """The rig of draw ``seed`` of ``kind`` (a :data:`RIG_TYPES` name); ``glass``: with a declared
-    1.1 mm cover glass added (the drift checks)."""
-    from ptpcore.simulate import base_rig, draw_rig, scale_rig
-
-    base = symmetric_rig() if kind == "symmetric" else base_rig(kind)
-    if WIDTH != base[0].camera.width:
-        base = scale_rig(*base, WIDTH)
-    rig, s = draw_rig(base, kind, seed)
-    if glass:
-        rig = replace(rig, lcd=replace(rig.lcd, cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX))
-        s = replace(s, cover_glass_mm=GLASS_MM, cover_glass_index=GLASS_INDEX)
-    return rig, s
-
-
 # ---- running the product -------------------------------------------------------------------
-
-def simulator_seed(kind: str, seed: int) -> int:
-    """The simulator's seed of draw ``seed`` of ``kind``: its own stream per rig type.
-
-    The simulator's seed draws the distortion field's modes and the stage's height errors; with the
-    draw's seed alone, draw 1 of every rig type had the same normal deviates (stage errors 1.35x their
-    declared sigma on all eight), so the rig types' rows were not independent.
-    """
-    return zlib.crc32(f"{kind}#{int(seed)}".encode())
-
-
-def simulate(folder: Path, rig, settings, seed: int, noise_seed: int) -> Path:
-    """Render a dataset folder (what ``ptp simulate`` writes) of a drawn rig."""
-    from ptpcore.simulate import simulate_dataset
-
-    return simulate_dataset(folder, rig, settings, seed=seed, noise_seed=noise_seed)
-
-
-def calibrate(folder: Path, models, stage_sigma_um: float, record: dict | None = None) -> dict:
-    """``ptp calibrate FOLDER --model M --degree D --stage-sigma-um S`` for each ``(name, M, D)``
-    or ``(name, M, D, rig)``, decoding once; ``rig`` replaces the folder's rig.toml for that fit
-    (the undeclared glass: the decoded samples do not depend on it). With ``record``, its
-    ``"position_sigma_um"`` gets each position's median predicted sample sigma (um; the weights of
-    each pixel's fit in z, for :func:`stage_luck`).
-
-    Returns ``{name: path of the written LUT}`` (``FOLDER/NAME.lut.h5``).
-    """
-    from ptpcore.io.lutfile import save_lut
-    from ptpcore.run.session import new_session, run_session
-
-    session = new_session(folder, model="auto", stage_sigma_um=stage_sigma_um)
-    run_session(session, stop_after="samples", validate=False)
-    if record is not None:
-        from benchmarks.loo_terms import fit_weights
-
-        w = fit_weights(session.samples, session.rig)
-        record["position_sigma_um"] = [float(1e3 / np.sqrt(np.median(wk[wk > 0]))) for wk in w]
-        del w
-    out = {}
-    for name, model, degree, *other in models:
-        s = replace(session, model=model, degree=degree, lut=None, rig=other[0] if other else session.rig)
-        run_session(s, validate=False)
-        path = folder / f"{name}.lut.h5"
-        save_lut(s.lut, path)
-        out[name] = path
-    return out
-
 
 def ptp_diff(a: Path, b: Path, json_path: Path) -> dict:
     """``ptp diff A B --json F``: its numbers and verdict (exit 0 consistent, 1 differ)."""
@@ -360,33 +278,6 @@ def _ratio_ok(value, lo, hi) -> bool:
     return value is not None and np.isfinite(value) and lo <= value <= hi
 
 
-def stage_luck(kind: str, seed: int, degree: int, position_sigma_um) -> float:
-    """The draw's realised stage height errors against sigma's stage term.
-
-    The mean square over the range of the errors' degree-``degree`` fit in z, weighted by
-    ``1 / position_sigma_um**2`` (K,) as each pixel's fit weighs its samples, over what sigma's stage term
-    holds (the declared variance times the unweighted fit's mean leverage, ``stage_variance``). 1 on
-    average over stages (1.02 with mild's weights); one draw of 11 errors is shared by every pixel, so
-    pooling pixels does not average it (the 3-draw spread: ``python -m benchmarks.stage_luck``). Where the
-    stage term is most of sigma^2 (mild), RMS(z)^2 follows it. The unweighted fit is not a stand-in: on
-    mild#3 the weighted fit passed the realised errors on at 1.1-1.4x it (issue 30). NaN without the
-    weights (records before they were kept) or a stage sigma.
-    """
-    from benchmarks.trust_split import fit_leverage, weighted_stage_terms
-    from ptpcore.simulate import VirtualRig
-
-    rig, settings = drawn_rig(kind, seed)
-    if not settings.stage_error_um or position_sigma_um is None:
-        return float("nan")
-    readings = np.asarray(rig.stage.z_mm, float)
-    z_true = VirtualRig(rig, settings, simulator_seed(kind, seed)).z_true[:readings.size]
-    heights = np.linspace(readings.min(), readings.max(), 257)[:, None]  # (F, 1): one "pixel"
-    weights = 1.0 / np.square(np.asarray(position_sigma_um, float))[:, None]  # (K, 1)
-    passed = weighted_stage_terms(readings, np.asarray(z_true, float), degree, heights, weights)
-    expected = (settings.stage_error_um * 1e-3) ** 2 * np.mean(fit_leverage(readings, degree, heights))
-    return float(np.mean(passed ** 2) / expected)
-
-
 def _default_degree(model: str) -> int:
     """The degree in z of the default LUT from its description ("smooth, poly degree 2, ..."); 3 if not said."""
     words = model.replace(",", " ").split()
@@ -426,7 +317,7 @@ def pool_accuracy(records: list[dict], kept: list[dict]) -> dict:
     row["sigma_xy_ratio"] = float(max(row["median_sigma_x_um"], row["median_sigma_y_um"])
                                   / min(row["median_sigma_x_um"], row["median_sigma_y_um"]))
     row["default_models"] = [d["model"] for d in default]
-    row["stage_luck"] = float(np.mean([stage_luck(r["kind"], r["seed"], _default_degree(d["model"]),
+    row["stage_luck"] = float(np.mean([drawn_stage_luck(r["kind"], r["seed"], _default_degree(d["model"]),
                                                   r.get("position_sigma_um")) for r, d in zip(records, default)]))
     return row
 
@@ -588,7 +479,7 @@ def time_estimate(results: dict, cores: int = 2) -> list[str]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.trust_mc", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m research.trust_mc", description=__doc__.split("\n\n")[0])
     p.add_argument("out_dir", metavar="OUT_DIR")
     p.add_argument("--reduced", action="store_true", help=f"the reduced run (CI's slow tier): {REDUCED}")
     p.add_argument("--draws", type=int, metavar="N", help=f"draws per rig and half (default {FULL})")
@@ -602,7 +493,7 @@ def main(argv=None) -> int:
     p.add_argument("--baseline", metavar="RESULTS.json",
                    help=f"an earlier run's results.json: the default's RMS must stay within {ACCURACY_KEPT}x of it"
                         " (same draws: same seeds and sizes)")
-    p.add_argument("--width", type=int, default=WIDTH, help=argparse.SUPPRESS)  # a quick check of the harness only
+    p.add_argument("--width", type=int, default=rigs.WIDTH, help=argparse.SUPPRESS)  # a quick check of the harness only
     args = p.parse_args(argv)
     _set_width(args.width)
     if args.half in ("B", "all"):
@@ -626,15 +517,11 @@ def main(argv=None) -> int:
 
 
 def _set_width(width: int) -> None:
-    global WIDTH
-    if width != WIDTH:
+    if width != rigs.WIDTH:
         print(f"trust_mc: WARNING: {width} px wide draws check the harness only (users calibrate at 640 or more)",
               file=sys.stderr)
         os.environ["PTP_TRUST_WIDTH"] = str(width)  # the worker processes read it
-    WIDTH = width
-
-
-WIDTH = int(os.environ.get("PTP_TRUST_WIDTH", WIDTH))
+    rigs.WIDTH = width
 
 
 def _run_all(specs, out_dir: Path, jobs: int) -> None:

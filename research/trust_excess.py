@@ -1,15 +1,15 @@
 """What the smooth LUT's leave-one-out excess sees of its real error (issue 30): a diagnosis.
 
-    python -m benchmarks.trust_excess SPLIT_DIR [--kind realistic] [--seed 1] [--scales 8,16,32,64,128]
+    python -m research.trust_excess SPLIT_DIR [--kind realistic] [--seed 1] [--scales 8,16,32,64,128]
 
-``SPLIT_DIR`` holds the two sweeps of one drawn rig that :mod:`benchmarks.trust_split` renders
+``SPLIT_DIR`` holds the two sweeps of one drawn rig that :mod:`research.trust_split` renders
 (``KIND-SEED-a``, ``KIND-SEED-b``: same rig, independent image noise). Each is fitted again as
 ``ptp calibrate --model smooth --degree 3`` fits it, keeping the per-pixel sums of the leave-one-out
 excess ``x = r^2 - r_own^2 / (1 - h) - sigma_fit^2`` (:func:`ptpcore.fit.smooth.leave_one_out.model_error`
 reads them; they are caught on their way there). Against the exact rays at 7 heights over each
 pixel's range it reports, per axis:
 
-- the shared error of the two sweeps (:func:`benchmarks.trust_split.errors`) and the excess, pooled per
+- the shared error of the two sweeps (:func:`research.trust_split.errors`) and the excess, pooled per
   block of a 4 x 4 and 8 x 8 grid (their correlation and ratio);
 - the excess mapped by Gaussian kernel regression at each scale (count-weighted, scaled to the
   image-wide level, floored at 0: the map before the posterior), and the product's posterior map
@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import trust_mc, trust_split
+from research import trust_split
+from research.rigs import RIG_TYPES, drawn_rig
+from research.scoring import deciles, gauss_blur
 
 
 def fit_with_excess(folder: Path, stage_sigma_um: float) -> tuple:
@@ -63,21 +65,10 @@ def kernel_map(excess: np.ndarray, n: np.ndarray, scale: float) -> np.ndarray:
     """The count-weighted Gaussian kernel regression of the per-sample excess (mm^2), floored at 0 and
     scaled to the image-wide mean: the map :func:`ptpcore.fit.sigma.model_variance_map` drew before
     issue 30's posterior map (without its shrinkage)."""
-    from ptpcore.fit.sigma import _gauss
-
     have = n > 0
-    local = np.maximum(_gauss(excess, scale) / np.maximum(_gauss(n, scale), 1e-300), 0.0)
+    local = np.maximum(gauss_blur(excess, scale) / np.maximum(gauss_blur(n, scale), 1e-300), 0.0)
     level = excess.sum() / n.sum()
     return local * level / (np.sum(local[have] * n[have]) / n[have].sum())
-
-
-def deciles(err: np.ndarray, total: np.ndarray, ok: np.ndarray) -> tuple[float, list[float], float]:
-    """RMS(z), RMS(z) per decile of ``total`` and the fraction of |z| > 3 (``err`` (F, H, W), ``total`` (H, W))."""
-    edges = np.quantile(total[ok], np.linspace(0, 1, 11))
-    dec = np.clip(np.searchsorted(edges, total, side="right") - 1, 0, 9)
-    z = err[:, ok] / total[ok]
-    per = [float(np.sqrt(np.mean((err[:, ok & (dec == q)] / total[ok & (dec == q)]) ** 2))) for q in range(10)]
-    return float(np.sqrt(np.mean(z * z))), per, float(np.mean(np.abs(z) > 3))
 
 
 def blocks(values: np.ndarray, weights: np.ndarray, ok: np.ndarray, g: int) -> np.ndarray:
@@ -94,9 +85,10 @@ def blocks(values: np.ndarray, weights: np.ndarray, ok: np.ndarray, g: int) -> n
     return out
 
 
-def report_axis(axis: str, lut_a, lut_b, truth, sums_a: dict, sums_b: dict, scales) -> list[str]:
-    """The diagnosis lines of one axis."""
-    e = trust_split.errors(lut_a, lut_b, truth, axis)
+def report_axis(axis: str, lut_a, lut_b, truth, stage: tuple, sums_a: dict, sums_b: dict, scales) -> list[str]:
+    """The diagnosis lines of one axis (``stage``: what sigma's stage term is made of, as
+    :func:`research.trust_split.load` gives it)."""
+    e = trust_split.errors(lut_a, lut_b, truth, stage, axis)
     ok = e["ok"]
     shared2 = np.mean(e["mean"] ** 2, axis=0) - np.mean(e["noise"] ** 2, axis=0) / 2  # (H, W) mm^2
     ex, n = sums_a[axis][0], sums_a["n"]
@@ -125,12 +117,10 @@ def report_axis(axis: str, lut_a, lut_b, truth, sums_a: dict, sums_b: dict, scal
     h, w = ok.shape
     inner[h // 8:h - h // 8, w // 8:w - w // 8] = True
     m = inner & ok & (n > 0) & (sums_b["n"] > 0)
-    from ptpcore.fit.sigma import _gauss
-
     for s in (16, 64):
-        ma = _gauss(ex, s) / np.maximum(_gauss(n, s), 1e-300)
-        mb = _gauss(sums_b[axis][0], s) / np.maximum(_gauss(sums_b["n"], s), 1e-300)
-        sh = _gauss(np.where(ok, shared2, 0.0), s) / np.maximum(_gauss(ok.astype(float), s), 1e-12)
+        ma = gauss_blur(ex, s) / np.maximum(gauss_blur(n, s), 1e-300)
+        mb = gauss_blur(sums_b[axis][0], s) / np.maximum(gauss_blur(sums_b["n"], s), 1e-300)
+        sh = gauss_blur(np.where(ok, shared2, 0.0), s) / np.maximum(gauss_blur(ok.astype(float), s), 1e-12)
         low = m & (ma < np.quantile(ma[m], 0.1))
         lines.append(f"  {s} px maps of the two sweeps (inner image): corr {np.corrcoef(ma[m], mb[m])[0, 1]:.2f};"
                      f" below 0 {100 * np.mean(ma[m] < 0):.1f} %; in A's lowest tenth: map {1e6 * ma[low].mean():+.3f},"
@@ -142,7 +132,7 @@ def report_axis(axis: str, lut_a, lut_b, truth, sums_a: dict, sums_b: dict, scal
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("split_dir")
-    ap.add_argument("--kind", default="realistic", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--kind", default="realistic", choices=RIG_TYPES)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scales", default="8,16,32,64,128", help="kernel scales (px), comma-separated")
     args = ap.parse_args(argv)
@@ -150,17 +140,20 @@ def main(argv=None) -> int:
     folder_a, folder_b = (root / f"{args.kind}-{args.seed}-{t}" for t in "ab")
     for f in (folder_a, folder_b):
         if not (f / "rig.toml").exists():
-            ap.error(f"{f}: no sweep there (render both with python -m benchmarks.trust_split {root})")
-    stage_um = trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
+            ap.error(f"{f}: no sweep there (render both with python -m research.trust_split {root})")
+    stage_um = drawn_rig(args.kind, args.seed)[1].stage_error_um
     lut_a, sums_a = fit_with_excess(folder_a, stage_um)
     lut_b, sums_b = fit_with_excess(folder_b, stage_um)
+    from ptpcore.rig import load_rig
     from ptpcore.simulate import load_truth
 
     truth = load_truth(folder_a)[0]
+    rig = load_rig(folder_a / "rig.toml")
+    stage = (np.asarray(rig.stage.z_mm, float), rig.stage.direction, stage_um * 1e-3, 3)  # degree 3, as fitted
     scales = [float(v) for v in args.scales.split(",")]
     with np.errstate(all="ignore"):
         for axis in "xy":
-            print("\n".join(report_axis(axis, lut_a, lut_b, truth, sums_a, sums_b, scales)), flush=True)
+            print("\n".join(report_axis(axis, lut_a, lut_b, truth, stage, sums_a, sums_b, scales)), flush=True)
     return 0
 
 

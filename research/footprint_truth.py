@@ -1,8 +1,8 @@
 """The footprint correction against the shift the simulator makes (issue 30).
 
-    python -m benchmarks.footprint_truth OUT_DIR [--kind fisheye] [--seed 1]
+    python -m research.footprint_truth OUT_DIR [--kind fisheye] [--seed 1]
 
-Renders the harness's draw (:func:`benchmarks.trust_mc.drawn_rig`) without noise and without stage
+Renders the harness's draw (:func:`research.rigs.drawn_rig`) without noise and without stage
 errors, decodes it as ``ptp calibrate`` does, and takes each sample's X and Y (less the display's
 level bias) minus the exact ray at the position's true height: what the decoder hands the fit besides
 noise, mostly the footprint's shift where the lens bends. Beside it, what
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import trust_mc
+from research.rigs import RIG_TYPES, drawn_rig, simulate, simulator_seed
 
 EDGE_PX = 3
 
@@ -30,19 +30,26 @@ def decoded(out: Path, kind: str, seed: int):
     """The noise-free, stage-error-free render of draw ``seed`` of ``kind`` (once) and its decoded session."""
     from ptpcore.run.session import new_session, run_session
 
-    rig, s = trust_mc.drawn_rig(kind, seed)
+    rig, s = drawn_rig(kind, seed)
     folder = out / f"{kind}-{seed}-noiseless"
     if not (folder / "rig.toml").exists():
-        sim = trust_mc.simulator_seed(kind, seed)
-        trust_mc.simulate(folder, rig, replace(s, noise=False, stage_error_um=0.0), sim, sim)
+        sim = simulator_seed(kind, seed)
+        simulate(folder, rig, replace(s, noise=False, stage_error_um=0.0), sim, sim)
     session = new_session(folder, model="smooth")
     run_session(session, stop_after="samples", validate=False)
     return folder, session
 
 
+def _decoded_lcd_shift(samples, axis: int):
+    """The samples' LCD shift along ``axis`` per pixel, flat (0.0 when the decoder recorded none): what the
+    smooth fit's level-bias removal is given."""
+    shift = getattr(samples, "lcd_shift", None)
+    return 0.0 if shift is None else np.asarray(shift[axis]).reshape(-1)
+
+
 def compare(folder: Path, session) -> dict:
     """Per axis: the decoded samples' shift from the exact rays and the product's correction (um)."""
-    from ptpcore.fit.smooth.global_model import (GlobalRays, _lcd_shift, footprint_bias, global_pinhole,
+    from ptpcore.fit.smooth.global_model import (GlobalRays, footprint_bias, global_pinhole,
                                                  remove_level_bias)
     from ptpcore.simulate import load_truth
     from ptpcore.store import read_block
@@ -64,7 +71,7 @@ def compare(folder: Path, session) -> dict:
     out = {}
     for i, ax in enumerate("xy"):
         values = getattr(sm, f"{ax}_ref").reshape(-1)[None] + read_block(getattr(sm, ax), 0, h * w, sel).astype(float)
-        remove_level_bias(values, rig, ax, np.asarray(sm.z), _lcd_shift(sm, i, slice(0, h * w)))
+        remove_level_bias(values, rig, ax, np.asarray(sm.z), _decoded_lcd_shift(sm, i))
         exact = np.stack([xy[i].ravel() for xy in exact_xy])
         ok = keep & np.isfinite(values)
         shift = (values - exact)[ok]
@@ -80,7 +87,7 @@ def compare(folder: Path, session) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
-    ap.add_argument("--kind", default="fisheye", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--kind", default="fisheye", choices=RIG_TYPES)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
     out = Path(args.out)

@@ -1,8 +1,10 @@
-"""benchmarks/trust_split.py (issue 30's diagnosis) splits two sweeps' errors into what they share and the noise."""
+"""research/trust_split.py (issue 30's diagnosis) splits two sweeps' errors into what they share and the noise;
+research/scoring.py projects the stage errors through each pixel's weighted fit."""
 
 import numpy as np
 
-from benchmarks import trust_split
+from research import trust_split
+from research.scoring import stage_terms, weighted_stage_terms
 
 
 def _errors(noise_um: float, common_um: float, stage_um: float = 0.0, shape=(60, 80), heights=7, seed=0) -> dict:
@@ -37,43 +39,19 @@ def test_the_split_recovers_the_noise_and_the_shared_part():
     assert lines[0] == "axis x" and "measured" in lines[1] and "+ stage 0.200" in lines[1] and "low-pass" in lines[-1]
 
 
-def test_the_smooth_noise_tool_draws_white_noise_of_each_samples_predicted_sigma():
-    """benchmarks/smooth_noise.py: the replaced samples are the truth plus noise of exactly their predicted
-    sigma, on the real samples' masks."""
-    from benchmarks.smooth_noise import white_noise_stack
-    from ptpcore.fit.smooth.noise import position_sigma_from_noise
-    from ptpcore.io import SimulatedSource
-    from ptpcore.run import collect_samples
-    from ptpcore.simulate import VirtualRig, scaled_preset
-
-    rig, settings = scaled_preset("mild", 96, positions=5)
-    vr = VirtualRig(rig, settings, 3)
-    samples = collect_samples(SimulatedSource(vr))
-    fake = white_noise_stack(samples, rig, vr.truth(), seed=1)
-    z = []
-    for k in range(samples.z.size):
-        tx, _ty = vr.truth().xy(np.full(samples.shape, samples.z[k]))
-        x = fake.x_ref + fake.x[k]
-        assert np.array_equal(np.isfinite(fake.x[k]), np.isfinite(samples.x[k]))
-        ok = np.isfinite(x)
-        z.append(((x - tx) / position_sigma_from_noise(samples, rig, k))[ok])
-    z = np.concatenate(z)
-    assert z.size > 10000 and abs(np.std(z) - 1) < 0.03 and abs(np.mean(z)) < 0.03
-
-
 def test_the_weighted_stage_projection_is_each_pixels_weighted_fit():
-    """benchmarks.trust_split.weighted_stage_terms: with equal weights the unweighted projection; with a pixel's
+    """research.scoring.weighted_stage_terms: with equal weights the unweighted projection; with a pixel's
     own weights, that pixel's weighted least-squares fit (numpy's polyfit, weights sqrt(w)) of the height
     errors at its heights; a pixel without enough samples is NaN."""
     rng = np.random.default_rng(4)
     readings = np.linspace(0.0, 40.0, 11)
     z_true = readings + rng.normal(0.0, 1e-3, 11)
     heights = rng.uniform(0.0, 40.0, (3, 4))
-    equal = trust_split.weighted_stage_terms(readings, z_true, 2, heights, np.ones((11, 3, 4)))
-    assert np.allclose(equal, trust_split.stage_terms(readings, z_true, 2, heights)[0], rtol=1e-9, atol=1e-15)
+    equal = weighted_stage_terms(readings, z_true, 2, heights, np.ones((11, 3, 4)))
+    assert np.allclose(equal, stage_terms(readings, z_true, 2, heights)[0], rtol=1e-9, atol=1e-15)
     weights = rng.uniform(0.2, 3.0, (11, 3, 4))
     weights[:9, 2, 3] = 0.0  # two samples cannot fix a degree-2 fit
-    got = trust_split.weighted_stage_terms(readings, z_true, 2, heights, weights)
+    got = weighted_stage_terms(readings, z_true, 2, heights, weights)
     for r, c in [(0, 0), (1, 2), (2, 1)]:
         coef = np.polyfit(readings, z_true - readings, 2, w=np.sqrt(weights[:, r, c]))
         assert np.isclose(got[r, c], np.polyval(coef, heights[r, c]), rtol=1e-7, atol=1e-12)

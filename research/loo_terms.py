@@ -1,10 +1,10 @@
 """The smooth LUT's leave-one-out excess, term by term, against the exact rays (issue 30's diagnosis).
 
-    python -m benchmarks.loo_terms OUT_DIR [--kind symmetric] [--seed 1] [--sweep noisy|noiseless|white]
+    python -m research.loo_terms OUT_DIR [--kind symmetric] [--seed 1] [--sweep noisy|noiseless|white]
                                    [--degree 2] [--scale 2]
 
-Renders sweep A of the harness's draw (:func:`benchmarks.trust_mc.drawn_rig`, the folder
-:mod:`benchmarks.trust_split` names ``KIND-SEED-a``; ``noiseless``: no image noise, no stage errors) and
+Renders sweep A of the harness's draw (:func:`research.rigs.sweep_folder`, the folder
+:mod:`research.trust_split` names ``KIND-SEED-a``; ``noiseless``: no image noise, no stage errors) and
 fits it as ``ptp calibrate --model smooth`` does at one fixed degree and smoothing scale. ``white``
 replaces the noisy sweep's values by the exact rays plus white noise of each sample's predicted sigma (no
 model error exists there; no level-bias, footprint or glass correction). At every interior position ``k``
@@ -22,28 +22,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks import trust_mc
+from research.rigs import RIG_TYPES, drawn_rig, sweep_folder
+from research.scoring import FRACTIONS, deciles, fit_leverage, fit_weights, stage_terms, weighted_stage_terms
 
-FRACTIONS = np.linspace(0.05, 0.95, 7)
 EDGE_PX = 3
-
-
-def sweep_folder(out: Path, kind: str, seed: int, noiseless: bool) -> Path:
-    """The rendered sweep (once): ``KIND-SEED-a`` or ``KIND-SEED-noiseless``."""
-    rig, settings = trust_mc.drawn_rig(kind, seed)
-    sim = trust_mc.simulator_seed(kind, seed)
-    folder = out / f"{kind}-{seed}-{'noiseless' if noiseless else 'a'}"
-    if not (folder / "rig.toml").exists():
-        if noiseless:
-            settings = replace(settings, noise=False, stage_error_um=0.0)
-        trust_mc.simulate(folder, rig, settings, sim, sim)
-    return folder
 
 
 class TermCatcher:
@@ -55,14 +42,14 @@ class TermCatcher:
 
         self.loo, self.truth, self.white = loo, truth, white
         self.rows, self.errors, self.pred_errors = [], {"x": {}, "y": {}}, {"x": {}, "y": {}}
-        self.original = loo._accumulate_left_out
+        self.original = loo.accumulate_left_out
 
     def __enter__(self):
-        self.loo._accumulate_left_out = self.accumulate
+        self.loo.accumulate_left_out = self.accumulate
         return self
 
     def __exit__(self, *exc):
-        self.loo._accumulate_left_out = self.original
+        self.loo.accumulate_left_out = self.original
 
     def accumulate(self, s, k, coef, valid, sums, grow, own_noise, kept, odd=False):
         self.original(s, k, coef, valid, sums, grow, own_noise, kept, odd)
@@ -79,7 +66,7 @@ class TermCatcher:
         inner[EDGE_PX:-EDGE_PX, EDGE_PX:-EDGE_PX] = True
         for i, a in enumerate("xy"):
             pred = np.einsum("j,jhw->hw", powers, coef[a])
-            v = self.loo._left_out_variance(s, sums, a, 0, h, t_k, own[2].ravel(), grow).reshape(h, w)
+            v = self.loo.left_out_variance(s, sums, a, 0, h, t_k, own[2].ravel(), grow).reshape(h, w)
             se, pe, r = values[i] - exact[i], pred - exact[i], values[i] - pred
             ok = (values[2] > 0) & valid & np.isfinite(r) & np.isfinite(own[i]) & inner
             self.rows.append({"k": int(k), "axis": a, "r2": _um2(r * r, ok), "own": _um2(own[i], ok),
@@ -113,16 +100,6 @@ def _um2(values: np.ndarray, ok: np.ndarray) -> float:
     return float(np.mean(values[ok])) * 1e6
 
 
-def fit_weights(samples, rig) -> np.ndarray:
-    """(K, H, W) float64: the weights ``1 / sigma^2`` each pixel's fit in z gives its samples (the smooth
-    fit's :func:`ptpcore.fit.smooth.global_model.global_residuals`), 0 where a sample is missing."""
-    from ptpcore.fit.smooth.noise import noise_rows
-
-    h, w = samples.shape
-    sig = noise_rows(samples, rig, list(range(samples.z.size)), 0, h * w)[3]
-    return np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.square(sig), 0.0).reshape(-1, h, w)
-
-
 def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: float, truth, footprint: bool = True):
     """The LUT (``degree``, smoothing ``scale`` px fixed), the caught terms (:class:`TermCatcher`) and the
     samples' fit weights (:func:`fit_weights`)."""
@@ -135,9 +112,9 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
     run_session(session, stop_after="samples", validate=False)
     with TermCatcher(truth, sweep == "white") as caught:
         if sweep == "white":
-            from benchmarks.smooth_noise import white_noise_stack
+            from ptpcore.simulate.synthetic import white_noise_samples
 
-            samples = white_noise_stack(session.samples, session.rig, truth, seed=7)
+            samples = white_noise_samples(session.samples, session.rig, truth, seed=7)
             lut = fit_smooth_lut(samples, session.rig, degree, scales_px=(scale,), level_bias=False,
                                  footprint=False)[0]
         else:
@@ -154,14 +131,12 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
 def score(lut, truth, rig=None, degree: int = 2, stage_sigma_um: float = 0.0, weights=None) -> dict:
     """Per axis: the LUT's error (um) at :data:`FRACTIONS` of each pixel's range, its sigma parts (um, RMS
     over the pixels), RMS(z) and RMS(z) per decile of sigma. With the ``rig``, also the part of the error
-    that is this sweep's realised stage height errors (:func:`benchmarks.trust_split.stage_terms`: the
+    that is this sweep's realised stage height errors (:func:`research.scoring.stage_terms`: the
     degree-``degree`` fit of them, times the exact ray's slope against the travel direction), and the
     error without it, and sigma's stage term (the declared ``stage_sigma_um``, the fit's leverage) and
     what is left of its noise part without it. ``weights`` ((K, H, W), :func:`fit_weights`): the realised
     part through each pixel's weighted fit, as the LUT passes it on
-    (:func:`benchmarks.trust_split.weighted_stage_terms`); without, the unweighted fit's."""
-    from benchmarks.trust_excess import deciles
-    from benchmarks.trust_split import fit_leverage, stage_terms, weighted_stage_terms
+    (:func:`research.scoring.weighted_stage_terms`); without, the unweighted fit's."""
     from ptpcore.fit.sigma import sigma_parts
 
     valid = lut.valid.astype(bool)
@@ -226,7 +201,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
-    ap.add_argument("--kind", default="symmetric", choices=trust_mc.RIG_TYPES)
+    ap.add_argument("--kind", default="symmetric", choices=RIG_TYPES)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sweep", default="noisy", choices=["noisy", "noiseless", "white"])
     ap.add_argument("--degree", type=int, default=2)
@@ -237,7 +212,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     folder = sweep_folder(out, args.kind, args.seed, args.sweep == "noiseless")
     truth, _, _ = load_truth(folder)
-    stage_um = 0.0 if args.sweep != "noisy" else trust_mc.drawn_rig(args.kind, args.seed)[1].stage_error_um
+    stage_um = 0.0 if args.sweep != "noisy" else drawn_rig(args.kind, args.seed)[1].stage_error_um
     lut, caught, weights = fit(folder, args.sweep, args.degree, args.scale, stage_um, truth, not args.no_footprint)
     from ptpcore.rig.rigfile import load_rig
 
