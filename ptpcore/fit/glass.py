@@ -34,6 +34,7 @@ import numpy as np
 
 from ptpcore.store import read_block
 from ptpcore.io.samples import SampleStack
+from ptpcore.rig.refraction import plate_offset_mm
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["GlassCorrection", "plate_offset_mm", "pixel_slopes", "smoothed_slopes", "correct_cover_glass", "correct_samples",
@@ -46,13 +47,6 @@ NO_GLASS = "no cover glass (declared: [lcd] cover_glass_mm = 0): nothing to remo
 ROW_BLOCK_PIXELS = 1 << 20
 SLOPE_SCALE = 1.0 / 160
 """Gaussian sigma of :func:`smoothed_slopes`, as a fraction of the image's larger side (4 px at 640)."""
-
-
-def plate_offset_mm(tan_theta, t_mm: float, n: float):
-    """``t*(tan(theta) - tan(theta'))`` with ``sin(theta') = sin(theta)/n`` (mm, same shape as ``tan_theta``)."""
-    tt = np.asarray(tan_theta, dtype=float)
-    sin_in = tt / np.sqrt(1.0 + tt * tt) / n
-    return t_mm * (tt - sin_in / np.sqrt(1.0 - sin_in * sin_in))
 
 
 def glass_of(rig: Rig) -> tuple[float, float, float, float]:

@@ -23,7 +23,7 @@ def lut_stage_z(lut) -> tuple:
     or it cannot be read (the names then go without heights)."""
     from ptpcore.errors import PtpError
 
-    from .rigfile import rig_from_toml
+    from .reading import rig_from_toml
 
     try:
         return tuple(rig_from_toml(lut.rig_toml, "the LUT's rig").stage.z_mm) if getattr(lut, "rig_toml", "") else ()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ptpcore.fit.glass import plate_offset_mm as refraction_offset_mm  # t*(tan(theta) - tan(theta'))
+from ptpcore.rig.refraction import plate_offset_mm as refraction_offset_mm  # t*(tan(theta) - tan(theta'))
 
 __all__ = ["LcdPhysics", "pose_matrix", "draw_stage_poses", "refraction_offset_mm"]
 
