@@ -13,8 +13,10 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, Q
                                QTabWidget, QVBoxLayout, QWidget)
 
 from ptpcore.atomic import atomic_path, write_text_atomic
+from ptpcore.errors import OutputError
 from ptpcore.evaluate.residuals import residual_png
 from ptpcore.io import save_lut
+from ptpcore.io.outputs import PLAIN_FOLDER, Output, guard_outputs
 from ptpcore.fit import describe_lut
 from ptpcore.rig import rig_to_toml
 from ptpcore.run import save_session
@@ -38,6 +40,11 @@ N_RESIDUAL_PNGS = 3
 def quality_png(key: str) -> str:
     """The file name of one Calibrate map (``rms_x``, ``sigma_y``, …): ``lut_quality_<key>.png``."""
     return f"lut_quality_{key}.png"
+
+
+def _kind(path: Path) -> str:
+    """What Export writes at ``path`` (:data:`ptpcore.io.outputs.KINDS`)."""
+    return {LUT_NAME: "lut", REPORT_NAME: "report", SESSION_NAME: "session", "rig.toml": "rig"}.get(path.name, "png")
 
 
 def _save_png(image, path: Path) -> None:
@@ -230,6 +237,8 @@ class ExportPage(StudioPage):
         targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
                    *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else []),
                    *(out / f"residuals_position_{k}.png" for k in worst)]  # k from 0, as the dataset's folders
+        if not self._guard(out, targets):
+            return None
         # Files this session wrote itself (an earlier export, its autosaved session file) are replaced
         # without asking; anything else already there is another session's.
         own = {Path(p) for p in s.exports.values()}
@@ -285,6 +294,26 @@ class ExportPage(StudioPage):
         job.finished.connect(self._written)
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
         return self.run_job(job)
+
+    def _guard(self, out: Path, targets: list[Path]) -> bool:
+        """The output guard over every file the export would write (a missing folder: its parent), before
+        anything is written; a refusal is one message and False.
+
+        Never the session's dataset or a file in it, never a file of another kind (by its content), never
+        a folder that does not take files. Replacing an existing file of the same kind is what the
+        question after this asks (the wizard's ``--force``).
+        """
+        dataset = self.model.session.dataset_folder
+        try:
+            if out.is_dir():
+                guard_outputs([Output(p, _kind(p)) for p in targets], inputs=[dataset] if dataset else [],
+                              force=True)
+            else:
+                guard_outputs([Output(out, PLAIN_FOLDER)], inputs=[dataset] if dataset else [])
+        except OutputError as exc:
+            self.jobs.show_error(f"Nothing written: {exc}")
+            return False
+        return True
 
     def _confirm_overwrite(self, out: Path, existing: list[Path]) -> bool:
         """Ask before replacing files already in the output folder (a finished session's above all)."""

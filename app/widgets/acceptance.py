@@ -21,6 +21,8 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
                                QPushButton, QScrollArea, QTableWidget, QTableWidgetItem)
 
 from ptpcore.atomic import write_text_atomic
+from ptpcore.errors import OutputError
+from ptpcore.io.outputs import Output, guard_outputs
 from ptpcore.evaluate.acceptance_png import acceptance_page
 from ptpcore.evaluate.pngtext import write_png
 from ptpcore.evaluate.vdi2634 import FIGURES, evaluate_acceptance, parse_mpe
@@ -201,6 +203,13 @@ class AcceptancePanel(QGroupBox):
         if self.report is None or self.jobs.busy:
             return None
         report, page, counts, path = self.report, self.page, self._counts, Path(path)
+        inputs = [p for p in (self._dataset(), self.scans.text().strip()) if p]
+        try:  # the output guard, before the job (the dialog has asked before replacing the report: force)
+            guard_outputs([Output(path, "report", "the report"), Output(path.with_suffix(".png"), "png", "its page")],
+                          inputs=inputs, force=True)
+        except OutputError as exc:
+            self.jobs.show_error(f"Nothing saved: {exc}")
+            return None
 
         def work(ctx):
             ctx.progress(0.2, f"writing {path.name}")

@@ -18,6 +18,8 @@ from PySide6.QtCore import QRectF, Qt, Signal
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QDoubleSpinBox, QFileDialog, QGridLayout, QGroupBox,
                                QHBoxLayout, QLabel, QLineEdit, QPushButton, QRadioButton, QStackedWidget)
 
+from ptpcore.errors import OutputError
+from ptpcore.io.outputs import Output, guard_outputs
 from ptpcore.io.pointcloud import PointCloud, read_height_map, write_point_cloud
 from ptpcore.run.scanner import reconstruct
 
@@ -315,6 +317,12 @@ class PointCloudPanel(QGroupBox):
         if self.cloud is None or self.jobs.busy:
             return None
         cloud, path = self.cloud, Path(path)
+        height = self.height_file.text().strip()
+        try:  # the output guard, before the job: the dialog has asked before replacing a file (force)
+            guard_outputs([Output(path, "points")], inputs=[height] if height else [], force=True)
+        except OutputError as exc:
+            self.jobs.show_error(f"Nothing saved: {exc}")
+            return None
         note = "ptp-studio point cloud" + (" (extrapolated points flagged)" if cloud.n_extrapolated else "")
 
         def run(ctx):

@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 from ptpcore.cli.progress import progress_bar
-from ptpcore.cli.safety import existing_file, nonneg_float, positive_float, positive_int, seed
+from ptpcore.cli.safety import (add_input, add_output, existing_file, nonneg_float, positive_float, positive_int,
+                                seed)
 
 __all__ = ["add_parser", "cmd_capture", "prompt_reading"]
 
@@ -58,9 +59,8 @@ def cmd_capture(args) -> int:
     from ptpcore.rig.rigfile import load_rig
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, preset, save_truth, scaled_preset
 
-    from ptpcore.io.outputs import check_output_folder
-
-    check_output_folder(args.out, resume=True)  # writable; the dataset checks are capture()'s own
+    # --out passed the output guard (ptpcore.cli.main): a folder, its parent writable, no dataset in it
+    # unless --resume (what a capture to resume holds is capture()'s own check).
     config = load_capture_config(args.config) if args.config else None
     camera_kind = args.camera or (config.camera.kind if config else "sim")
     stage_kind = args.stage or (config.stage.kind if config else "sim")
@@ -133,13 +133,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     " check at the first position stops a bad exposure before the long run. The command line"
                     " uses the simulated display and camera (the real LCD window is the GUI's); the stage may be"
                     " simulated, manual (you type each reading) or serial (--config capture.toml).")
-    p.add_argument("--out", required=True, metavar="DIR", help="dataset folder (new or empty; or with --resume)")
+    add_output(p, "--out", required=True, metavar="DIR", kind="dataset", resume="resume",
+               help="dataset folder (new or empty; or with --resume)")
     p.add_argument("--camera", choices=["sim", "opencv", "genicam"],
                    help="camera (default: the config's, else sim; only sim works from the command line)")
     p.add_argument("--stage", choices=["sim", "manual", "serial"], help="stage (default: the config's, else sim)")
-    p.add_argument("--config", metavar="capture.toml", type=existing_file, help="devices and the serial stage's protocol")
+    add_input(p, "--config", metavar="capture.toml", type=existing_file, kind="config",
+              help="devices and the serial stage's protocol")
     p.add_argument("--port", help="serial port (overrides stage.serial.port)")
-    p.add_argument("--rig", metavar="rig.toml", type=existing_file, help="the rig to capture (default: the preset's)")
+    add_input(p, "--rig", metavar="rig.toml", type=existing_file, kind="rig",
+              help="the rig to capture (default: the preset's)")
     p.add_argument("--preset", default="realistic", choices=list(PRESETS),
                    help="simulated rig and camera (default realistic)")
     p.add_argument("--seed", type=seed, default=0, help="simulator seed (default 0)")

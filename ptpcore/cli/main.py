@@ -20,10 +20,11 @@ from ptpcore import __version__
 from ptpcore.atomic import remove_temporaries
 from ptpcore.cli.progress import progress_bar
 from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLineParser, Terminated,
-                                existing_dir, existing_file, positive_int, quiet_broken_pipe,
-                                seed, signals_as_interrupts, termination_requested)
+                                add_input, add_output, existing_dir, existing_file, guard_arguments,
+                                positive_int, quiet_broken_pipe, seed, signals_as_interrupts,
+                                termination_requested)
 from ptpcore.errors import Cancelled, OutputError, PtpError
-from ptpcore.io.outputs import check_output_file, check_output_folder
+from ptpcore.io.outputs import Output, check_output_file, check_output_folder, guard_outputs
 from ptpcore.rig import lut_stage_z, position_label
 
 
@@ -34,7 +35,7 @@ def cmd_simulate(args) -> int:
 
     from ptpcore.simulate.virtual_rig import preset, scaled_preset, simulate_dataset
 
-    check_output_folder(args.out_dir, force=args.force)
+    # OUT_DIR passed the output guard (main) before this runs.
     if args.preset.startswith("scanner-"):
         return _simulate_scanner(args)
     if args.acceptance:
@@ -123,15 +124,12 @@ def _check_height_sweep(dataset_dir) -> None:
 
 
 def _check_calibrate_outputs(args) -> None:
-    """``--out`` and ``--session`` checked before anything is decoded."""
-    if args.session and Path(args.session).resolve() == Path(args.out).resolve():
-        raise OutputError(f"{args.out}: --out and --session name the same file")
-    if args.session and Path(args.session).exists() and not args.force:
-        raise OutputError(f"{args.session}: session file exists; continue it with `ptp resume"
-                          f" {args.session}`, choose another name, or add --force to replace it")
-    check_output_file(args.out, "lut", force=args.force, inputs=[args.dataset_dir])
-    if args.session:
-        check_output_file(args.session, "session", force=args.force, inputs=[args.dataset_dir])
+    """``--out`` and ``--session`` checked before anything is decoded (the output guard of :func:`main`,
+    again for a caller that runs the command without it)."""
+    guard_outputs([Output(Path(args.out), "lut", "--out"),
+                   *([Output(Path(args.session), "session", "--session", hint=_SESSION_EXISTS)]
+                     if args.session else [])],
+                  inputs=[args.dataset_dir], force=args.force)
 
 
 def cmd_resume(args) -> int:
@@ -314,6 +312,8 @@ def cmd_decode(args) -> int:
     from ptpcore.io.dataset import DatasetSource
     from ptpcore.run.decoding import decode_dataset
 
+    # --out passed the output guard (main): not an input, not a folder, its folder writable, an existing
+    # ptp-decoded/1 file replaced only with --force.
     source = DatasetSource(args.dataset_dir)
     positions = _parse_positions(args.positions, source.rig.stage.n_positions) if args.positions else None
     source.validate(check_design=False)
@@ -410,7 +410,6 @@ def cmd_apply(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
         raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
-    check_output_file(out, "points", force=args.force, inputs=[args.lut_file])
     lut = load_lut(args.lut_file)
     z, z_text = _height_argument(args.z, lut.shape)
     cloud = lut.points(z, extrapolate=args.extrapolate)
@@ -432,7 +431,6 @@ def cmd_reconstruct(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in POINT_CLOUD_SUFFIXES:
         raise ValueError(f"--out {out}: must end in {', '.join(POINT_CLOUD_SUFFIXES)}")
-    check_output_file(out, "points", force=args.force, inputs=[args.lut, args.scan_dir])
     lut = _load_scanner_lut(args.lut)
     bar = progress_bar(args)
     try:
@@ -473,11 +471,9 @@ def cmd_acceptance(args) -> int:
     mpe = parse_mpe(args.mpe)
     scans = _acceptance_scans(args.scans)
     png = Path(args.png) if args.png else Path(args.out).with_suffix(".png")
-    inputs = [args.dataset_dir, args.lut, *scans]
-    check_output_file(args.out, "report", force=args.force, inputs=inputs)
-    check_output_file(png, "png", force=args.force, inputs=inputs)
-    if png.resolve() == Path(args.out).resolve():
-        raise OutputError(f"{png}: --png and --out name the same file")
+    if not args.png:  # the page's default name, beside the report (--out, --png: the guard of main)
+        guard_outputs([Output(Path(args.out), "report", "--out"), Output(png, "png", "the page of plots")],
+                      inputs=[args.dataset_dir, args.lut, *scans], force=args.force)
     lut = _load_scanner_lut(args.lut)
     bar = progress_bar(args)
     try:
@@ -545,6 +541,8 @@ def cmd_diff(args) -> int:
     from ptpcore.evaluate.diff import diff_luts, diff_png
     from ptpcore.io.lutfile import load_lut
 
+    # --json and --png passed the output guard (main): never an input LUT, a file of another kind or a
+    # read-only folder; an existing file replaced only with --force.
     a, b = load_lut(args.lut_a), load_lut(args.lut_b)
     r = diff_luts(a, b, tolerance_sigma=args.tolerance_sigma, tolerance_um=args.tolerance_um,
                   max_fraction=args.max_fraction, common_false_alarm=args.common_false_alarm)
@@ -668,7 +666,7 @@ def cmd_compare(args) -> int:
     from ptpcore.run.pipeline import collect_samples
     from ptpcore.simulate.virtual_rig import TRUTH_FILE, load_truth
 
-    check_output_file(args.out, "report", force=args.force, inputs=[args.dataset_dir])
+    # --out passed the output guard (main) before this runs.
     source = DatasetSource(args.dataset_dir)
     truth = None
     truth_path = Path(args.dataset_dir) / TRUTH_FILE
@@ -702,10 +700,12 @@ def _add_diff_parser(sub) -> None:
                                     " both cover, against the difference their sigma maps predict, and the"
                                     " mean shift of the image against its standard error. Exit 0:"
                                     " consistent; 1: they differ; 2: bad input.")
-    df.add_argument("lut_a", metavar="A.lut.h5")
-    df.add_argument("lut_b", metavar="B.lut.h5")
-    df.add_argument("--json", metavar="FILE", help="write the numbers and the verdict as JSON")
-    df.add_argument("--png", metavar="FILE", help="write the difference map (in units of the tolerance) as PNG")
+    add_input(df, "lut_a", metavar="A.lut.h5", kind="lut", type=existing_file, help="the first LUT (ptp-lut/1)")
+    add_input(df, "lut_b", metavar="B.lut.h5", kind="lut", type=existing_file,
+              help="the second LUT, of the same camera (ptp-lut/1)")
+    add_output(df, "--json", metavar="FILE", kind="report", help="write the numbers and the verdict as JSON")
+    add_output(df, "--png", metavar="FILE", kind="png",
+               help="write the difference map (in units of the tolerance) as PNG")
     df.add_argument("--tolerance-sigma", type=float, default=3.0, metavar="K",
                     help="a pixel is beyond tolerance above K predicted sigmas of the difference (default 3)")
     df.add_argument("--tolerance-um", type=float, default=0.0, metavar="U",
@@ -715,18 +715,22 @@ def _add_diff_parser(sub) -> None:
     df.add_argument("--common-false-alarm", type=float, default=0.01, metavar="P",
                     help="false-alarm rate of the common-mode test (the mean shift of the image against its"
                          " standard error from block means, x and y together; default 0.01)")
+    df.add_argument("--force", action="store_true", help=_FORCE)
     df.set_defaults(func=cmd_diff)
 
 
 
-_FORCE = "replace an existing file of the same kind (never a file of the input dataset)"
+_FORCE = "replace an existing file of the same kind (never an input, nor a file of a dataset)"
+_QUIET = "no progress bar"
+_SESSION_EXISTS = "continue it with `ptp resume {path}`, choose another name, or add --force to replace it"
 
 
 def build_parser() -> OneLineParser:
     """The ``ptp`` parser: every value checked by its type (one-line errors, exit 2)."""
     p = OneLineParser(prog="ptp", description="Point-to-point camera calibration (PTP Studio engine).")
     p.add_argument("--version", action="version", version=f"ptp {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                           help="one of the commands below; `ptp COMMAND --help` for its options")
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_resume_inspect(sub)
@@ -747,7 +751,8 @@ def _add_simulate(sub) -> None:
 
     s = sub.add_parser("simulate", help="render a ptp-dataset folder (/1, or /2 when the design needs it) with the virtual rig",
                        description="Render a ptp-dataset/1 or /2 folder (rig.toml, images, truth.h5) with the virtual rig.")
-    s.add_argument("out_dir", metavar="OUT_DIR")
+    add_output(s, "out_dir", metavar="OUT_DIR", kind="dataset",
+               help="the dataset folder to write (created; its parent folder must exist)")
     s.add_argument("--preset", default="realistic", choices=list(PRESETS) + list(SCANNER_PRESETS),
                    help="rig preset (default realistic); scanner-mild and scanner-rough add the scanner's projector,"
                         " its height sweep and object scans (ptp-dataset/2 [projector], [height]; scans/*)")
@@ -797,8 +802,9 @@ def _add_calibrate(sub) -> None:
 
     c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
                        description="Decode a ptp-dataset/1 or /2 folder and write a ptp-lut/1 file.")
-    c.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
-    c.add_argument("--out", required=True, metavar="FILE.lut.h5")
+    add_input(c, "dataset_dir", metavar="DATASET_DIR", type=existing_dir, kind="dataset",
+              help="the dataset folder (rig.toml and the images of every position)")
+    add_output(c, "--out", required=True, metavar="FILE.lut.h5", kind="lut", help="the LUT file to write")
     c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
                    help="auto: the most accurate of poly degrees 1-3 and smooth at held-out positions (the"
                         " summary shows the table); poly: per-pixel polynomial; pchip, linear: interpolated"
@@ -822,10 +828,10 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--no-robust", action="store_true",
                    help="keep every sample (default: samples beyond 5 predicted sigmas of their pixel's curve are"
                         " left out and counted, a position rejected at most pixels is named suspect and left out)")
-    c.add_argument("--session", metavar="FILE.ptps.h5",
-                   help="save a session file after each completed stage (continue it with `ptp resume`)")
+    add_output(c, "--session", metavar="FILE.ptps.h5", kind="session", hint=_SESSION_EXISTS,
+               help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("--force", action="store_true", help=_FORCE)
-    c.add_argument("-q", "--quiet", action="store_true")
+    c.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     c.set_defaults(func=cmd_calibrate)
 
 
@@ -833,18 +839,22 @@ def _add_resume_inspect(sub) -> None:
     r = sub.add_parser("resume", help="continue a calibration session from its last completed stage",
                        description="Continue a ptp-session file from its last completed stage (decoding,"
                                    " LUT fit), saving it after each stage, then write the LUT file.")
-    r.add_argument("session_file", metavar="FILE.ptps.h5", type=existing_file)
-    r.add_argument("--out", metavar="FILE.lut.h5", help="LUT file to write (default: the one the session names)")
+    add_input(r, "session_file", metavar="FILE.ptps.h5", type=existing_file, kind="session",
+              help="the session file (ptp-session/1) written by `ptp calibrate --session`")
+    add_output(r, "--out", metavar="FILE.lut.h5", kind="lut",
+               help="LUT file to write (default: the one the session names)")
     r.add_argument("--force", action="store_true", help=_FORCE)
-    r.add_argument("-q", "--quiet", action="store_true")
+    r.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     r.set_defaults(func=cmd_resume)
 
     de = sub.add_parser("decode", help="images -> decoded LCD coordinates (ptp-decoded/1)",
                         description="Decode some or all positions of a dataset folder (one or both directions; no"
                                     " heights needed, the z readings are not judged) and write the LCD coordinates"
                                     " every pixel sees as a ptp-decoded/1 file.")
-    de.add_argument("dataset_dir", metavar="DATASET")
-    de.add_argument("--out", required=True, metavar="FILE.decoded.h5")
+    add_input(de, "dataset_dir", metavar="DATASET", type=existing_dir, kind="dataset",
+              help="the dataset folder (rig.toml and the images of every position)")
+    add_output(de, "--out", required=True, metavar="FILE.decoded.h5", kind="decoded",
+               help="the ptp-decoded/1 file to write")
     de.add_argument("--positions", metavar="LIST", help="position indices, e.g. 0 or 0,2,5-7 (default all)")
     de.add_argument("--min-valid", type=float, default=10.0, metavar="PCT",
                     help="report positions keeping less than this percentage of their pixels (default 10)")
@@ -852,11 +862,12 @@ def _add_resume_inspect(sub) -> None:
                     help="the file's HDF5 filters: none (default: no filter, 28 bytes a pixel and position) or"
                          " gzip (shuffle + deflate level 1: about a third of the size for about twice the CPU"
                          " time of reading the images); any HDF5 reader reads both")
-    de.add_argument("-q", "--quiet", action="store_true")
+    de.add_argument("--force", action="store_true", help=_FORCE)
+    de.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     de.set_defaults(func=cmd_decode)
 
     i = sub.add_parser("inspect", help="summarise a LUT file", description="Summarise a ptp-lut/1 file.")
-    i.add_argument("lut_file", metavar="FILE.lut.h5", type=existing_file)
+    add_input(i, "lut_file", metavar="FILE.lut.h5", type=existing_file, kind="lut", help="the LUT file (ptp-lut/1)")
     i.set_defaults(func=cmd_inspect)
 
     a = sub.add_parser("apply", help="height map + LUT -> point cloud (PLY, .npy or .h5)",
@@ -864,10 +875,11 @@ def _add_resume_inspect(sub) -> None:
                                    " TIFF or .npy, (H, W), mm, NaN = no measurement) into a point cloud through a"
                                    " ptp-lut/1 file. Pixels invalid in the LUT or outside their own calibrated"
                                    " z range are left out and counted.")
-    a.add_argument("lut_file", metavar="FILE.lut.h5", type=existing_file)
-    a.add_argument("--z", required=True, metavar="Z", help="height in mm for every pixel, or a height-map file")
-    a.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
-                   help="binary little-endian PLY, a structured .npy array, or ptp-points/1 HDF5")
+    add_input(a, "lut_file", metavar="FILE.lut.h5", type=existing_file, kind="lut", help="the LUT file (ptp-lut/1)")
+    add_input(a, "--z", required=True, metavar="Z", kind="height",
+              help="height in mm for every pixel, or a height-map file")
+    add_output(a, "--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5", kind="points",
+               help="binary little-endian PLY, a structured .npy array, or ptp-points/1 HDF5")
     a.add_argument("--extrapolate", action="store_true",
                    help="keep pixels whose height is outside their calibrated range (flagged `extrapolated`)")
     a.add_argument("--force", action="store_true", help="replace an existing point cloud")
@@ -880,12 +892,14 @@ def _add_reconstruct(sub) -> None:
                                    " pixel's Z from the LUT's height map and (X, Y) from its XY LUT at that Z;"
                                    " each point with its per-axis 1-sigma. Pixels without a decoded coordinate,"
                                    " or outside either map's calibrated range, have no point (never extrapolated).")
-    r.add_argument("scan_dir", metavar="SCAN_DIR", type=existing_dir)
-    r.add_argument("--lut", required=True, metavar="F.lut.h5", type=existing_file)
-    r.add_argument("--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5",
-                   help="point cloud; a scan of several views writes OUT.view000.ply, ...")
+    add_input(r, "scan_dir", metavar="SCAN_DIR", type=existing_dir, kind="scans",
+              help="the scan folder (ptp-scan/1: scan.toml and its images)")
+    add_input(r, "--lut", required=True, metavar="F.lut.h5", type=existing_file, kind="lut",
+              help="the scanner's LUT, with its height map (/height)")
+    add_output(r, "--out", required=True, metavar="OUT.ply|OUT.npy|OUT.h5", kind="points",
+               help="point cloud; a scan of several views writes OUT.view000.ply, ...")
     r.add_argument("--force", action="store_true", help="replace an existing point cloud")
-    r.add_argument("-q", "--quiet", action="store_true")
+    r.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     r.set_defaults(func=cmd_reconstruct)
 
 
@@ -900,20 +914,22 @@ def _add_acceptance(sub) -> None:
                                    " artefact in artefact.toml (kind, diameter_mm, distance_mm) or, simulated, by its"
                                    " truth.h5, which adds the errors against the exact surface and the 3D distance"
                                    " errors.")
-    a.add_argument("dataset_dir", metavar="DATASET", type=existing_dir,
-                   help="the dataset the LUT was calibrated from (its height sweep calibrates the conventional model)")
-    a.add_argument("scans", metavar="SCANS", nargs="+",
-                   help="ptp-scan/1 folders, or folders of them (e.g. DATASET/acceptance)")
-    a.add_argument("--lut", required=True, metavar="F.lut.h5", type=existing_file)
-    a.add_argument("--out", required=True, metavar="REPORT.json")
-    a.add_argument("--png", metavar="PAGE.png", help="the page of plots (default: REPORT.png beside the report)")
+    add_input(a, "dataset_dir", metavar="DATASET", type=existing_dir, kind="dataset",
+              help="the dataset the LUT was calibrated from (its height sweep calibrates the conventional model)")
+    add_input(a, "scans", metavar="SCANS", nargs="+", kind="scans",
+              help="ptp-scan/1 folders, or folders of them (e.g. DATASET/acceptance)")
+    add_input(a, "--lut", required=True, metavar="F.lut.h5", type=existing_file, kind="lut",
+              help="the scanner's LUT, with its height map (/height)")
+    add_output(a, "--out", required=True, metavar="REPORT.json", kind="report", help="the report to write (JSON)")
+    add_output(a, "--png", metavar="PAGE.png", kind="png",
+               help="the page of plots (default: REPORT.png beside the report)")
     a.add_argument("--mpe", metavar="PF=..,PS=..,SD=..,F=..",
                    help="maximum permissible errors in mm (or µm with the unit, e.g. 12µm), any of PF, PS, SD, F")
     a.add_argument("--no-conventional", dest="conventional", action="store_false",
                    help="PTP only (no conventional camera-projector calibration)")
     a.add_argument("--seed", type=seed, default=0, help="seed of the 3D distance-error pairs (default 0)")
     a.add_argument("--force", action="store_true", help="replace an existing report and page")
-    a.add_argument("-q", "--quiet", action="store_true")
+    a.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     a.set_defaults(func=cmd_acceptance)
 
 
@@ -925,8 +941,9 @@ def _add_compare(sub) -> None:
                                     " pinhole + Brown from feature points) on some positions, judge them at the others"
                                     " (docs/method.md section 7) and write the report as JSON. A truth.h5 in the"
                                     " folder (simulated data) adds errors against the exact truth.")
-    cm.add_argument("dataset_dir", metavar="DATASET_DIR", type=existing_dir)
-    cm.add_argument("--out", required=True, metavar="REPORT.json")
+    add_input(cm, "dataset_dir", metavar="DATASET_DIR", type=existing_dir, kind="dataset",
+              help="the dataset folder (rig.toml and the images of every position)")
+    add_output(cm, "--out", required=True, metavar="REPORT.json", kind="report", help="the report to write (JSON)")
     cm.add_argument("--seed", type=seed, default=0, help="seed of the feature points and point pairs (default 0)")
     cm.add_argument("--points", type=positive_int, default=2000, metavar="M",
                     help="3DSTC feature points (default 2000)")
@@ -943,7 +960,7 @@ def _add_compare(sub) -> None:
     cm.add_argument("--no-smooth", dest="smooth", action="store_false",
                     help="leave out the smooth LUT (compare only the plain LUT and 3DSTC)")
     cm.add_argument("--force", action="store_true", help="replace an existing report")
-    cm.add_argument("-q", "--quiet", action="store_true")
+    cm.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     cm.set_defaults(func=cmd_compare)
 
 
@@ -953,14 +970,15 @@ def _add_demo(sub) -> None:
     d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
                        description="Simulate a rig, calibrate on every second position and report the accuracy"
                                    " at the others against the simulator's exact truth.")
-    d.add_argument("--preset", default="realistic", choices=list(PRESETS))
-    d.add_argument("--seed", type=seed, default=0)
-    d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D")
-    d.add_argument("--out", help="keep the simulated dataset in this folder (default: a temporary folder,"
-                                 " removed at the end)")
+    d.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
+    d.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
+    d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
+                   help="polynomial degree 1-5 of the LUT (default 3)")
+    add_output(d, "--out", kind="dataset", help="keep the simulated dataset in this folder (default: a temporary"
+                                                " folder, removed at the end)")
     d.add_argument("--force", action="store_true", help="write into an --out folder that already holds a dataset")
     d.add_argument("--no-compare", dest="compare", action="store_false", help="skip the 3DSTC comparison")
-    d.add_argument("-q", "--quiet", action="store_true")
+    d.add_argument("-q", "--quiet", action="store_true", help=_QUIET)
     d.set_defaults(func=cmd_demo)
 
 
@@ -982,6 +1000,7 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a bad argument (one line already printed)
         return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
+    args.parser = parser  # _run applies the output guard over its marked arguments
     warnings.simplefilter("default")
     warnings.showwarning = _show_warning
     from ptpcore.store import remove_orphaned_spill_files
@@ -1004,8 +1023,15 @@ def main(argv=None) -> int:
 
 
 def _run(args) -> int:
-    """The command, its failures turned into exit codes and one line each."""
+    """The output guard, then the command; failures turned into exit codes and one line each.
+
+    Every output argument marked in the parser (:func:`ptpcore.cli.safety.add_output`) is checked
+    against the command's marked inputs before the command runs (:func:`guard_arguments`), so no
+    command decodes anything before it knows it can write its result.
+    """
     try:
+        if getattr(args, "parser", None) is not None:
+            guard_arguments(args.parser, args)
         return args.func(args)
     except BrokenPipeError:
         raise

@@ -7,7 +7,11 @@
   through the same ``finally`` blocks, every temporary file is removed, exit
   143 (130 for Ctrl-C);
 - a closed standard output (``ptp inspect F | head -1``) ends quietly
-  (:func:`quiet_broken_pipe`, exit 141 as a shell reports SIGPIPE).
+  (:func:`quiet_broken_pipe`, exit 141 as a shell reports SIGPIPE);
+- every output argument marked in the parser (:func:`add_output`), every
+  input too (:func:`add_input`), so one guard (:func:`guard_arguments`,
+  applied by :func:`ptpcore.cli.main.main` before any command runs) checks
+  every output of every command, a new one included.
 """
 
 from __future__ import annotations
@@ -20,12 +24,15 @@ import sys
 import threading
 from pathlib import Path
 
+from ptpcore.io.outputs import KINDS, Output, guard_outputs
+
 EXIT_BAD_INPUT = 2
 EXIT_SIGINT = 130
 EXIT_SIGPIPE = 141
 EXIT_SIGTERM = 143
 
-__all__ = ["OneLineParser", "Terminated", "positive_int", "nonneg_int", "seed", "positive_float",
+__all__ = ["add_output", "add_input", "subcommands", "output_actions", "input_actions", "guard_arguments",
+           "OneLineParser", "Terminated", "positive_int", "nonneg_int", "seed", "positive_float",
            "nonneg_float", "existing_dir", "existing_file", "signals_as_interrupts", "raise_if_terminated",
            "termination_requested", "quiet_broken_pipe",
            "EXIT_BAD_INPUT", "EXIT_SIGINT", "EXIT_SIGPIPE", "EXIT_SIGTERM"]
@@ -97,6 +104,160 @@ def nonneg_float(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
     return value
+
+
+# --------------------------------------------------------------------------- inputs and outputs, marked
+
+OUTPUT_KINDS = (*KINDS, "dataset")
+"""What an output argument writes: a file kind of :data:`ptpcore.io.outputs.KINDS`, or a dataset folder."""
+
+INPUT_KINDS = ("dataset", "scans", "lut", "session", "rig", "config", "height")
+"""What an input argument reads (a dataset or scan folder, a file; ``height``: a number or a file)."""
+
+
+def add_output(parser, *flags, kind: str, resume: str | None = None, hint: str = "",
+               **kwargs) -> argparse.Action:
+    """Add an output argument, marked (``action.ptp_output = kind``) so the guard checks it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        A subcommand's parser.
+    *flags : str
+        As for ``add_argument`` (``"--out"``, or a positional's name).
+    kind : str
+        One of :data:`OUTPUT_KINDS`: what is written there.
+    resume : str, optional
+        For a dataset folder: the ``args`` attribute (e.g. ``"resume"``) that, when true, lets the
+        folder hold the dataset being continued.
+    hint : str
+        What to do when the output exists and may not be replaced (``{path}`` filled in; default:
+        add ``--force``, or the ``resume`` flag).
+    **kwargs
+        As for ``add_argument``; ``help`` is required.
+
+    Returns
+    -------
+    argparse.Action
+        The marked action.
+
+    Raises
+    ------
+    ValueError
+        An unknown kind, or no help text.
+    """
+    if kind not in OUTPUT_KINDS:
+        raise ValueError(f"add_output: kind {kind!r} is not one of {', '.join(OUTPUT_KINDS)}")
+    if not kwargs.get("help"):
+        raise ValueError(f"add_output: {flags[0]} needs a help text")
+    action = parser.add_argument(*flags, **kwargs)
+    action.ptp_output = kind
+    action.ptp_resume = resume
+    action.ptp_hint = hint or (f"add --{resume} to continue it" if resume else "")
+    return action
+
+
+def add_input(parser, *flags, kind: str, **kwargs) -> argparse.Action:
+    """Add an input argument, marked (``action.ptp_input = kind``): the guard never writes onto it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        A subcommand's parser.
+    *flags : str
+        As for ``add_argument``.
+    kind : str
+        One of :data:`INPUT_KINDS`.
+    **kwargs
+        As for ``add_argument``; ``help`` is required.
+
+    Returns
+    -------
+    argparse.Action
+        The marked action.
+
+    Raises
+    ------
+    ValueError
+        An unknown kind, or no help text.
+    """
+    if kind not in INPUT_KINDS:
+        raise ValueError(f"add_input: kind {kind!r} is not one of {', '.join(INPUT_KINDS)}")
+    if not kwargs.get("help"):
+        raise ValueError(f"add_input: {flags[0]} needs a help text")
+    action = parser.add_argument(*flags, **kwargs)
+    action.ptp_input = kind
+    return action
+
+
+def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The subcommand parsers of ``parser`` by name (``{"simulate": ..., "calibrate": ...}``)."""
+    out: dict[str, argparse.ArgumentParser] = {}
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its actions there, documented by use
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            out.update(action.choices)
+    return out
+
+
+def output_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """The marked output arguments of one (sub)command's parser, in the order they were added."""
+    return [a for a in parser._actions if getattr(a, "ptp_output", None)]  # noqa: SLF001
+
+
+def input_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """The marked input arguments of one (sub)command's parser, in the order they were added."""
+    return [a for a in parser._actions if getattr(a, "ptp_input", None)]  # noqa: SLF001
+
+
+def _values(value) -> list:
+    if value is None:
+        return []
+    return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def _argument_name(action: argparse.Action) -> str:
+    if action.option_strings:
+        return max(action.option_strings, key=len)
+    return action.metavar if isinstance(action.metavar, str) else action.dest.upper()
+
+
+def guard_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list[Path]:
+    """The output guard over every marked output of the command ``args.command``, before it runs.
+
+    Inputs are the values of its marked input arguments (for ``height``, only a value that
+    names an existing file); ``--force`` is ``args.force`` where the command has it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The ``ptp`` parser (:func:`ptpcore.cli.main.build_parser`).
+    args : argparse.Namespace
+        Its parsed arguments.
+
+    Returns
+    -------
+    list of Path
+        The outputs checked.
+
+    Raises
+    ------
+    OutputError
+        The first output refused (:func:`ptpcore.io.outputs.guard_outputs`).
+    """
+    sub = subcommands(parser).get(getattr(args, "command", None))
+    if sub is None:
+        return []
+    inputs = []
+    for action in input_actions(sub):
+        for value in _values(getattr(args, action.dest, None)):
+            if action.ptp_input != "height" or Path(str(value)).is_file():
+                inputs.append(Path(str(value)))
+    outputs = []
+    for action in output_actions(sub):
+        resume = bool(action.ptp_resume and getattr(args, action.ptp_resume, False))
+        outputs += [Output(Path(str(v)), action.ptp_output, _argument_name(action), resume, action.ptp_hint)
+                    for v in _values(getattr(args, action.dest, None))]
+    return guard_outputs(outputs, inputs=inputs, force=bool(getattr(args, "force", False)))
 
 
 def existing_dir(text: str) -> str:
