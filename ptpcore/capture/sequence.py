@@ -51,6 +51,7 @@ from ptpcore.capture.devices.camera import FrameError
 from ptpcore.errors import CaptureError, ConfigError, DeviceError, PtpError
 from ptpcore.rig import position_label
 from ptpcore.decode.patterns import fringe_profile, gray_profile, reference_profile
+from ptpcore.progress import Progress
 from ptpcore.rig.rigfile import Display, FringeDesign, Rig, rig_from_toml, rig_to_toml, save_rig
 
 __all__ = [
@@ -75,8 +76,6 @@ __all__ = [
 
 STATE_FILE = "capture-state.json"
 STATE_FORMAT = "ptp-capture-state/1"
-
-Progress = Callable[[float, str], None]
 
 
 class ExposureError(CaptureError):

@@ -4,6 +4,8 @@
 - :mod:`.phase` — N-step phase, temporal unwrapping, validity reasons, LCD coordinates;
 - :mod:`.noise` — the camera noise measured from the N-step residuals;
 - :mod:`.display` — the bias of the LCD's integer levels;
+- :mod:`.position` — one position's sets of frames to coordinates, reasons and noise samples
+  (the recipe the streaming decode and ``ptp decode`` run);
 - :mod:`._fused` — optional numba kernels, exact-equal to the numpy path.
 
 Pure computation on arrays: may import :mod:`ptpcore.rig` and the base modules, never files
@@ -17,6 +19,7 @@ from .phase import (Reason, REASON_NAMES, PhaseAccumulator, WrappedPhase, wrappe
     finish_position)
 from .noise import NoiseModel, NoiseAccumulator
 from .display import level_bias_px, level_bias_table, level_bias_at, level_phase_errors_px
+from .position import decode_sets, flag_more_reasons, reference_clipping, coordinate_sigma
 
 __all__ = [
     "fringe_values",
@@ -43,4 +46,8 @@ __all__ = [
     "level_bias_table",
     "level_bias_at",
     "level_phase_errors_px",
+    "decode_sets",
+    "flag_more_reasons",
+    "reference_clipping",
+    "coordinate_sigma",
 ]

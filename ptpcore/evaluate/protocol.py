@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 
@@ -59,14 +58,13 @@ from ptpcore.fit.choice import fit_auto
 from ptpcore.io import MODELS, SampleStack
 from ptpcore.store import read_block
 from ptpcore.pinhole import fit_pinhole
+from ptpcore.progress import Progress, sub_progress
 from ptpcore.rig import Rig
 
 __all__ = ["split_positions", "draw_features", "smooth_degree_for", "compare", "AUTO_PLAIN"]
 
 AUTO_PLAIN = (("poly", 1), ("poly", 2), ("poly", 3))
 """The plain PTP LUT's candidates for ``model="auto"`` (the smooth LUT is its own method)."""
-
-Progress = Callable[[float, str], None]
 
 
 def split_positions(n_positions: int, split: str = "alternate") -> list[tuple[np.ndarray, np.ndarray]]:
@@ -368,7 +366,7 @@ def _fit_fold_smooth(samples: SampleStack, rig: Rig, fold: Fold, s_degree: int, 
     """The smooth LUT on ``fold``'s calibration positions; records its coverage and scale in ``fold``."""
     cal = list(map(int, fold.calibration))
     smooth, info = fit_smooth_lut(samples, rig, s_degree, cal, seed=seed, **(smooth_options or {}),
-                                  progress=lambda f, msg: report(0.2 + 0.6 * f, f"PTP smooth: {msg}"))
+                                  progress=sub_progress(report, 0.2, 0.8, "PTP smooth: "))
     if not smooth.valid.any():
         raise ValueError(f"no pixel with a usable smooth LUT when calibrating on positions {cal}")
     fold.smooth_valid_fraction = float(smooth.valid.mean())

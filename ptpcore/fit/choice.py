@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -43,6 +42,7 @@ from ptpcore.fit.kinds import fit_kind
 from ptpcore.fit.smooth import position_sigma_from_noise
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.progress import Progress, sub_progress
 from ptpcore.rig.rigfile import Rig
 from ptpcore.store import release_free_memory
 
@@ -69,8 +69,6 @@ MIN_COVERAGE = 0.5
 
 JUDGE_BAND_PIXELS = 1 << 20
 """Pixels per band of rows in which a candidate is evaluated at a held-out position (8 MB a float64 map)."""
-
-Progress = Callable[[float, str], None]
 
 
 @dataclass
@@ -520,13 +518,10 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
         With too few positions to judge any candidate (fewer than 3, or none
         fitted on the folds), ``poly`` degree 1, its ``rule`` saying why.
     """
-    def sub(lo, hi):
-        return None if progress is None else (lambda f, msg: progress(lo + (hi - lo) * f, msg))
-
     global_fits = SmoothGlobalFits(samples, rig, level_bias)
     try:
         choice = choose_model(samples, rig, positions, candidates=candidates, stage_sigma_mm=stage_sigma_mm,
-                              level_bias=level_bias, footprint=footprint, progress=sub(0.0, 0.7),
+                              level_bias=level_bias, footprint=footprint, progress=sub_progress(progress, 0.0, 0.7),
                               global_fits=global_fits)
     except ValueError as exc:  # too few positions to hold any out: the simplest model, and why
         choice = ModelChoice([CandidateError("poly", 1, np.nan, np.nan, np.nan, "not judged")], 0, [],
@@ -538,7 +533,7 @@ def fit_auto(samples: SampleStack, rig: Rig, positions=None, *, stage_sigma_mm: 
     smooth = {} if choice.model != "smooth" else {
         "smooth_scales_px": (scale,) if np.isfinite(scale) else None,
         "smooth_global_fit": global_fits(np.arange(samples.z.size) if positions is None else positions)}
-    lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub(0.7, 1.0),
+    lut = fit_kind(samples, rig, choice.model, choice.degree, positions, sub_progress(progress, 0.7, 1.0),
                    stage_sigma_mm=stage_sigma_mm, level_bias=level_bias, footprint=footprint, **smooth)
     lut.extra_attrs["chosen_by"] = "held-out positions"
     lut.provenance["model_choice"] = choice.to_json()

@@ -5,7 +5,9 @@ fast readers and spill stores.
 - :mod:`.images` — grey PNG/TIFF decoded into a caller's buffer (tifffile, imagecodecs);
 - :mod:`.fastio` — page-cache mapped frame reads (the spill store for big sensors is
   :mod:`ptpcore.store`'s; ``SpillStore`` and ``read_block`` are re-exported here);
+- :mod:`.readahead` — a position's sets of frames from any source, read ahead from a folder;
 - :mod:`.samples` — :class:`SampleStack`, every pixel's samples over all positions;
+- :mod:`.sample_store` — each decoded position's world coordinates into the stack, in memory or spilled;
 - :mod:`.lutfile` — :class:`Lut`, its evaluation and ``ptp-lut/1`` files;
 - :mod:`.pointcloud` — :class:`PointCloud` (what ``Lut.points`` returns), height maps, PLY/.npy/.h5 writers.
 
@@ -17,6 +19,8 @@ from .dataset import (FrameSource, DatasetSource, SimulatedSource, ImageHeader, 
 from .fastio import read_into, map_frame, tiff_layout
 from ptpcore.store import SpillStore, read_block
 from .samples import SampleStack
+from .readahead import READ_AHEAD_BYTES, DatasetReader, source_sets
+from .sample_store import SampleWriter, world_xy
 from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
 from .pointcloud import PointCloud, read_height_map, write_point_cloud
 
@@ -37,6 +41,11 @@ __all__ = [
     "SpillStore",
     "read_block",
     "SampleStack",
+    "READ_AHEAD_BYTES",
+    "DatasetReader",
+    "source_sets",
+    "SampleWriter",
+    "world_xy",
     "LUT_FORMAT",
     "Lut",
     "LutEvaluation",

@@ -16,17 +16,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from ptpcore.decode.phase import DecodeOptions
 from ptpcore.errors import ConfigError
+from ptpcore.progress import Progress, sub_progress
 
 __all__ = ["ACCEPTANCE_METHODS", "ScanPoints", "scan_folders", "conventional_calibration", "reconstruct_scans"]
 
 ACCEPTANCE_METHODS = ("ptp", "conventional")
-Progress = Callable[[float, str], None]
 
 
 @dataclass
@@ -137,11 +136,7 @@ def reconstruct_scans(scans, lut, *, conventional=None, options: DecodeOptions =
     n = len(scans)
     for i, scan in enumerate(scans):
         folder = Path(scan)
-
-        def part(f, msg, i=i):
-            if progress:
-                progress((i + f) / n, f"{folder.name}: {msg}")
-
+        part = sub_progress(progress, i / n, (i + 1) / n, f"{folder.name}: ")
         view = reconstruct(folder, lut, options=options, progress=part)[0]
         rows, cols = np.nonzero(np.isfinite(view.u))
         u = view.u[rows, cols].astype(np.float64)

@@ -73,7 +73,7 @@ def direction_reasons(rig, pos, options: DecodeOptions = DecodeOptions()) -> dic
     dict
         ``{direction: (H, W) uint8}``: :class:`ptpcore.decode.phase.Reason` bits, 0 where valid.
     """
-    from ptpcore.run.pipeline import flag_more_reasons
+    from ptpcore.decode.position import flag_more_reasons
 
     options = options.for_rig(rig)
     out = {}

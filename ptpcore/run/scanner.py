@@ -12,7 +12,6 @@ import contextlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Callable
 
 import numpy as np
 
@@ -22,12 +21,11 @@ from ptpcore.errors import ConfigError, DatasetError
 from ptpcore.fit.height import fit_height_map
 from ptpcore.io.heightmap import HeightMap
 from ptpcore.io.pointcloud import PointCloud
+from ptpcore.progress import Progress
 from ptpcore.rig.rigfile import Rig, load_rig, load_scan
 
 __all__ = ["ProjectorDecode", "decode_projector", "calibrate_height", "ScanResult", "reconstruct",
            "check_scan_design"]
-
-Progress = Callable[[float, str], None]
 
 
 @dataclass
@@ -209,15 +207,15 @@ def _sigma_u(rig: Rig, model: NoiseModel | None, bg: np.ndarray, mod: np.ndarray
              sigma_u: np.ndarray, direction: str = "x") -> str:
     """Predicted 1-sigma of ``u_p`` (``v_p`` for ``direction`` ``y``) into ``sigma_u`` (K, H, W) from the
     noise model and the direction's finest level's background and modulation
-    (:func:`ptpcore.run.pipeline._coordinate_sigma`, as the LCD sweep's), or the neighbourhood's spread
+    (:func:`ptpcore.decode.position.coordinate_sigma`, as the LCD sweep's), or the neighbourhood's spread
     without a model; returns where it came from."""
-    from ptpcore.run.pipeline import _coordinate_sigma
+    from ptpcore.decode.position import coordinate_sigma
 
     f = rig.fringes
     if model is not None:
         for k in range(bg.shape[0]):
-            rows = _coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
-                                     f.steps_of(direction)[-1], f.amplitude, f.periods(direction)[-1])
+            rows = coordinate_sigma(model, SimpleNamespace(background=bg[k], modulation=mod[k]),
+                                    f.steps_of(direction)[-1], f.amplitude, f.periods(direction)[-1])
             sigma_u[k] = rows(0, bg.shape[1])
         return model.source
     if fallback:

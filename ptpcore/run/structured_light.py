@@ -23,7 +23,6 @@ The same sweeps as the per-pixel calibration, the same decoders, the same noise:
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -32,12 +31,11 @@ from ptpcore.errors import ConfigError, DatasetError
 from ptpcore.io.samples import SampleStack
 from ptpcore.pinhole.camera import fit_pinhole
 from ptpcore.pinhole.structured_light import ConventionalCalibration, fit_conventional, opencv_stereo_check
+from ptpcore.progress import Progress, sub_progress
 from ptpcore.rig.rigfile import Rig, load_rig
 
 __all__ = ["calibrate_conventional", "calibrate_conventional_from", "check_conventional_rig", "feature_grid",
            "reconstruct_conventional"]
-
-Progress = Callable[[float, str], None]
 
 # Plate heights within this of an LCD reading (mm) take that position's decoded X, Y.
 _SAME_HEIGHT_MM = 1e-6
@@ -138,10 +136,10 @@ def calibrate_conventional_from(rig: Rig, lcd_source, height_source, *, progress
         raise ValueError("calibrate_conventional: the height sweep was decoded without v_p:"
                          " decode_projector(..., directions=('x', 'y'))")
     if samples is None:
-        samples = collect_samples(lcd_source, options=options, progress=lambda f, m: report(0.45 * f, m))
+        samples = collect_samples(lcd_source, options=options, progress=sub_progress(progress, 0.0, 0.45))
         samples = correct_all(samples, lcd_source.rig)[0]
     dec = decoded if decoded is not None else decode_projector(
-        height_source, options=options, directions=("x", "y"), progress=lambda f, m: report(0.45 + 0.45 * f, m))
+        height_source, options=options, directions=("x", "y"), progress=sub_progress(progress, 0.45, 0.9))
     report(0.9, "conventional calibration: fitting camera and projector")
     rows, cols = feature_grid(samples, dec.u, dec.v, grid_step_px)
     cam_world, cam_px = _camera_points(samples, rows, cols)

@@ -2,7 +2,7 @@
 
 - every encoding a dataset may hold (TIFF uncompressed, LZW, deflate, with and without
   predictor, big-endian, tiled; PNG; 8 and 16 bits) decodes to OpenCV's pixels, through
-  ``read_into``, ``read_image`` and the pipeline's dataset reader (mapped or read);
+  ``read_into``, ``read_image`` and the dataset reader (``ptpcore.io.readahead``; mapped or read);
 - ``[camera] bit_shift`` is applied on every one of those paths;
 - a damaged file is declined by the fast path and named in one message, with nothing printed.
 """
@@ -19,7 +19,7 @@ import tifffile
 from ptpcore.errors import DatasetError
 from ptpcore.io import DatasetSource, read_image, read_into, validate_dataset
 from ptpcore.rig import Camera, load_rig, save_rig
-from ptpcore.run.pipeline import _DatasetReader
+from ptpcore.io.readahead import DatasetReader
 from ptpcore.simulate import preset, simulate_dataset
 
 
@@ -81,7 +81,7 @@ def test_dataset_reader_and_read_image_give_opencvs_pixels(tmp_path, encoding, b
     assert src.rig.camera.bit_shift == bit_shift
     validate_dataset(ds, full=True)
     for map_files in (False, True):
-        reader = _DatasetReader(src, [0], map_files=map_files)
+        reader = DatasetReader(src, [0], map_files=map_files)
         try:
             for (d, j), frames in reader.sets_of(0):
                 t, big_n = src.rig.fringes.periods(d)[j], src.rig.fringes.steps_of(d)[j]

@@ -435,7 +435,7 @@ def test_numba_unwrapping_of_odd_phases_equals_the_reference(kernels):
 
 
 def test_numba_store_equals_the_numpy_path_exactly(realistic, kernels):
-    from ptpcore.run.pipeline import _store_rows, _store_rows_fused
+    from ptpcore.io.sample_store import store_rows, store_rows_fused
 
     rig = realistic.rig
     f = rig.fringes
@@ -450,10 +450,10 @@ def test_numba_store_equals_the_numpy_path_exactly(realistic, kernels):
             dest = {"x": s.x[k], "y": s.y[k], "reasons": s.reasons[k], "modulation": s.modulation[k],
                     "background": s.background[k]}
             if fused:  # into each tile's rows (as a spilled run does, into a scratch of the tile)
-                run_tiles(lambda r0, r1: _store_rows_fused(kernels, rig, pos, fx, fy, s,
-                                                           {n: a[r0:r1] for n, a in dest.items()}, r0, r1), *shape)
+                run_tiles(lambda r0, r1: store_rows_fused(kernels, rig, pos, fx, fy, s,
+                                                          {n: a[r0:r1] for n, a in dest.items()}, r0, r1), *shape)
             else:
-                run_tiles(lambda r0, r1: _store_rows(rig, pos, fx, fy, s, dest, r0, r1), *shape)
+                run_tiles(lambda r0, r1: store_rows(rig, pos, fx, fy, s, dest, r0, r1), *shape)
     for name in ("x", "y", "x_ref", "y_ref", "reasons", "modulation", "background"):
         np.testing.assert_array_equal(getattr(stacks[1], name), getattr(stacks[0], name), err_msg=name)
 

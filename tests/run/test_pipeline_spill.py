@@ -43,7 +43,7 @@ def test_spilled_stack_equals_the_one_in_memory(tiff_folder, tmp_path, monkeypat
         monkeypatch.setenv("PTP_NO_NUMBA", "1")
     # Small row tiles on the numpy path: many tiles write their rows (157 at 5 MP).
     monkeypatch.setattr(phase, "TILE_PIXELS", 160 * 7)
-    monkeypatch.setattr("ptpcore.run.pipeline.TILE_PIXELS", 160 * 7)
+    monkeypatch.setattr("ptpcore.io.sample_store.TILE_PIXELS", 160 * 7)
     src = DatasetSource(tiff_folder)
     mem = collect_samples(src, spill=False)
     part = collect_samples(src, spill=True, spill_dir=tmp_path, positions=[0, 1, 3, 4])
