@@ -31,12 +31,11 @@ from ptpcore.capture.devices import (HarvestersCamera, ManualStage, OpenCVCamera
                              SimulatedDisplay, SimulatedStage, simulated_meta)
 from ptpcore.capture.devices.config import load_capture_config
 from ptpcore.errors import ConfigError, PtpError
-from ptpcore.run import collect_samples
 from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
 from .widgets.maps import axis_label
-from .session import FramePreview, LiveSettings, check_and_report
+from .session import FramePreview, LiveSettings, decode_samples
 from .worker import Job
 
 __all__ = ["LivePanel", "StageAsker", "ReadingDialog", "build_devices", "live_capture_job",
@@ -226,9 +225,7 @@ def live_capture_job(session, camera, stage, display, asker=None, frame_interval
         def decoded(pos):
             ctx.emit(session.position_message(pos))
 
-        samples = collect_samples(DatasetSource(folder), progress=lambda f, m: ctx.progress(0.7 + 0.3 * f, m),
-                                  on_position=decoded, full_positions=session.full_positions())
-        check_and_report(samples, ctx)
+        samples = decode_samples(session, DatasetSource(folder), ctx, 0.7, on_position=decoded)
         ctx.progress(1.0, "done")
         return samples, truth, result.rig
 

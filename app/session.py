@@ -28,11 +28,13 @@ from ptpcore.io import DatasetSource, SimulatedSource
 from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
-from ptpcore.run import check_samples
+from ptpcore.fit.settings import FitSettings
+from ptpcore.progress import sub_progress
+from ptpcore.run import Session as EngineSession, calibrate_session
 from ptpcore.evaluate import DISPLAY_PIXELS, display_step, mask_rgba, reason_counts, reduce_for_display
 
 __all__ = ["Inputs", "LiveSettings", "PositionStatus", "Session", "SessionModel", "SOURCE_KINDS", "StaleResults",
-           "check_and_report", "describe_change", "tour_session"]
+           "calibration_session", "decode_samples", "describe_change", "tour_session"]
 
 SOURCE_KINDS = ("simulated", "folder", "live")
 _DECODED_CACHE = 2  # decoded positions kept for the phase-map page (each holds every level's maps)
@@ -106,17 +108,29 @@ class FramePreview:
             self.ctx.emit(("frame", k, spec, image, overlay, float(sat.mean()), step, frame.shape[:2]))
 
 
-def check_and_report(samples, ctx) -> None:
-    """The data's sanity checks in a job: a wrong ``z_mm`` sense stops it, stuck positions reach the page.
+def calibration_session(s: "Session", settings: FitSettings | None = None, positions=None) -> EngineSession:
+    """The wizard's session as the composer's (:func:`ptpcore.run.calibrate_session`): the rig, the dataset
+    folder (for a folder or live capture: its height sweep and repeats), the decode options, the samples
+    decoded so far, ``settings`` and the fit ``positions`` (None: all)."""
+    folder = s.dataset_folder if s.source_kind in ("folder", "live") and s.dataset_folder is not None else None
+    return EngineSession(rig=s.rig, dataset=str(folder) if folder is not None else None,
+                         settings=settings or FitSettings(), options=s.decode_options,
+                         positions=None if positions is None else tuple(int(p) for p in positions),
+                         samples=s.samples)
 
-    :func:`~ptpcore.run.check_samples` raises ConfigError for readings in
-    reverse (the job fails with that message) and returns one message per pair
-    of positions that look stuck; those go to the page as a ``("warnings", [...])``
-    partial result, shown under the progress bar.
-    """
-    findings = check_samples(samples, warn=False)
-    if findings:
-        ctx.emit(("warnings", findings))
+
+def decode_samples(s: "Session", source, ctx, lo: float = 0.0, on_position=None, on_frame=None):
+    """A job's decode through the one door: the composer's decode stage on ``source`` (the data checks
+    included), its progress in ``[lo, 1]`` of the job's bar; what the checks found goes to the page as a
+    ``("warnings", [...])`` partial result. Returns the :class:`~ptpcore.io.SampleStack`."""
+    es = EngineSession(rig=source.rig, dataset=None if s.dataset_folder is None else str(s.dataset_folder),
+                       options=s.decode_options)
+    result = calibrate_session(es, source=source, stop_after="samples", validate=False,
+                               progress=sub_progress(ctx.progress, lo, 1.0), on_position=on_position,
+                               on_frame=on_frame, full_positions=s.full_positions(), warn=lambda _m: None)
+    if result.warnings:
+        ctx.emit(("warnings", result.warnings))
+    return es.samples
 
 
 @dataclass

@@ -29,6 +29,7 @@ from PySide6.QtCore import QObject, Signal
 from ptpcore.run import session as engine
 from ptpcore.errors import FileFormatError
 from ptpcore.fit import lut_model
+from ptpcore.fit.settings import FIT_SETTINGS_KEY, FitSettings
 from ptpcore.simulate.virtual_rig import PRESETS, preset, settings_from_json
 
 from .session import PositionStatus, Session, SessionModel, session_truth
@@ -40,33 +41,43 @@ __all__ = ["Autosave", "OpenedSession", "STEP_PAGES", "read_session_file", "to_e
 STEP_PAGES = {"decode": "acquire", "fit": "calibrate", "compare": "compare", None: "export"}
 
 
-def to_engine(s: Session, *, out=None, model: str = "auto", degree: int = 3, stage_sigma_um: float = 0.0,
-              level_bias: bool = True, footprint: bool = True, refine_stage: bool = False) -> engine.Session:
+def to_engine(s: Session, *, out=None, settings: FitSettings | None = None) -> engine.Session:
     """The wizard's session as an engine session (for :func:`ptpcore.run.session.save_session`).
 
-    ``model``, ``degree``: the LUT model to record when no LUT is fitted yet;
-    ``stage_sigma_um``, ``level_bias``, ``footprint``, ``refine_stage``: the fit's settings (the Calibrate page's);
-    ``out``: the LUT file (default: the one the session already names).
+    ``settings``: the fit's settings (the Calibrate page's) to record when no LUT is fitted yet;
+    a fitted LUT records its own (``/provenance`` ``fit_settings``; a LUT of an older file: its model
+    and degree over ``settings``). ``out``: the LUT file (default: the one the session already names).
     """
-    lut = s.lut
-    if lut is not None:
-        model, degree = lut_model(lut), int(lut.degree or 3)
-        if lut.extra_attrs.get("chosen_by"):  # an auto LUT: reopened, the page offers auto again
-            model = "auto"
+    settings = lut_fit_settings(s.lut, settings or FitSettings())
     sim = json.dumps({"seed": s.seed, **asdict(s.sim_settings)}) if s.source_kind == "simulated" else None
     comparison = s.compare.to_json_dict() if s.compare is not None else s.saved_comparison
     if out is not None:
         s.lut_file = str(out)
     es = engine.Session(
-        rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None, model=model, degree=int(degree),
-        stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
-        refine_stage=bool(refine_stage), options=s.decode_options, positions=None if s.lut_positions is None else tuple(s.lut_positions),
-        out=s.lut_file, sim_settings=sim, samples=s.samples, lut=lut, comparison=comparison)
+        rig=s.rig, dataset=str(s.dataset_folder) if s.dataset_folder else None, settings=settings,
+        options=s.decode_options, positions=None if s.lut_positions is None else tuple(s.lut_positions),
+        out=s.lut_file, sim_settings=sim, samples=s.samples, lut=s.lut, comparison=comparison)
     if s.created:
         es.created = s.created
     else:
         s.created = es.created
     return es
+
+
+def lut_fit_settings(lut, fallback: FitSettings) -> FitSettings:
+    """The settings ``lut`` was fitted with: its ``/provenance`` ``fit_settings``; for a LUT written before
+    the record, ``fallback`` with the LUT's model and degree; ``fallback`` without a LUT."""
+    if lut is None:
+        return fallback
+    text = lut.provenance.get(FIT_SETTINGS_KEY) if lut.provenance else None
+    if text:
+        try:
+            return FitSettings.from_json(text)
+        except ValueError:
+            pass  # unreadable: fall back on what the LUT itself says
+    model = "auto" if lut.extra_attrs.get("chosen_by") else lut_model(lut)  # an auto LUT reopened: auto again
+    degree = int(lut.degree or 3) if 1 <= int(lut.degree or 3) <= 5 else 3
+    return fallback.with_changes(model=model, degree=degree)
 
 
 @dataclass
@@ -75,13 +86,8 @@ class OpenedSession:
 
     path: Path
     session: Session
-    model: str
-    degree: int
+    settings: FitSettings
     step: str | None  # ptpcore.run.session.next_step
-    stage_sigma_um: float = 0.0
-    level_bias: bool = True
-    footprint: bool = True
-    refine_stage: bool = False
 
     @property
     def page(self) -> str:
@@ -133,8 +139,7 @@ def read_session_file(path, progress: Callable[[float, str], None] | None = None
         except (OSError, ValueError, KeyError):
             s.truth = None  # optional: the comparison then judges against the measured samples
     report(1.0, f"opened {path.name} (stage '{es.stage}')")
-    return OpenedSession(path, s, es.model, es.degree, engine.next_step(es), es.stage_sigma_um, es.level_bias,
-                         es.footprint, es.refine_stage)
+    return OpenedSession(path, s, es.settings, engine.next_step(es))
 
 
 class Autosave(QObject):
@@ -144,8 +149,7 @@ class Autosave(QObject):
     ----------
     model : SessionModel
     fit_choice : callable, optional
-        ``() -> dict`` of :func:`to_engine`'s fit keywords (``model``, ``degree``,
-        ``stage_sigma_um``, ``level_bias``, ``footprint``, ``refine_stage``): the settings to record.
+        ``() -> FitSettings``: the settings to record before a LUT is fitted (:func:`to_engine`).
 
     Signals
     -------
@@ -158,7 +162,7 @@ class Autosave(QObject):
     status = Signal(str)
     saved = Signal(object)
 
-    def __init__(self, model: SessionModel, fit_choice: Callable[[], dict] | None = None,
+    def __init__(self, model: SessionModel, fit_choice: Callable[[], FitSettings] | None = None,
                  parent: QObject | None = None):
         super().__init__(parent)
         self.model = model
@@ -219,8 +223,8 @@ class Autosave(QObject):
         if self.job is not None and self.job.running:
             self._again = True
             return self.job
-        fit = self.fit_choice() if self.fit_choice else {}
-        es, path, work = to_engine(self.model.session, **fit), self.path, self.model.work
+        fit = self.fit_choice() if self.fit_choice else None
+        es, path, work = to_engine(self.model.session, settings=fit), self.path, self.model.work
         job = Job(lambda ctx: engine.save_session(es, path), "saving the session", self)
         job.finished.connect(lambda _r: (self.model.mark_saved(work), self._saved(path)))
         job.errored.connect(lambda msg: self.status.emit(f"session NOT saved: {msg}"))

@@ -239,10 +239,8 @@ class StudioWizard(QWizard):
         self.model.restore(opened.session)
         s = opened.session
         half = list(range(0, s.rig.stage.n_positions, 2))
-        self.page_by_key["calibrate"].configure(opened.model, opened.degree,
-                                                "half" if s.lut_positions == half else "all",
-                                                opened.stage_sigma_um, opened.level_bias, opened.footprint,
-                                                fitted=True, refine_stage=opened.refine_stage)
+        self.page_by_key["calibrate"].configure(opened.settings, positions="half" if s.lut_positions == half else "all",
+                                                fitted=True)
         self.autosave.set_path(opened.path)
         self.go_to(opened.page)
 

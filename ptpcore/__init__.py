@@ -52,6 +52,7 @@ _PUBLIC = {
     "simulate_dataset": "ptpcore.simulate", "load_truth": "ptpcore.simulate", "PRESETS": "ptpcore.simulate",
     # run
     "decode_position": "ptpcore.run", "collect_samples": "ptpcore.run", "calibrate": "ptpcore.run",
+    "calibrate_session": "ptpcore.run", "Calibration": "ptpcore.run", "FitSettings": "ptpcore.fit",
     "Session": "ptpcore.run", "new_session": "ptpcore.run", "load_session": "ptpcore.run",
     "save_session": "ptpcore.run", "run_session": "ptpcore.run",
     # evaluate

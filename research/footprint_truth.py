@@ -28,7 +28,7 @@ EDGE_PX = 3
 
 def decoded(out: Path, kind: str, seed: int):
     """The noise-free, stage-error-free render of draw ``seed`` of ``kind`` (once) and its decoded session."""
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
 
     rig, s = drawn_rig(kind, seed)
     folder = out / f"{kind}-{seed}-noiseless"

@@ -105,8 +105,9 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
     samples' fit weights (:func:`fit_weights`)."""
     import ptpcore.fit.kinds as kinds
     from ptpcore.fit.corrected import fit_corrected
+    from ptpcore.fit.settings import FitSettings
     from ptpcore.fit.smooth.estimator import fit_smooth_lut
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
 
     session = new_session(folder, model="smooth", validate=False)
     run_session(session, stop_after="samples", validate=False)
@@ -121,8 +122,9 @@ def fit(folder: Path, sweep: str, degree: int, scale: float, stage_sigma_um: flo
             original = kinds.fit_smooth_lut
             kinds.fit_smooth_lut = partial(original, scales_px=(scale,))
             try:
-                lut = fit_corrected(session.samples, session.rig, "smooth", degree,
-                                    stage_sigma_mm=stage_sigma_um * 1e-3, footprint=footprint).lut
+                lut = fit_corrected(session.samples, session.rig,
+                                    FitSettings(model="smooth", degree=degree, stage_sigma_um=stage_sigma_um,
+                                                footprint=footprint)).lut
             finally:
                 kinds.fit_smooth_lut = original
     return lut, caught, fit_weights(session.samples, session.rig)

@@ -84,7 +84,7 @@ def calibrate(folder: Path, models, stage_sigma_um: float, record: dict | None =
     Returns ``{name: path of the written LUT}`` (``FOLDER/NAME.lut.h5``).
     """
     from ptpcore.io.lutfile import save_lut
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
 
     session = new_session(folder, model="auto", stage_sigma_um=stage_sigma_um)
     run_session(session, stop_after="samples", validate=False)
@@ -94,7 +94,8 @@ def calibrate(folder: Path, models, stage_sigma_um: float, record: dict | None =
         del w
     out = {}
     for name, model, degree, *other in models:
-        s = replace(session, model=model, degree=degree, lut=None, rig=other[0] if other else session.rig)
+        s = replace(session, settings=session.settings.with_changes(model=model, degree=degree), lut=None,
+                    rig=other[0] if other else session.rig)
         run_session(s, validate=False)
         path = folder / f"{name}.lut.h5"
         save_lut(s.lut, path)

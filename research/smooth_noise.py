@@ -41,7 +41,7 @@ def predictions(fits, zc: float, zs: float, degree: int, noise_scale: float) -> 
 def main(argv=None) -> int:
     import ptpcore.fit.smooth.estimator as estimator
     from ptpcore.fit.smooth import fit_smooth_lut
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
     from ptpcore.simulate import load_truth
     from ptpcore.simulate.synthetic import white_noise_samples
 

@@ -25,7 +25,7 @@ from research.scoring import fit_weights
 def main(argv=None) -> int:
     from ptpcore.fit.smooth.estimator import fit_smooth_lut
     from ptpcore.rig.rigfile import load_rig
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
     from ptpcore.simulate import load_truth
     from ptpcore.simulate.synthetic import white_noise_samples
 

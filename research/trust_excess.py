@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +39,7 @@ def fit_with_excess(folder: Path, stage_sigma_um: float) -> tuple:
     ``{"x": (sum x, sum x^2, sum x over odd ranks), "y": ..., "n": count, "n_odd": count of odd ranks}``
     ((H, W) each, mm^2, mm^4)."""
     import ptpcore.fit.smooth.leave_one_out as loo
-    from ptpcore.run.session import new_session, run_session
+    from ptpcore.run import new_session, run_session
 
     caught = {}
     original = loo.model_error
@@ -54,7 +53,7 @@ def fit_with_excess(folder: Path, stage_sigma_um: float) -> tuple:
 
     loo.model_error = catch
     try:
-        session = replace(new_session(folder, model="smooth", stage_sigma_um=stage_sigma_um), degree=3)
+        session = new_session(folder, model="smooth", degree=3, stage_sigma_um=stage_sigma_um)
         run_session(session, validate=False)
     finally:
         loo.model_error = original

@@ -9,13 +9,12 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, Q
                                QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from ptpcore.io import DatasetSource
-from ptpcore.run import collect_samples
 from ptpcore.simulate import simulate_dataset
 from ptpcore.evaluate import REASON_ORDER
 from ptpcore.decode import REASON_NAMES
 from ptpcore.rig import position_label
 
-from ..session import FramePreview, PositionStatus, check_and_report, session_truth
+from ..session import FramePreview, PositionStatus, decode_samples, session_truth
 from ..widgets.maps import MapView
 from ..worker import Job
 from .base import StudioPage
@@ -23,7 +22,7 @@ from .base import StudioPage
 __all__ = ["AcquirePage", "acquisition_job", "frame_tap"]
 
 def frame_tap(ctx, max_level: int, interval: float = 0.12, max_pixels=None):
-    """The ``on_frame`` of :func:`ptpcore.run.collect_samples` for a job: says which position
+    """The ``on_frame`` of the composer's decode (:func:`ptpcore.run.calibrate_session`) for a job: says which position
     started (``("start", k)``), lets the job be cancelled between frames and shows at most one
     frame every ``interval`` seconds (:class:`~ptp_studio.session.FramePreview`, reduced on the
     worker thread). The frames come from the engine's own readers (a dataset folder's: threaded,
@@ -66,10 +65,8 @@ def acquisition_job(session, write_folder: Path | None = None, preview_pixels=No
         def on_position(pos):
             ctx.emit(session.position_message(pos))
 
-        samples = collect_samples(src, progress=lambda f, m: ctx.progress(split + (1 - split) * f, m),
-                                  on_position=on_position, on_frame=frame_tap(ctx, rig.camera.max_level, max_pixels=preview_pixels),
-                                  full_positions=session.full_positions())
-        check_and_report(samples, ctx)
+        samples = decode_samples(session, src, ctx, split, on_position,
+                                 frame_tap(ctx, rig.camera.max_level, max_pixels=preview_pixels))
         ctx.progress(1.0, "loading the ground truth" if kind == "simulated" else "done")
         truth = session_truth(kind, rig, settings, seed, folder if kind == "folder" else write_folder)
         return samples, truth

@@ -12,18 +12,18 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QGroupBox, QHBoxLayout, QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget,
                                QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
-from ptpcore.errors import ConfigError, DatasetError, FileFormatError
 from ptpcore.fit import describe_lut
 from ptpcore.rig import lut_stage_z, position_label
-from ptpcore.fit.corrected import fit_corrected, samples_as_fitted
+from ptpcore.fit.corrected import samples_as_fitted
+from ptpcore.fit.settings import FitSettings
 from ptpcore.fit.glass import describe_corrections
 from ptpcore.fit.choice import ModelChoice
 from ptpcore.fit.sigma import sigma_parts
 from ptpcore.evaluate import ScaledMap, pixel_series, prepare_display, reason_text
 from ptpcore.evaluate.residuals import residual_field
-from ptpcore.run.pipeline import repeat_drift
-from ptpcore.run.scanner import calibrate_height
+from ptpcore.run import calibrate_session
 
+from ..session import calibration_session
 from ..widgets.maps import HeatmapPanel, axis_label
 from ..widgets.residuals import ResidualPanel
 from ..widgets.stagepose import StagePosePanel
@@ -286,7 +286,7 @@ class CalibratePage(StudioPage):
 
         self.maps: dict = {}
         self.displays: dict = {}  # key -> DisplayMap of self.maps (LutView.displays)
-        self.fitted: dict | None = None  # fit_settings() of the LUT the session holds
+        self.fitted: FitSettings | None = None  # fit_settings() of the LUT the session holds
         self.residual_field = None
         self._view: LutView | None = None  # what the fit job computed for the LUT it hands over
         self.series = None
@@ -340,6 +340,10 @@ class CalibratePage(StudioPage):
                                      " the straightness of the rays many pixels see, up to a common offset, scale"
                                      " and linear trend, and correct the samples before fitting (docs/method.md section 8)."
                                      " The estimates and their 1-sigma go into the LUT's /provenance/stage_pose.")
+        self.robust = QCheckBox("robust")
+        self.robust.setChecked(True)
+        self.robust.setToolTip("Leave out samples beyond 5 predicted σ of their pixel's curve (counted); a position"
+                               " rejected at most pixels is named suspect and left out. Off: keep every sample.")
         self.fit_button = QPushButton("Fit LUT")
         self.fit_button.setObjectName("primary")
         form.addRow("Model", self.model_combo)
@@ -351,7 +355,11 @@ class CalibratePage(StudioPage):
             corrections.addWidget(box)
         corrections.addStretch(1)
         form.addRow(corrections)
-        form.addRow(self.refine_stage)
+        checks = QHBoxLayout()
+        for box in (self.refine_stage, self.robust):
+            checks.addWidget(box)
+        checks.addStretch(1)
+        form.addRow(checks)
         form.addRow(self.fit_button)
         form.addRow(self.make_job_panel())
         return ctl
@@ -487,74 +495,59 @@ class CalibratePage(StudioPage):
             bars.setOpts(x=[], height=[])
 
     # ---- fitting --------------------------------------------------------------------
-    def configure(self, model: str = "auto", degree: int = 3, positions: str = "all",
-                  stage_sigma_um: float = 0.0, level_bias: bool = True, footprint: bool = True,
-                  fitted: bool = False, refine_stage: bool = False) -> None:
-        """Set the model controls (the tour, an opened session file and tests use it).
+    def configure(self, settings: FitSettings | str = FitSettings(), degree: int | None = None,
+                  positions: str = "all", *, fitted: bool = False, **fields) -> None:
+        """Set the model controls from fit settings (the tour, an opened session file and tests use it).
 
+        ``settings``: a :class:`FitSettings`, or a model name with ``degree`` and any other ``fields``
+        of one (``configure("poly", 2, "half")``). ``positions``: ``"all"`` or ``"half"``.
         ``fitted``: these are the settings the session's LUT was fitted with (an opened file).
         """
-        self.model_combo.setCurrentIndex(self.model_combo.findData(model))
-        self.degree.setValue(degree)
-        self.stage_sigma.setValue(stage_sigma_um)
-        self.level_bias.setChecked(level_bias)
-        self.footprint.setChecked(footprint)
-        self.refine_stage.setChecked(refine_stage)
+        if isinstance(settings, str):
+            settings = FitSettings(model=settings, degree=3 if degree is None else degree, **fields)
+        self.model_combo.setCurrentIndex(self.model_combo.findData(settings.model))
+        self.degree.setValue(settings.degree)
+        self.stage_sigma.setValue(settings.stage_sigma_um)
+        self.level_bias.setChecked(settings.level_bias)
+        self.footprint.setChecked(settings.footprint)
+        self.refine_stage.setChecked(settings.refine_stage)
+        self.robust.setChecked(settings.robust)
         self.positions_combo.setCurrentIndex(self.positions_combo.findData(positions))
         if fitted:
             self.fitted = self.fit_settings() if self.model.session.lut is not None else None
 
-    def fit_settings(self) -> dict:
-        """The fit's settings as :func:`ptp_studio.sessionfile.to_engine` records them."""
-        return {"model": self.model_combo.currentData(), "degree": self.degree.value(),
-                "stage_sigma_um": self.stage_sigma.value(), "level_bias": self.level_bias.isChecked(),
-                "footprint": self.footprint.isChecked(), "refine_stage": self.refine_stage.isChecked()}
+    def fit_settings(self) -> FitSettings:
+        """The fit's settings from the controls: the one :class:`~ptpcore.fit.settings.FitSettings` the
+        composer, the session file and the LUT's provenance hold."""
+        return FitSettings(model=self.model_combo.currentData(), degree=self.degree.value(),
+                           stage_sigma_um=self.stage_sigma.value(), level_bias=self.level_bias.isChecked(),
+                           footprint=self.footprint.isChecked(), refine_stage=self.refine_stage.isChecked(),
+                           robust=self.robust.isChecked())
 
     def fit(self) -> Job | None:
         s = self.model.session
         if self.jobs.busy or s.samples is None:
             return None
         fit = self.fit_settings()
-        model, degree = fit["model"], fit["degree"]
         k = s.rig.stage.n_positions
         positions = None if self.positions_combo.currentData() == "all" else list(range(0, k, 2))
-        samples, rig = s.samples, s.rig
-        refine = fit["refine_stage"]
-        stage_mm = fit["stage_sigma_um"] * 1e-3
+        engine_session = calibration_session(s, fit, positions)
+        source = s.make_source() if s.rig.stage.repeat_z_mm else None
         gen = self.model.generation
-        source = s.make_source() if rig.stage.repeat_z_mm else None
-        options = s.decode_options
-        height_folder = height_sweep_folder(s)
 
         def work(ctx):
-            # The cover glass, flatness and (refine) stage pose leave the samples before the fit; the
-            # session keeps them as decoded.
-            res = fit_corrected(samples, rig, model, degree, positions=positions, refine_stage=refine,
-                                progress=ctx.progress, stage_sigma_mm=stage_mm, level_bias=fit["level_bias"],
-                                footprint=fit["footprint"], robust=True)
-            self._corrected_cache = (samples, rig, res.lut, res.samples)
-            lut = res.lut
-            drift = None
-            if source is not None:  # the sweep's repeat positions: the drift in between
-                ctx.progress(0.99, "decoding the repeat positions (drift)")
-                drift = repeat_drift(source, samples, rig, options=options, stage_sigma_mm=stage_mm)
-                if drift is not None:
-                    lut.provenance["drift"] = drift.to_json()
-            height_error = None
-            if height_folder is not None:  # the scanner's height sweep: its map into the LUT's /height, as ptp calibrate
-                try:
-                    lut.height = calibrate_height(height_folder, options=options,
-                                                  progress=lambda f, m: ctx.progress(f, f"height sweep: {m}"))
-                except (ConfigError, DatasetError, FileFormatError) as exc:
-                    # The XY LUT stands on its own: kept, and the page says why it has no height map.
-                    height_error = str(exc)
+            # The one door (ptpcore.run.calibration): corrections, fit, drift, height map, as ptp calibrate.
+            result = calibrate_session(engine_session, source=source, stop_after="lut", progress=ctx.progress)
+            self._corrected_cache = (s.samples, s.rig, result.lut, result.fitted)
             # What the page shows, computed here: on the GUI thread it would freeze the window (issue 15).
             ctx.progress(0.995, "computing the quality maps and residuals")
-            return lut, drift, lut_view(lut, res.samples, positions, drift), height_error
+            return result.lut, result.drift, lut_view(result.lut, result.fitted, positions, result.drift), \
+                result.height_error
 
         self.model.release_decoded()  # 617 MB of phase maps at 5 MP, not needed by the fit
-        what = "choosing the model and fitting the LUT" if model == "auto" else f"fitting the {model} LUT"
-        job = Job(work, what + (" and the height map" if height_folder is not None else ""))
+        what = "choosing the model and fitting the LUT" if fit.model == "auto" else f"fitting the {fit.model} LUT"
+        has_height = engine_session.dataset is not None and s.rig.height is not None
+        job = Job(work, what + (" and the height map" if has_height else ""))
         job.finished.connect(lambda out: gen == self.model.generation
                              and self._fitted(*out[:3], positions, fit, height_error=out[3]))
         job.done.connect(lambda: setattr(self, "_outcome", job.outcome))
@@ -569,21 +562,21 @@ class CalibratePage(StudioPage):
             cached = self._corrected_cache = (samples, rig, lut, samples_as_fitted(samples, rig, lut))
         return cached[3]
 
-    def _fitted(self, lut, drift, view: LutView, positions, fit: dict, height_error: str | None = None) -> None:
-        self.fitted = dict(fit)
+    def _fitted(self, lut, drift, view: LutView, positions, fit: FitSettings, height_error: str | None = None) -> None:
+        self.fitted = fit
         self.drift = (lut, drift) if drift is not None else None
         self._view = view
         self.model.set_lut(lut, positions)
         if height_error is not None:
-            self.jobs.show_warning(f"The LUT is fitted, but not the scanner's height map: {height_error}")
+            self.jobs.show_warning(f"The LUT is fitted (XY only): {height_error}")
 
-    def lut_settings(self) -> dict:
+    def lut_settings(self) -> FitSettings:
         """The settings of the LUT the session holds (as it was fitted or opened), else the controls'.
 
         The Compare page fits its LUTs with them, so both pages judge the same model.
         """
         if self.model.session.lut is not None and self.fitted is not None:
-            return dict(self.fitted)
+            return self.fitted
         return self.fit_settings()
 
     def _lut_changed(self) -> None:

@@ -11,6 +11,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHB
                                QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
                                QVBoxLayout, QWidget)
 
+from ptpcore.fit.settings import FitSettings
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, prepare_display,
                               robust_levels, smooth_degree_for, split_positions)
 from ptpcore.fit.corrected import correct_all
@@ -299,8 +300,8 @@ class ComparePage(StudioPage):
             self.settings_note = ""
         samples, rig = s.samples, s.rig
         gen = self.model.generation
-        cal = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
-        refine = bool(cal.get("refine_stage", False))  # the stage pose as Calibrate's LUT had it
+        cal = self.calibrate_page.lut_settings() if self.calibrate_page is not None else FitSettings()
+        refine = cal.refine_stage  # the stage pose as Calibrate's LUT had it
 
         def work(ctx):
             fixed = correct_all(samples, rig, refine=refine, progress=ctx.progress)[0] if refine else \
@@ -321,12 +322,12 @@ class ComparePage(StudioPage):
 
     def lut_settings(self) -> dict:
         """compare()'s model keywords from the Calibrate page's LUT (its model, degree and corrections)."""
-        fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
-        kind, degree = fit.get("model", "poly"), int(fit.get("degree", 3))
+        fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else FitSettings(model="poly")
+        kind, degree = fit.model, fit.degree
         # auto: the plain LUT's degree is chosen per fold (poly 1-3), the smooth LUT keeps its default degree
         return {"model": "poly" if kind == "smooth" else kind, "degree": degree,
                 "smooth_degree": None if kind == "auto" else degree,
-                "level_bias": bool(fit.get("level_bias", True)), "footprint": bool(fit.get("footprint", True))}
+                "level_bias": fit.level_bias, "footprint": fit.footprint}
 
     def _result_changed(self) -> None:
         r = self.model.session.compare

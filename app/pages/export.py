@@ -231,8 +231,8 @@ class ExportPage(StudioPage):
         report = None
         if self.do_report.isChecked():  # an opened session's comparison: its report, without plots
             report = result.to_json_dict() if result is not None else s.saved_comparison
-        fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else {}
-        session_obj = to_engine(s, out=out / LUT_NAME, **fit) if self.do_session.isChecked() else None
+        fit = self.calibrate_page.lut_settings() if self.calibrate_page is not None else None
+        session_obj = to_engine(s, out=out / LUT_NAME, settings=fit) if self.do_session.isChecked() else None
         write_rig = self.do_rig.isChecked()
         targets = [out / LUT_NAME, *([out / REPORT_NAME] if report is not None else []), *images,
                    *([out / "rig.toml"] if write_rig else []), *([out / SESSION_NAME] if session_obj else []),

@@ -27,6 +27,9 @@ from ptpcore.errors import Cancelled, OutputError, PtpError
 from ptpcore.io.outputs import Output, check_output_file, check_output_folder, guard_outputs
 from ptpcore.rig import lut_stage_z, position_label
 
+EXIT_PARTIAL = 3
+"""``ptp calibrate`` / ``resume``: the XY LUT is written but the scanner's height map failed (the reason printed)."""
+
 
 # --------------------------------------------------------------------------- commands
 
@@ -98,15 +101,13 @@ def _simulate_scanner(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
+    from ptpcore.fit.settings import FitSettings
     from ptpcore.run.session import new_session, save_session
 
     _check_calibrate_outputs(args)
     _check_height_sweep(args.dataset_dir)
     # Validates rig.toml, the design and every image in one pass, before the long decode.
-    session = new_session(args.dataset_dir, model=args.model, degree=args.degree, out=args.out,
-                          stage_sigma_um=args.stage_sigma_um, level_bias=not args.no_level_bias,
-                          footprint=not args.no_footprint, refine_stage=args.refine_stage,
-                          robust=not args.no_robust)
+    session = new_session(args.dataset_dir, FitSettings.from_flags(args), out=args.out)
     if args.session:
         save_session(session, args.session)
     return _finish_session(args, session, args.session, Path(args.out), validate=False)
@@ -149,53 +150,30 @@ def cmd_resume(args) -> int:
 
 
 def _finish_session(args, session, session_path, out: Path, validate: bool) -> int:
-    """Run a session's remaining stages (saved after each), then write the LUT."""
-    from ptpcore.io.lutfile import save_lut
-    from ptpcore.store import release_free_memory
-    from ptpcore.run.session import run_session
+    """Run a session's remaining stages through the one door (saved after each), write the LUT, report.
+
+    Exit 0, or :data:`EXIT_PARTIAL` when the height map failed (the XY LUT written, the reason printed).
+    """
+    from ptpcore.run.calibration import calibrate_session
 
     bar = progress_bar(args)
     try:
-        run_session(session, session_path, progress=bar, validate=validate)
+        result = calibrate_session(session, session_path, validate=validate, out=out, progress=bar)
     finally:
         bar.close()
-    drift = _sweep_drift(session)
-    if drift is not None:
-        session.lut.provenance["drift"] = drift.to_json()
-    release_free_memory()  # the fit's transients, before the LUT is written and the residuals computed
-    if session.rig.height is not None and session.dataset:
-        from ptpcore.run.scanner import calibrate_height
-
-        bar = progress_bar(args)
-        try:  # the scanner's height sweep (docs/method.md section 9): the map goes into the LUT's /height
-            session.lut.height = calibrate_height(session.dataset, options=session.options, progress=bar)
-        finally:
-            bar.close()
-    save_lut(session.lut, out)
     print(_lut_summary(session.lut, out))
-    if drift is not None:
-        print("\n".join("  " + line for line in drift.lines()))
-    if session.samples is not None:
+    if result.drift is not None:
+        print("\n".join("  " + line for line in result.drift.lines()))
+    fitted = result.fitted_samples()
+    if fitted is not None:
         from ptpcore.evaluate.residuals import residual_field
-        from ptpcore.fit.corrected import samples_as_fitted
 
-        fitted = samples_as_fitted(session.samples, session.rig, session.lut, session.positions)
         field = residual_field(session.lut, fitted, session.positions)
         print("\n".join("  " + line for line in field.lines()))
+    if result.partial:
+        print(f"ptp: partial: {out} holds the XY LUT without /height; {result.height_error}", file=sys.stderr)
+        return EXIT_PARTIAL
     return 0
-
-
-def _sweep_drift(session):
-    """The drift of a dataset's ``[stage] repeat_z_mm`` positions (decoded now), or None without them."""
-    rig = session.rig
-    if not rig.stage.repeat_z_mm or not session.dataset or session.samples is None:
-        return None
-    from ptpcore.io.dataset import DatasetSource
-    from ptpcore.run.pipeline import repeat_drift
-
-    return repeat_drift(DatasetSource(session.dataset), session.samples, rig, options=session.options,
-                        stage_sigma_mm=session.stage_sigma_um * 1e-3)
-
 
 def _sigma_lines(lut, v) -> list[str]:
     """``ptp inspect``'s sigma lines: the total, and its two parts (noise, model) when the LUT has them."""
@@ -590,69 +568,88 @@ def cmd_demo(args) -> int:
 
 
 def _demo(args, workdir: Path) -> int:
-    """Simulate into ``workdir``, calibrate on every second position, report the others."""
-    from ptpcore.evaluate.accuracy import held_out_accuracy
-    from ptpcore.fit.glass import correct_samples
-    from ptpcore.fit.sigma import predicted_poly_sigma, sample_sigma
-    from ptpcore.io.dataset import DatasetSource
-    from ptpcore.fit.perpixel import fit_lut
-    from ptpcore.decode.patterns import design_check
-    from ptpcore.run.pipeline import collect_samples
+    """Simulate into ``workdir``, calibrate on every second position through the one door, report the others."""
+    from ptpcore.fit.settings import FitSettings
+    from ptpcore.run.calibration import calibrate_session
+    from ptpcore.run.session import new_session
     from ptpcore.simulate.virtual_rig import load_truth, preset, simulate_dataset
 
-    rig, settings = preset(args.preset)
+    rig, sim = preset(args.preset)
+    k = rig.stage.n_positions
+    cal, held = list(range(0, k, 2)), list(range(1, k, 2))
+    settings = FitSettings.from_flags(args)
+    if settings.stage_sigma_um == 0.0:  # the simulated stage's own error, as its datasheet would say
+        settings = settings.with_changes(stage_sigma_um=float(sim.stage_error_um))
+    where = str(workdir) if args.out else "a temporary folder (removed at the end)"
+    print(f"simulating the '{args.preset}' rig ({rig.camera.width}x{rig.camera.height} px, {k} positions)"
+          f" into {where} ...", flush=True)
     bar = progress_bar(args)
     try:
-        print(f"simulating the '{args.preset}' rig into {workdir} ...", flush=True)
-        simulate_dataset(workdir, rig, settings, seed=args.seed, progress=bar)
-        source = DatasetSource(workdir)
-        print("decoding every position ...", flush=True)
-        samples = collect_samples(source, progress=bar)
+        simulate_dataset(workdir, rig, sim, seed=args.seed, progress=bar)
+        print(f"calibrating on every second position ({len(cal)} of {k}) as `ptp calibrate` does ...", flush=True)
+        session = new_session(workdir, settings, validate=False)
+        # Every position decoded (the held-out ones are judged), the LUT fitted on the calibration ones.
+        calibrate_session(session, stop_after="samples", progress=lambda f, m: bar(0.5 * f, m))
+        session.positions = tuple(cal)
+        result = calibrate_session(session, progress=lambda f, m: bar(0.5 + 0.5 * f, m))
     finally:
         bar.close()
-    samples, _applied = correct_samples(samples, source.rig)  # the cover glass, before any fit
-    truth, settings, _ = load_truth(workdir)
-    rig = source.rig
+    truth, sim, _ = load_truth(workdir)
+    _demo_report(args, result, truth, sim, cal, held)
+    if args.compare:
+        _demo_compare(args, result, truth)
+    return 0
+
+
+def _demo_report(args, result, truth, sim, cal, held) -> None:
+    """The demo's summary: the design check, the LUT (its model and why), its accuracy at the held-out positions."""
+    from ptpcore.decode.patterns import design_check
+    from ptpcore.evaluate.accuracy import held_out_accuracy
+    from ptpcore.fit.models import describe_lut
+
+    session, lut = result.session, result.lut
+    rig, samples = session.rig, session.samples
     k = rig.stage.n_positions
-    cal = list(range(0, k, 2))
-    held = list(range(1, k, 2))
-    lut = fit_lut(samples, "poly", args.degree, positions=cal)
-    f = rig.fringes
-    sig = sample_sigma(samples, lambda a: settings.noise_dn(rig.camera, a), f.steps[-1], f.periods_px[-1],
-                       rig.lcd.pitch_mm[0], settings.stage_error_um * 1e-3, truth.sx - rig.stage.direction[0])
-    pred = predicted_poly_sigma(samples, sig, args.degree, cal, [rig.stage.z_mm[i] for i in held])
-    acc = held_out_accuracy(lut, truth, rig.stage.z_mm, held, pred)
+    # The LUT's own predicted 1-sigma per pixel (noise, stage and model parts; both axes pooled)
+    pred = np.sqrt(0.5 * (lut.sigma_x ** 2 + lut.sigma_y ** 2)) if lut.sigma_x is not None else None
+    acc = held_out_accuracy(lut, truth, rig.stage.z_mm, held, None if pred is None else [pred] * len(held))
     med_b = float(np.nanmedian(samples.modulation[samples.valid]))
     med_a = float(np.nanmedian(samples.background[samples.valid]))
-    report = design_check(rig, modulation_dn=med_b, noise_dn=float(settings.noise_dn(rig.camera, med_a)))
+    report = design_check(rig, modulation_dn=med_b, noise_dn=float(sim.noise_dn(rig.camera, med_a)))
     valid_frac = samples.valid.mean(axis=(1, 2))
     print()
     print(f"PTP demo: '{args.preset}' rig, camera {rig.camera.width}x{rig.camera.height} {rig.camera.bit_depth}-bit,"
           f" {k} positions z = {min(rig.stage.z_mm):g} .. {max(rig.stage.z_mm):g} mm")
     print(f"  design check        {'ok' if report.ok else 'PROBLEMS: ' + '; '.join(i.message for i in report.failures())}")
     print(f"  valid pixels        {100 * valid_frac.min():.1f} .. {100 * valid_frac.max():.1f} % per position")
-    print(f"  median modulation   {med_b:.1f} grey levels; predicted sample noise"
-          f" {1e3 * np.nanmedian(sig):.2f} µm (median)")
-    print(f"  LUT                 poly degree {args.degree}, fitted on {len(cal)} positions, "
-          f"valid for {100 * lut.valid.mean():.1f} % of pixels")
+    print(f"  median modulation   {med_b:.1f} grey levels")
+    print(f"  LUT                 {describe_lut(lut)}; fitted on {len(cal)} positions, valid for"
+          f" {100 * lut.valid.mean():.1f} % of pixels")
+    print("\n".join(_choice_lines(lut)) or f"  (model {session.settings.model}: chosen by --model)")
     print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays,"
           " per-axis error (X and Y errors pooled):")
     print(f"    RMS {acc.rms_um:.2f} µm   95th percentile {acc.p95_um:.2f} µm   max {acc.max_um:.2f} µm")
-    print(f"    predicted from phase noise: RMS {acc.predicted_rms_um:.2f} µm"
-          f"  (observed / predicted = {acc.rms_um / acc.predicted_rms_um:.2f})")
+    if acc.predicted_rms_um is not None:
+        print(f"    predicted by the LUT's sigma maps: RMS {acc.predicted_rms_um:.2f} µm"
+              f"  (observed / predicted = {acc.rms_um / acc.predicted_rms_um:.2f})")
     print("    per-axis RMS per position: " + "; ".join(f"{position_label(p, rig.stage.z_mm[p])}: {e:.2f} µm"
                                                          for p, e in zip(held, acc.per_position_rms_um)))
-    if args.compare:
-        _demo_compare(args, workdir, samples, rig, truth)
-    return 0
 
 
-def _demo_compare(args, workdir, samples, rig, truth) -> None:
+def _demo_compare(args, result, truth) -> None:
     from ptpcore.evaluate import compare, format_summary
+    from ptpcore.fit.models import describe_lut
 
+    session = result.session
     print()
-    result = compare(samples, rig, truth=truth, seed=args.seed, degree=args.degree)
-    print(format_summary(result))
+    print(f"3DSTC comparison: each method fitted anew on every second position (PTP: plain poly; PTP smooth;"
+          f" 3DSTC: pinhole + Brown); the demo's LUT above is {describe_lut(result.lut)}")
+    from ptpcore.fit.corrected import correct_all
+
+    # Every position corrected as cmd_compare corrects it (the glass, flatness, --refine-stage)
+    samples = correct_all(session.samples, session.rig, refine=session.settings.refine_stage)[0]
+    out = compare(samples, session.rig, truth=truth, seed=args.seed, degree=session.settings.degree)
+    print(format_summary(out))
 
 
 def cmd_compare(args) -> int:
@@ -798,36 +795,17 @@ def _period_list_arg(text: str) -> list[float]:
 
 
 def _add_calibrate(sub) -> None:
-    from ptpcore.fit.models import LUT_MODELS
+    from ptpcore.fit.settings import fit_arguments
 
     c = sub.add_parser("calibrate", help="images -> per-pixel LUT file",
-                       description="Decode a ptp-dataset/1 or /2 folder and write a ptp-lut/1 file.")
+                       description="Decode a ptp-dataset/1 or /2 folder and write a ptp-lut/1 file (with the"
+                                   " scanner's height map in /height when the dataset has a height sweep). Exit"
+                                   " 0: done; 2: bad input, nothing written; 3: partial, the XY LUT written but"
+                                   " the height map failed (the reason printed).")
     add_input(c, "dataset_dir", metavar="DATASET_DIR", type=existing_dir, kind="dataset",
               help="the dataset folder (rig.toml and the images of every position)")
     add_output(c, "--out", required=True, metavar="FILE.lut.h5", kind="lut", help="the LUT file to write")
-    c.add_argument("--model", default="auto", choices=list(LUT_MODELS),
-                   help="auto: the most accurate of poly degrees 1-3 and smooth at held-out positions (the"
-                        " summary shows the table); poly: per-pixel polynomial; pchip, linear: interpolated"
-                        " tables; smooth: per-pixel polynomial regularised across neighbouring pixels"
-                        " (default auto)")
-    c.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                   help="polynomial degree 1-5 (poly and smooth, default 3; auto chooses its own)")
-    c.add_argument("--stage-sigma-um", type=float, default=0.0, metavar="S",
-                   help="1-sigma error of the stage readings in µm (its specification); part of the LUT's"
-                        " predicted sigma maps (default 0)")
-    c.add_argument("--no-level-bias", action="store_true",
-                   help="smooth: keep the bias of the LCD's integer levels (for a display that dithers)")
-    c.add_argument("--no-footprint", action="store_true",
-                   help="smooth: keep each pixel's footprint bias (where the lens bends, a pixel decodes its footprint's"
-                        " average fringe, off its centre ray; the footprint's size is read from the fringe"
-                        " contrast: turn off when ambient light or a camera black level lower the contrast)")
-    c.add_argument("--refine-stage", action="store_true",
-                   help="estimate every position's stage pose errors (dx, dy, dz; pitch, yaw, roll) from the"
-                        " straightness of the rays, up to a common offset, scale and linear trend, and correct"
-                        " the samples before fitting (docs/method.md section 8)")
-    c.add_argument("--no-robust", action="store_true",
-                   help="keep every sample (default: samples beyond 5 predicted sigmas of their pixel's curve are"
-                        " left out and counted, a position rejected at most pixels is named suspect and left out)")
+    fit_arguments(c)  # one flag per FitSettings field (ptpcore/fit/settings.py)
     add_output(c, "--session", metavar="FILE.ptps.h5", kind="session", hint=_SESSION_EXISTS,
                help="save a session file after each completed stage (continue it with `ptp resume`)")
     c.add_argument("--force", action="store_true", help=_FORCE)
@@ -965,6 +943,7 @@ def _add_compare(sub) -> None:
 
 
 def _add_demo(sub) -> None:
+    from ptpcore.fit.settings import fit_arguments
     from ptpcore.simulate.virtual_rig import PRESETS
 
     d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
@@ -972,8 +951,13 @@ def _add_demo(sub) -> None:
                                    " at the others against the simulator's exact truth.")
     d.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
     d.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
-    d.add_argument("--degree", type=int, default=3, choices=range(1, 6), metavar="D",
-                   help="polynomial degree 1-5 of the LUT (default 3)")
+    fit_arguments(d)  # the LUT is fitted as ptp calibrate fits it (ptpcore/fit/settings.py)
+    # The demo's one difference: a poly LUT by default (seconds), where calibrate's auto fits every candidate.
+    d.set_defaults(model="poly")
+    for action in d._actions:
+        if action.dest == "model":
+            action.help = ("the LUT's model as for ptp calibrate (default poly here, for a quick first run;"
+                           " auto: the most accurate of poly 1-3 and smooth at held-out positions)")
     add_output(d, "--out", kind="dataset", help="keep the simulated dataset in this folder (default: a temporary"
                                                 " folder, removed at the end)")
     d.add_argument("--force", action="store_true", help="write into an --out folder that already holds a dataset")

@@ -468,7 +468,7 @@ def _rank(values: dict) -> tuple[str | None, float, list]:
         return None, math.nan, []
     order = sorted(values, key=lambda m: values[m])  # stable: METHODS order breaks ties
     a, b = values[order[0]], values[order[1]]
-    if a == b:
+    if f"{a:.3g}" == f"{b:.3g}":  # equal as the summary prints them (3 significant digits): no one is ahead
         return "tie", 1.0, order
     return order[0], (b / a if a > 0 else math.inf), order
 
@@ -496,8 +496,8 @@ def _verdict(reference: str, coord: dict, dist: dict) -> Verdict:
         c_ahead = "tie"
     elif c_ahead == "tie":
         best = coord[c_order[0]]
-        tied = [m for m in c_order if coord[m] == best]
-        text = f"{' and '.join(METHOD_LABELS[m] for m in tied)} are equal {where}: coordinate RMS {best:.3g} µm"
+        tied = [m for m in c_order if f"{coord[m]:.3g}" == f"{best:.3g}"]
+        text = f"tie {where}: {' and '.join(METHOD_LABELS[m] for m in tied)} at coordinate RMS {best:.3g} µm"
         rest = [m for m in c_order if m not in tied]
         if rest:
             text += "; " + ", ".join(f"{METHOD_LABELS[m]} {coord[m]:.3g} µm" for m in rest)
@@ -506,7 +506,7 @@ def _verdict(reference: str, coord: dict, dist: dict) -> Verdict:
                 + _versus(coord, c_order))
     if d_ahead is not None:
         if d_ahead == "tie":
-            text += f"; distance errors equal ({dist[d_order[0]]:.3g} µm RMS)"
+            text += f"; distances: tie ({dist[d_order[0]]:.3g} µm RMS)"
         else:
             text += (f"; distances: {METHOD_LABELS[d_ahead]} ahead, RMS {dist[d_ahead]:.3g} µm against "
                      + _versus(dist, d_order))

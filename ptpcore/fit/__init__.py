@@ -20,6 +20,7 @@ from .smooth import (sample_sigma_from_noise, fit_smooth_lut, SmoothInfo, poly_s
     local_linear_smooth, global_pinhole)
 from .models import LUT_MODELS, fit_model, lut_model, describe_lut
 from .choice import ModelChoice, fit_auto
+from .settings import FitSettings, fit_arguments
 
 __all__ = [
     "fit_lut",
@@ -37,4 +38,6 @@ __all__ = [
     "describe_lut",
     "ModelChoice",
     "fit_auto",
+    "FitSettings",
+    "fit_arguments",
 ]

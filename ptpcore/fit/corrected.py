@@ -1,7 +1,7 @@
 """One call from decoded samples to a LUT with every correction of docs/method.md section 8.
 
-``ptp calibrate`` (through :mod:`ptpcore.run.session`) and the wizard's
-Calibrate page both fit through :func:`fit_corrected`: the cover glass and a
+Every front end fits through :func:`fit_corrected`, called by the composer's fit stage
+(:mod:`ptpcore.run.calibration`): the cover glass and a
 measured flatness (:func:`ptpcore.fit.glass.correct_samples`), optionally the
 stage pose (:mod:`ptpcore.fit.stage_pose`), then the fit; what cannot be
 measured enters the sigma maps (the glass's datasheet tolerances, the pose
@@ -12,14 +12,15 @@ estimates' uncertainty) and every correction is recorded in the LUT's
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 from ptpcore.fit.glass import add_tolerances_to_sigma, correct_samples, corrections_json, pixel_slopes
 from ptpcore.fit.models import fit_model
+from ptpcore.fit.settings import FitSettings
 from ptpcore.fit.sigma import add_stage_pose_sigma
 from ptpcore.fit.stage_pose import StagePose, apply_stage_pose, refine_stage
 from ptpcore.io.lutfile import Lut
 from ptpcore.io.samples import SampleStack
+from ptpcore.progress import Progress
 from ptpcore.rig.rigfile import Rig
 
 __all__ = ["CorrectedFit", "fit_corrected", "correct_all", "samples_as_fitted"]
@@ -49,7 +50,7 @@ class CorrectedFit:
 
 
 def correct_all(samples: SampleStack, rig: Rig, positions=None, *, refine: bool = False, seed: int = 0,
-                progress: Callable[[float, str], None] | None = None,
+                progress: Progress | None = None,
                 ) -> tuple[SampleStack, dict, StagePose | None, tuple]:
     """The samples with the glass, the flatness and (``refine``) the stage pose removed.
 
@@ -99,10 +100,8 @@ def samples_as_fitted(samples: SampleStack, rig: Rig, lut: Lut | None, positions
     return fixed
 
 
-def fit_corrected(samples: SampleStack, rig: Rig, model: str = "auto", degree: int = 3, positions=None, *,
-                  refine_stage: bool = False, stage_sigma_mm: float = 0.0, level_bias: bool = True,
-                  footprint: bool = True, robust: bool = True,
-                  progress: Callable[[float, str], None] | None = None) -> CorrectedFit:
+def fit_corrected(samples: SampleStack, rig: Rig, settings: FitSettings = FitSettings(), positions=None, *,
+                  progress: Progress | None = None) -> CorrectedFit:
     """Correct the samples (docs/method.md section 8), fit the LUT, record the corrections and their uncertainty.
 
     Parameters
@@ -110,20 +109,23 @@ def fit_corrected(samples: SampleStack, rig: Rig, model: str = "auto", degree: i
     samples : SampleStack
         As decoded (not modified).
     rig : Rig
-    model, degree, positions, stage_sigma_mm, level_bias, footprint, robust, progress
-        As :func:`ptpcore.fit.models.fit_model`.
-    refine_stage : bool
-        Estimate every position's pose errors and correct the samples first
-        (:func:`ptpcore.fit.stage_pose.refine_stage`); their 1-sigma enters the
-        sigma maps (:func:`ptpcore.fit.sigma.add_stage_pose_sigma`).
+    settings : FitSettings
+        The model and every fit option, passed whole (``refine_stage``: estimate every position's pose
+        errors and correct the samples first, :func:`ptpcore.fit.stage_pose.refine_stage`; their 1-sigma
+        enters the sigma maps, :func:`ptpcore.fit.sigma.add_stage_pose_sigma`).
+    positions : sequence of int, optional
+        Calibration positions (default all).
+    progress : callable, optional
 
     Returns
     -------
     CorrectedFit
     """
-    fixed, applied, pose, slopes = correct_all(samples, rig, positions, refine=refine_stage, progress=progress)
-    lut = fit_model(fixed, rig, model, degree, positions=positions, progress=progress, stage_sigma_mm=stage_sigma_mm,
-                    level_bias=level_bias, footprint=footprint, robust=robust)
+    fixed, applied, pose, slopes = correct_all(samples, rig, positions, refine=settings.refine_stage,
+                                               progress=progress)
+    lut = fit_model(fixed, rig, settings.model, settings.degree, positions=positions, progress=progress,
+                    stage_sigma_mm=settings.stage_sigma_mm, level_bias=settings.level_bias,
+                    footprint=settings.footprint, robust=settings.robust)
     lut.provenance["corrections"] = corrections_json(fixed)
     add_tolerances_to_sigma(lut, applied)
     if pose is not None:

@@ -55,8 +55,14 @@ def position_report(label: str, reasons: np.ndarray, min_fraction: float = MIN_V
             f" dominant reason: {name} ({100 * frac:.1f} % of pixels)")
 
 
-def check_valid_fractions(samples, positions=None, min_fraction: float = MIN_VALID_FRACTION) -> list[str]:
-    """Warn about every position of a sample stack that keeps too few pixels.
+def check_valid_fractions(samples, positions=None, min_fraction: float = MIN_VALID_FRACTION,
+                          warn: bool = True) -> list[str]:
+    """Warn about every position of a sample stack that keeps too few pixels (``warn``: as warnings too).
+
+    Returns
+    -------
+    list of str
+        One line per position that keeps too few.
 
     Raises
     ------
@@ -76,8 +82,9 @@ def check_valid_fractions(samples, positions=None, min_fraction: float = MIN_VAL
         name, frac = dominant_reason(np.stack([samples.plane("reasons", k) for k in ks]))
         raise DatasetError(f"no pixel is valid at any position; dominant reason: {name}"
                            f" ({100 * frac:.1f} % of pixels)")
-    for line in lines:
-        warnings.warn(line, stacklevel=2)
+    if warn:
+        for line in lines:
+            warnings.warn(line, stacklevel=2)
     return lines
 
 

@@ -23,9 +23,13 @@ File layout, ``ptp-session/1`` (``*.ptps.h5``)
     The fringe design (a copy of ``[fringes]`` for readers that do not parse
     TOML; must agree with ``/rig``).
 ``/calibration`` attrs
-    ``dataset`` (folder), ``model``, ``degree``, ``out`` (LUT file to write),
-    ``min_modulation``, ``border_margin_px``; dataset ``positions`` (int64
-    ``[P]``) when only some positions are calibrated on.
+    ``dataset`` (folder), ``out`` (LUT file to write), ``fit_settings`` (JSON: the whole
+    :class:`~ptpcore.fit.settings.FitSettings`), ``decode_options`` (JSON: the whole
+    :class:`~ptpcore.decode.phase.DecodeOptions`), and for readers that do not parse JSON
+    ``model``, ``degree``, ``min_modulation``, ``border_margin_px``; dataset ``positions``
+    (int64 ``[P]``) when only some positions are calibrated on. Files written before the
+    records hold each fit setting as an attribute of its own (``stage_sigma_um``,
+    ``level_bias``, ...): they are read as such.
 ``/sim`` attrs
     Optional: ``settings``, the simulator's settings JSON.
 ``/samples``
@@ -56,8 +60,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import json
-import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -65,13 +68,14 @@ import h5py
 import numpy as np
 
 from ptpcore import __version__
-from ptpcore.errors import ConfigError, DatasetError, FileFormatError
+from ptpcore.errors import ConfigError, FileFormatError
 from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read_lut_group, _str_attr,
     _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
-from ptpcore.fit.corrected import fit_corrected
-from ptpcore.fit.models import LUT_MODELS, check_positions_for_model
+from ptpcore.fit.models import check_positions_for_model
+from ptpcore.fit.settings import FIT_SETTINGS_KEY, FitSettings
 from ptpcore.decode.phase import DecodeOptions
+from ptpcore.decode.options import DECODE_OPTIONS_KEY, decode_options_from_json, decode_options_json
 from ptpcore.rig.rigfile import Rig, rig_from_toml, rig_to_toml
 
 __all__ = [
@@ -84,7 +88,6 @@ __all__ = [
     "new_session",
     "save_session",
     "load_session",
-    "run_session",
 ]
 
 SESSION_FAMILY = "ptp-session"
@@ -92,8 +95,6 @@ SESSION_VERSION = 1
 SESSION_FORMAT = f"{SESSION_FAMILY}/{SESSION_VERSION}"
 SESSION_SUFFIX = ".ptps.h5"
 STAGES = ("new", "samples", "lut")
-
-Progress = Callable[[float, str], None]
 
 
 @dataclass
@@ -105,22 +106,9 @@ class Session:
     rig : Rig
     dataset : str or None
         The dataset folder the images come from (absolute path).
-    model : {"poly", "pchip", "linear", "smooth"}
-        One of :data:`ptpcore.fit.models.LUT_MODELS`.
-    degree : int
-        Polynomial degree (``poly``, ``smooth``).
-    stage_sigma_um : float
-        1-sigma error of the stage readings (um), for the predicted sigma maps.
-    level_bias : bool
-        ``smooth``: remove the display's level bias (:mod:`ptpcore.decode.display`).
-    footprint : bool
-        ``smooth``: remove the footprint-centroid bias (:func:`ptpcore.fit.smooth.footprint_bias`).
-    refine_stage : bool
-        Estimate each position's pose errors and correct the samples before fitting
-        (:mod:`ptpcore.fit.stage_pose`).
-    robust : bool
-        Leave out samples far outside their pixel's curve (:mod:`ptpcore.fit.robust`); stored as
-        ``/calibration`` attribute ``robust`` (0 when absent: files written before it).
+    settings : FitSettings
+        How the LUT is fitted (model, degree, corrections; :class:`~ptpcore.fit.settings.FitSettings`),
+        saved whole as ``/calibration`` attribute ``fit_settings``.
     options : DecodeOptions
         Pixel validity thresholds used when decoding.
     positions : tuple of int or None
@@ -141,13 +129,7 @@ class Session:
 
     rig: Rig
     dataset: str | None = None
-    model: str = "auto"
-    degree: int = 3
-    stage_sigma_um: float = 0.0
-    refine_stage: bool = False
-    level_bias: bool = True
-    footprint: bool = True
-    robust: bool = True
+    settings: FitSettings = field(default_factory=FitSettings)
     options: DecodeOptions = field(default_factory=DecodeOptions)
     positions: tuple[int, ...] | None = None
     out: str | None = None
@@ -156,6 +138,16 @@ class Session:
     lut: Lut | None = None
     comparison: dict | None = None
     created: str = field(default_factory=lambda: _now())
+
+    @property
+    def model(self) -> str:
+        """The LUT model of :attr:`settings`."""
+        return self.settings.model
+
+    @property
+    def degree(self) -> int:
+        """The polynomial degree of :attr:`settings`."""
+        return self.settings.degree
 
     @property
     def stage(self) -> str:
@@ -187,19 +179,19 @@ def next_step(session: Session) -> str | None:
     return None
 
 
-def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
+def new_session(dataset, settings: FitSettings | None = None, *, out=None,
                 options: DecodeOptions = DecodeOptions(), positions=None, validate: bool = True,
-                full_check: bool = False, stage_sigma_um: float = 0.0, level_bias: bool = True,
-                footprint: bool = True, refine_stage: bool = False,
-                robust: bool = True) -> Session:
+                full_check: bool = False, **fit) -> Session:
     """Start a session on a dataset folder, validating it first.
 
     Parameters
     ----------
     dataset : path
-        A ``ptp-dataset/1`` folder.
-    model, degree : see :func:`ptpcore.fit.models.fit_model`
-    stage_sigma_um, level_bias, footprint, refine_stage, robust : see :class:`Session`
+        A ``ptp-dataset/1`` or ``/2`` folder.
+    settings : FitSettings, optional
+        How to fit (default: ``ptp calibrate``'s defaults).
+    **fit
+        Instead of ``settings``: some of its fields (``model="poly", degree=2``), the rest default.
     out : path, optional
         LUT file to write at the end.
     options : DecodeOptions
@@ -214,13 +206,11 @@ def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
     ConfigError, DatasetError
         ``rig.toml`` invalid or not calibratable; unusable images (all listed).
     ValueError
-        Bad model or degree.
+        Bad settings (model, degree, stage sigma), or ``settings`` and ``fit`` keywords both given.
     """
     from ptpcore.io.dataset import DatasetSource
 
-    _check_model(model, degree)
-    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0):
-        raise ValueError(f"stage sigma must be a finite number >= 0 µm, got {stage_sigma_um}")
+    settings = _settings_of(settings, fit)
     source = DatasetSource(dataset)
     if positions is not None:
         positions = tuple(int(p) for p in positions)
@@ -228,14 +218,23 @@ def new_session(dataset, *, model: str = "auto", degree: int = 3, out=None,
         if bad:
             raise ValueError(f"positions {bad} do not exist (the rig has {source.rig.stage.n_positions})")
     n_cal = source.rig.stage.n_positions if positions is None else len(positions)
-    check_positions_for_model(model, degree, n_cal, str(source.folder / "rig.toml"))
+    check_positions_for_model(settings.model, settings.degree, n_cal, str(source.folder / "rig.toml"))
     if validate:
         source.validate(full=full_check)
-    return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), model=model, degree=int(degree),
-                   stage_sigma_um=float(stage_sigma_um), level_bias=bool(level_bias), footprint=bool(footprint),
-                   refine_stage=bool(refine_stage), robust=bool(robust),
+    return Session(rig=source.rig, dataset=str(Path(dataset).resolve()), settings=settings,
                    options=options, positions=positions, out=None if out is None else str(out),
                    sim_settings=_sim_settings_of(source.folder))
+
+
+def _settings_of(settings: FitSettings | None, fit: dict) -> FitSettings:
+    """``settings``, or a record made of the ``fit`` keywords (never both)."""
+    if settings is not None and fit:
+        raise ValueError(f"give the fit settings as one FitSettings or as keywords, not both ({', '.join(fit)})")
+    if settings is None:
+        return FitSettings.from_mapping(fit, "new_session") if fit else FitSettings()
+    if not isinstance(settings, FitSettings):
+        raise TypeError(f"settings must be a FitSettings, got {type(settings).__name__}")
+    return settings
 
 
 def _sim_settings_of(folder: Path) -> str | None:
@@ -248,121 +247,6 @@ def _sim_settings_of(folder: Path) -> str | None:
             return _str_attr(f.attrs.get("settings"))
     except OSError:
         return None
-
-
-def _check_model(model: str, degree: int) -> None:
-    if model not in LUT_MODELS:
-        raise ValueError(f"model must be one of {LUT_MODELS}, got {model!r}")
-    if model in ("poly", "smooth", "auto") and not 1 <= int(degree) <= 5:
-        raise ValueError(f"{model} degree must be 1 to 5, got {degree}")
-
-
-def run_session(session: Session, path=None, *, progress: Progress | None = None, source=None,
-                validate: bool = True, stop_after: str | None = None) -> Session:
-    """Carry a session on from its last completed stage, saving after each stage.
-
-    Parameters
-    ----------
-    session : Session
-        Advanced in place (and returned).
-    path : path, optional
-        Session file, written atomically after each completed stage.
-    progress : callable, optional
-        ``progress(fraction, message)``; may raise to cancel. The file then
-        holds the last completed stage.
-    source : FrameSource, optional
-        Frames to decode (default: the session's dataset folder).
-    validate : bool
-        Validate the dataset before decoding (skip only if just done).
-    stop_after : {"samples", "lut"}, optional
-        Stop after this stage.
-
-    Raises
-    ------
-    DatasetError
-        The dataset is gone, unusable, or its ``rig.toml`` no longer matches
-        the session's.
-    ConfigError
-        The decoded samples contradict the stage readings' sense (``z_mm``
-        listed in reverse); positions that look stuck are a ``DataWarning``.
-    """
-    from ptpcore.io.dataset import DatasetSource
-    from ptpcore.store import release_free_memory
-    from ptpcore.run.pipeline import collect_samples
-
-    def sub(lo, hi):
-        if progress is None:
-            return None
-        return lambda f, msg: progress(lo + (hi - lo) * f, msg)
-
-    if session.lut is None and session.samples is None:
-        if source is None:
-            if not session.dataset:
-                raise DatasetError("the session names no dataset folder to decode")
-            source = DatasetSource(session.dataset)
-            if source.rig != session.rig:
-                raise DatasetError(f"{source.folder / 'rig.toml'}: differs from the rig saved in the session"
-                                   " (the dataset changed since the session started)")
-            if validate:
-                source.validate()
-            _check_conventions(source, session)
-        samples = collect_samples(source, options=session.options, positions=session.positions,
-                                  progress=sub(0.0, 0.9))
-        from ptpcore.run.diagnose import check_valid_fractions
-
-        check_valid_fractions(samples, session.positions)  # warns per position; no valid pixel: an error
-        _check_decoded(samples, session)
-        release_free_memory()  # the checks' reads of the spilled samples leave the process (they stay in the file)
-        session.samples = samples
-        if path is not None:
-            save_session(session, path)
-    if stop_after == "samples":
-        return session
-    if session.lut is None:
-        # The cover glass (and any other correction rig.toml asks for) leaves the
-        # samples here, before any fit; the session keeps them as decoded.
-        # The stage pose too (refine_stage); their uncertainty widens the sigma maps.
-        session.lut = fit_corrected(session.samples, session.rig, session.model, session.degree,
-                                    positions=session.positions, refine_stage=session.refine_stage,
-                                    progress=sub(0.9, 1.0), stage_sigma_mm=session.stage_sigma_um * 1e-3,
-                                    level_bias=session.level_bias, footprint=session.footprint,
-                                    robust=session.robust).lut
-        release_free_memory()
-        if path is not None:
-            save_session(session, path)
-    if progress:
-        progress(1.0, "session complete")
-    return session
-
-
-def _check_decoded(samples: SampleStack, session: Session) -> None:
-    """The readings' sense and stuck positions (:func:`ptpcore.run.sanity.check_samples`)."""
-    from ptpcore.run.sanity import check_samples
-
-    where = str(Path(session.dataset) / "rig.toml") if session.dataset else "rig.toml"
-    check_samples(samples, positions=session.positions, source=where)
-
-
-def _check_conventions(source, session: Session) -> None:
-    """Before the long decode: one position decoded and checked for a wrong ``phase_origin_rad``
-    or ``shift_sign`` (:func:`ptpcore.run.diagnose.convention_check`), named if found."""
-    from ptpcore.run.diagnose import convention_check
-    from ptpcore.run.pipeline import decode_position
-
-    rig = source.rig
-    if rig.fringes.unwrap != "periods":
-        return
-    positions = session.positions or range(rig.stage.n_positions)
-    k = list(positions)[len(positions) // 2]
-    # The check reads the wrapped phases only: the spatial-consistency pass (about half of a
-    # position's decode) is left to the decode proper.
-    wrapped_only = replace(session.options, spatial_k=None)
-    findings = convention_check(rig, decode_position(source, k, wrapped_only), session.options)
-    where = str(getattr(source, "folder", "dataset")) + "/rig.toml"
-    if any(fd.fatal for fd in findings):
-        raise DatasetError("; ".join(fd.message(where) for fd in findings if fd.fatal))
-    for fd in findings:
-        warnings.warn(fd.message(where), stacklevel=2)
 
 
 # --------------------------------------------------------------------------- writing
@@ -380,7 +264,8 @@ def _fringe_attrs(rig: Rig) -> dict:
 
 def _check_session(session: Session) -> None:
     """Refuse to write what :func:`load_session` would refuse to read."""
-    _check_model(session.model, session.degree)
+    if not isinstance(session.settings, FitSettings):
+        raise TypeError(f"session settings must be a FitSettings, got {type(session.settings).__name__}")
     shape = session.rig.camera.shape
     k = session.rig.stage.n_positions
     s = session.samples
@@ -412,13 +297,11 @@ def save_session(session: Session, path) -> None:
         f.create_group("rig").attrs["toml"] = rig_to_toml(session.rig)
         f.create_group("fringes").attrs.update(_fringe_attrs(session.rig))
         c = f.create_group("calibration")
-        c.attrs.update({"dataset": session.dataset or "", "model": session.model,
-                        "degree": int(session.degree), "out": session.out or "",
-                        "stage_sigma_um": float(session.stage_sigma_um),
-                        "level_bias": int(bool(session.level_bias)),
-                        "footprint": int(bool(session.footprint)),
-                        "refine_stage": int(bool(session.refine_stage)),
-                        "robust": int(bool(session.robust)),
+        c.attrs.update({"dataset": session.dataset or "", "out": session.out or "",
+                        FIT_SETTINGS_KEY: session.settings.to_json(),
+                        DECODE_OPTIONS_KEY: decode_options_json(session.options),
+                        # also one by one, for readers that do not parse JSON (and files before the records)
+                        "model": session.model, "degree": int(session.degree),
                         "min_modulation": float(session.options.min_modulation),
                         "border_margin_px": int(session.options.border_margin_px)})
         if session.positions is not None:
@@ -602,27 +485,8 @@ def _read_checked(f: h5py.File, where: str) -> Session:
             if not same:
                 raise FileFormatError(f"{where}: attribute {key!r} of /fringes ({got!r}) disagrees with /rig")
 
-    model = _attr(f, "calibration", "model", where, str, "poly")
-    degree = _attr(f, "calibration", "degree", where, int, 3)
-    try:
-        _check_model(model, degree)
-    except ValueError as exc:
-        raise FileFormatError(f"{where}: /calibration: {exc}") from None
-    min_mod = _attr(f, "calibration", "min_modulation", where, float, DecodeOptions.min_modulation)
-    border = _attr(f, "calibration", "border_margin_px", where, int, DecodeOptions.border_margin_px)
-    if not 0 <= min_mod < 1 or border < 0:
-        raise FileFormatError(f"{where}: /calibration min_modulation {min_mod} or border_margin_px {border}"
-                              " out of range")
-    stage_sigma_um = _attr(f, "calibration", "stage_sigma_um", where, float, 0.0)
-    level_bias = _attr(f, "calibration", "level_bias", where, int, 1)
-    footprint = _attr(f, "calibration", "footprint", where, int, 1)
-    refine = _attr(f, "calibration", "refine_stage", where, int, 0)
-    robust = _attr(f, "calibration", "robust", where, int, 0)  # files before the robust fit: without it
-    if robust not in (0, 1):
-        raise FileFormatError(f"{where}: /calibration robust {robust} (0 or 1) out of range")
-    if not (np.isfinite(stage_sigma_um) and stage_sigma_um >= 0) or level_bias not in (0, 1) or footprint not in (0, 1):
-        raise FileFormatError(f"{where}: /calibration stage_sigma_um {stage_sigma_um} (must be >= 0),"
-                              f" level_bias {level_bias} or footprint {footprint} (0 or 1) out of range")
+    settings = _read_fit_settings(f, where)
+    options = _read_decode_options(f, where)
     positions = None
     if "calibration/positions" in f:
         pos = _dataset(f, "calibration/positions", where, None, "iu")
@@ -658,8 +522,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
             raise FileFormatError(f"{where}: attribute 'json' of /comparison is not valid JSON") from None
 
     stage = _str_attr(f.attrs.get("stage"))
-    session = Session(rig=rig, dataset=dataset, model=model, degree=degree, stage_sigma_um=stage_sigma_um,
-                      level_bias=bool(level_bias), footprint=bool(footprint), refine_stage=bool(refine), robust=bool(robust), options=DecodeOptions(min_mod, border), positions=positions, out=out,
+    session = Session(rig=rig, dataset=dataset, settings=settings, options=options, positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
                       created=_str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:
@@ -672,6 +535,49 @@ def _read_checked(f: h5py.File, where: str) -> Session:
         raise FileFormatError(f"{where}: attribute 'stage' says {stage!r} but the file holds stage"
                               f" {session.stage!r}")
     return session
+
+
+def _read_fit_settings(f, where: str) -> FitSettings:
+    """``/calibration`` ``fit_settings``; in files written before the record, its fields one attribute each
+    (``robust`` absent in files before the robust fit: off; ``model`` absent: poly)."""
+    if "calibration" in f and FIT_SETTINGS_KEY in f["calibration"].attrs:
+        text = _attr(f, "calibration", FIT_SETTINGS_KEY, where, str)
+        try:
+            settings = FitSettings.from_json(text, f"{where}: attribute {FIT_SETTINGS_KEY!r} of /calibration")
+        except ValueError as exc:
+            raise FileFormatError(str(exc)) from None
+        for key in ("model", "degree"):  # the copies for readers without JSON must agree with the record
+            copy = _attr(f, "calibration", key, where, str if key == "model" else int, getattr(settings, key))
+            if copy != getattr(settings, key):
+                raise FileFormatError(f"{where}: attribute {key!r} of /calibration ({copy!r}) disagrees with its"
+                                      f" {FIT_SETTINGS_KEY!r} ({getattr(settings, key)!r})")
+        return settings
+    legacy = {"model": ("poly", str), "degree": (3, int), "stage_sigma_um": (0.0, float), "level_bias": (1, int),
+              "footprint": (1, int), "refine_stage": (0, int), "robust": (0, int)}
+    values = {key: _attr(f, "calibration", key, where, kind, default) for key, (default, kind) in legacy.items()}
+    for key in ("level_bias", "footprint", "refine_stage", "robust"):
+        if values[key] not in (0, 1):
+            raise FileFormatError(f"{where}: /calibration {key} {values[key]} (0 or 1) out of range")
+    try:
+        return FitSettings.from_mapping(values, f"{where}: /calibration")
+    except ValueError as exc:
+        raise FileFormatError(str(exc)) from None
+
+
+def _read_decode_options(f, where: str) -> DecodeOptions:
+    """``/calibration`` ``decode_options``; in older files ``min_modulation`` and ``border_margin_px``."""
+    if "calibration" in f and DECODE_OPTIONS_KEY in f["calibration"].attrs:
+        text = _attr(f, "calibration", DECODE_OPTIONS_KEY, where, str)
+        try:
+            return decode_options_from_json(text, f"{where}: attribute {DECODE_OPTIONS_KEY!r} of /calibration")
+        except ValueError as exc:
+            raise FileFormatError(str(exc)) from None
+    min_mod = _attr(f, "calibration", "min_modulation", where, float, DecodeOptions.min_modulation)
+    border = _attr(f, "calibration", "border_margin_px", where, int, DecodeOptions.border_margin_px)
+    if not 0 <= min_mod < 1 or border < 0:
+        raise FileFormatError(f"{where}: /calibration min_modulation {min_mod} or border_margin_px {border}"
+                              " out of range")
+    return DecodeOptions(min_mod, border)
 
 
 def _read_samples(f, rig: Rig, where: str) -> SampleStack:

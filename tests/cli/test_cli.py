@@ -71,7 +71,7 @@ def test_calibrate_smooth_and_inspect(tmp_path, capsys):
     capsys.readouterr()
     assert main(["calibrate", str(data), "--out", str(tmp_path / "bad.lut.h5"), "--stage-sigma-um", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "stage sigma" in err[0] and "-1" in err[0]
+    assert len(err) == 1 and "stage sigma" in err[0] and "--stage-sigma-um -1" in err[0]
 
 
 def test_bad_input_is_one_line_and_exit_code_2(tmp_path):

@@ -141,7 +141,7 @@ def test_cli_refine_stage_writes_the_poses_into_the_lut(tmp_path, capsys):
     assert np.all(np.isfinite(lut.stage_pose)) and np.all(lut.stage_pose_sigma > 0)
     rec = json.loads(lut.provenance["corrections"])
     assert rec["stage_refinement"]["n_pixels"] > 100 and rec["cover_glass"]["t_mm"] == 1.1
-    assert load_session(tmp_path / "s.ptps.h5").refine_stage
+    assert load_session(tmp_path / "s.ptps.h5").settings.refine_stage
 
 
 def test_pose_sigma_maps_are_the_refit_response_to_each_pose_error():
@@ -181,6 +181,7 @@ def test_refined_stage_pose_widens_the_sigma_maps_by_its_propagated_sigma():
     import json
 
     from ptpcore.fit.corrected import fit_corrected
+    from ptpcore.fit.settings import FitSettings
     from ptpcore.fit.glass import pixel_slopes
     from ptpcore.fit.models import fit_model
     from ptpcore.fit.sigma import stage_pose_sigma_maps
@@ -192,7 +193,7 @@ def test_refined_stage_pose_widens_the_sigma_maps_by_its_propagated_sigma():
     s = replace(s, tilt_urad=30.0, roll_urad=30.0, runout_um=2.0, stage_error_um=2.0)
     vr = VirtualRig(rig, s, seed=2)
     raw = collect_samples(SimulatedSource(vr))
-    res = fit_corrected(raw, rig, "poly", 2, refine_stage=True, robust=False)
+    res = fit_corrected(raw, rig, FitSettings(model="poly", degree=2, refine_stage=True, robust=False))
     assert res.pose is not None and res.lut.stage_pose_sigma.shape == (8, 6)
     plain = fit_model(res.samples, rig, "poly", 2)
     mx, my = stage_pose_sigma_maps(res.samples, rig, plain, res.pose.sigma, pixel_slopes(res.samples))

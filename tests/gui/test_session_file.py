@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from gui_helpers import run_job
 
+from ptpcore.fit.settings import FitSettings
 from ptpcore.errors import FileFormatError
 from ptpcore.run import load_session, save_session
 from ptp_studio.__main__ import build_parser
@@ -141,14 +142,14 @@ def test_the_fit_settings_of_the_calibrate_page_are_saved_and_restored(qtbot, tm
     assert len(curve.getData()[0]) == k and np.allclose(bars.opts["height"], 2 * wiz.model.session.lut.stage_pose_sigma[:, 3])
     _wait_autosave(wiz, qtbot)
     back = load_session(tmp_path / "s.ptps.h5")
-    assert (back.model, back.stage_sigma_um, back.level_bias, back.footprint, back.refine_stage) == (
-        "smooth", 0.4, False, False, True)
+    want = FitSettings(model="smooth", degree=1, stage_sigma_um=0.4, level_bias=False, footprint=False,
+                       refine_stage=True)
+    assert back.settings == want
+    assert FitSettings.from_json(back.lut.provenance["fit_settings"]) == want  # the LUT records them too
     assert np.array_equal(back.lut.stage_pose, wiz.model.session.lut.stage_pose)
     other = _fresh_wizard(qtbot)
     assert run_job(qtbot, other.open_session(tmp_path / "s.ptps.h5")) == "finished"
-    assert other.page_by_key["calibrate"].fit_settings() == {
-        "model": "smooth", "degree": 1, "stage_sigma_um": 0.4, "level_bias": False, "footprint": False,
-        "refine_stage": True}
+    assert other.page_by_key["calibrate"].fit_settings() == want
     assert other.page_by_key["calibrate"].stage_pose.table.rowCount() == k
     # Fitted again without the refinement: the panel goes.
     other.page_by_key["calibrate"].configure("poly", 1, "all")

@@ -22,7 +22,7 @@ def _acquire(wizard, qtbot):
 
 def test_calibrate_defaults_to_auto_and_shows_the_choice(wizard, qtbot):
     cal = _acquire(wizard, qtbot)
-    assert cal.model_combo.currentData() == "auto" and cal.fit_settings()["model"] == "auto"
+    assert cal.model_combo.currentData() == "auto" and cal.fit_settings().model == "auto"
     assert not cal.degree.isEnabled() and cal.level_bias.isEnabled()  # the smooth candidate applies them
     assert not cal.choice_table.isVisibleTo(cal)
     # A hang guard, not a time bound: 54 s on the quiet machine, 135 s at load 8.

@@ -139,7 +139,7 @@ def test_calibration_killed_while_decoding_resumes(tmp_path):
     proc = _run_child(f"""
         import time
         from pathlib import Path
-        from ptpcore.run.session import new_session, run_session
+        from ptpcore.run import new_session, run_session
         s = new_session({str(ds)!r}, degree=1, out={str(out)!r})
         save_session(s, {str(session)!r})
         def slow(fraction, message):
