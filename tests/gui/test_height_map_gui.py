@@ -165,7 +165,7 @@ def test_a_broken_height_sweep_keeps_the_lut_and_says_why(wizard, qtbot, scanner
     lut = wizard.model.session.lut
     assert lut is not None and lut.height is None and lut.valid.any()
     warning = cal.jobs.warning.text()
-    assert warning.startswith("The LUT is fitted, but not the scanner's height map") and frame.name in warning
+    assert warning.startswith("The LUT is fitted (XY only): the scanner's height map was not made") and frame.name in warning
     assert "Height map" not in cal.stats.text()
 
 
