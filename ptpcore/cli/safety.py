@@ -27,6 +27,8 @@ from pathlib import Path
 from ptpcore.io.outputs import KINDS, Output, guard_outputs
 
 EXIT_BAD_INPUT = 2
+EXIT_PARTIAL = 3
+"""``ptp calibrate`` / ``resume``: the XY LUT is written, the scanner's height map failed (the reason printed)."""
 EXIT_SIGINT = 130
 EXIT_SIGPIPE = 141
 EXIT_SIGTERM = 143
