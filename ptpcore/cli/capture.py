@@ -135,7 +135,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     " simulated, manual (you type each reading) or serial (--config capture.toml).")
     add_output(p, "--out", required=True, metavar="DIR", kind="dataset", resume="resume",
                help="dataset folder (new or empty; or with --resume)")
-    p.add_argument("--camera", choices=["sim", "opencv", "genicam"],
+    p.add_argument("--camera", choices=["sim", "opencv", "genicam", "pylon"],
                    help="camera (default: the config's, else sim; only sim works from the command line)")
     p.add_argument("--stage", choices=["sim", "manual", "serial"], help="stage (default: the config's, else sim)")
     add_input(p, "--config", metavar="capture.toml", type=existing_file, kind="config",

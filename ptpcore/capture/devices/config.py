@@ -53,7 +53,7 @@ __all__ = ["CAPTURE_CONFIG_FORMAT", "CaptureConfig", "CameraConfig", "StageConfi
            "load_capture_config", "capture_config_from_toml", "serial_protocol_from_table"]
 
 CAPTURE_CONFIG_FORMAT = "ptp-capture-config/1"
-CAMERA_KINDS = ("sim", "opencv", "genicam")
+CAMERA_KINDS = ("sim", "opencv", "genicam", "pylon")
 STAGE_KINDS = ("sim", "manual", "serial")
 
 
