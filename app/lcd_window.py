@@ -24,7 +24,7 @@ from PySide6.QtCore import QObject, QPointF, Qt, QThread, Signal, Slot
 from PySide6.QtGui import QColor, QGuiApplication, QImage, QPainter
 from PySide6.QtWidgets import QWidget
 
-from ptpcore.capture.devices.display import check_lcd_image
+from ptpcore.capture import check_lcd_image
 from ptpcore.errors import Cancelled, DeviceError
 
 __all__ = ["ScreenInfo", "list_screens", "screen_mismatch", "LcdWindow", "QtDisplay"]

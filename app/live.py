@@ -25,13 +25,12 @@ from PySide6.QtCore import QObject, Qt, Signal, Slot
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDialog, QDialogButtonBox, QDoubleSpinBox, QFileDialog,
                                QFormLayout, QHBoxLayout, QLabel, QLineEdit, QPushButton, QVBoxLayout, QWidget)
 
-from ptpcore.capture import capture, capture_state
+from ptpcore.capture import (HarvestersCamera, ManualStage, OpenCVCamera, SerialStage, SimulatedCamera,
+                             SimulatedDisplay, SimulatedStage, capture, capture_state, load_capture_config,
+                             simulated_meta)
 from ptpcore.io import DatasetSource
-from ptpcore.capture.devices import (HarvestersCamera, ManualStage, OpenCVCamera, SerialStage, SimulatedCamera,
-                             SimulatedDisplay, SimulatedStage, simulated_meta)
-from ptpcore.capture.devices.config import load_capture_config
 from ptpcore.errors import ConfigError, PtpError
-from ptpcore.simulate.virtual_rig import TRUTH_FILE, VirtualRig, save_truth
+from ptpcore.simulate import TRUTH_FILE, VirtualRig, save_truth
 
 from .lcd_window import QtDisplay, list_screens, screen_mismatch
 from .widgets.maps import axis_label

@@ -28,7 +28,7 @@ from ptpcore.io import DatasetSource, SimulatedSource
 from ptpcore.decode import DecodeOptions
 from ptpcore.rig import Camera, Rig
 from ptpcore.simulate import SimSettings, VirtualRig, load_truth, preset
-from ptpcore.fit.settings import FitSettings
+from ptpcore.fit import FitSettings
 from ptpcore.progress import sub_progress
 from ptpcore.run import Session as EngineSession, calibrate_session
 from ptpcore.evaluate import DISPLAY_PIXELS, display_step, mask_rgba, reason_counts, reduce_for_display

@@ -26,11 +26,10 @@ from typing import Callable
 
 from PySide6.QtCore import QObject, Signal
 
-from ptpcore.run import session as engine
+from ptpcore import run as engine
 from ptpcore.errors import FileFormatError
-from ptpcore.fit import lut_model
-from ptpcore.fit.settings import FIT_SETTINGS_KEY, FitSettings
-from ptpcore.simulate.virtual_rig import PRESETS, preset, settings_from_json
+from ptpcore.fit import FIT_SETTINGS_KEY, FitSettings, lut_model
+from ptpcore.simulate import PRESETS, preset, settings_from_json
 
 from .session import PositionStatus, Session, SessionModel, session_truth
 from .worker import Job

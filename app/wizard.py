@@ -20,7 +20,7 @@ from .session import Session, SessionModel
 from .sessionfile import Autosave, OpenedSession
 from .wheel import install as install_wheel_guard
 from .widgets.confirm import confirm
-from .worker import _ACTIVE, wait_for_jobs
+from .worker import ACTIVE_JOBS, wait_for_jobs
 
 __all__ = ["StudioWizard", "configure_app", "freeze_startup_objects", "PAGE_CLASSES"]
 
@@ -275,7 +275,7 @@ class StudioWizard(QWizard):
     # ---- leaving ---------------------------------------------------------------------
     def running_jobs(self) -> list[str]:
         """Names of the jobs running now (pages' and the autosave's)."""
-        return [j.name for j in list(_ACTIVE) if j.running]
+        return [j.name for j in list(ACTIVE_JOBS) if j.running]
 
     def confirm_quit(self) -> bool:
         """Ask before closing when a job runs or results are not saved; True: close."""

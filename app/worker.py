@@ -138,7 +138,7 @@ class Job(QObject):
         if self.running:
             raise RuntimeError(f"job '{self.name}' is already running")
         self.running = True
-        _ACTIVE.add(self)
+        ACTIVE_JOBS.add(self)
         QThreadPool.globalInstance().start(_Runnable(self))
         return self
 
@@ -176,7 +176,7 @@ class Job(QObject):
     def _on_end(self, outcome: str, payload) -> None:
         self.running = False
         self.outcome = outcome
-        _ACTIVE.discard(self)
+        ACTIVE_JOBS.discard(self)
         if outcome == "finished":
             self.finished.emit(payload)
         elif outcome == "errored":
@@ -187,11 +187,11 @@ class Job(QObject):
         self.done.emit()
 
 
-_ACTIVE: set[Job] = set()
+ACTIVE_JOBS: set[Job] = set()
 
 
 def wait_for_jobs(timeout_ms: int = 30000) -> bool:
     """Cancel every running job and wait for the pool to drain (at exit and in tests)."""
-    for job in list(_ACTIVE):
+    for job in list(ACTIVE_JOBS):
         job.cancel()
     return QThreadPool.globalInstance().waitForDone(timeout_ms)

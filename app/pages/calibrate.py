@@ -14,13 +14,9 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
 
 from ptpcore.fit import describe_lut
 from ptpcore.rig import lut_stage_z, position_label
-from ptpcore.fit.corrected import samples_as_fitted
-from ptpcore.fit.settings import FitSettings
-from ptpcore.fit.glass import describe_corrections
-from ptpcore.fit.choice import ModelChoice
-from ptpcore.fit.sigma import sigma_parts
+from ptpcore.fit import FitSettings, ModelChoice, describe_corrections, samples_as_fitted, sigma_parts
 from ptpcore.evaluate import ScaledMap, pixel_series, prepare_display, reason_text
-from ptpcore.evaluate.residuals import residual_field
+from ptpcore.evaluate import residual_field
 from ptpcore.run import calibrate_session
 
 from ..session import calibration_session

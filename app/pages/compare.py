@@ -11,11 +11,9 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QGroupBox, QHB
                                QPushButton, QSpinBox, QSplitter, QTableWidget, QTableWidgetItem, QTabWidget,
                                QVBoxLayout, QWidget)
 
-from ptpcore.fit.settings import FitSettings
+from ptpcore.fit import FitSettings, correct_all, corrected_samples, describe_corrections
 from ptpcore.evaluate import (METHOD_LABELS, METHODS, PAIR_KINDS, compare, histogram, prepare_display,
                               robust_levels, smooth_degree_for, split_positions)
-from ptpcore.fit.corrected import correct_all
-from ptpcore.fit.glass import corrected_samples, describe_corrections
 
 from ..widgets.maps import PEN, MapView, axis_label, colormap, plain_axes
 from ..worker import Job

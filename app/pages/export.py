@@ -14,9 +14,8 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGroupBox, QHBoxLayout, Q
 
 from ptpcore.atomic import atomic_path, write_text_atomic
 from ptpcore.errors import OutputError
-from ptpcore.evaluate.residuals import residual_png
-from ptpcore.io import save_lut
-from ptpcore.io.outputs import PLAIN_FOLDER, Output, guard_outputs
+from ptpcore.evaluate import residual_png
+from ptpcore.io import PLAIN_FOLDER, Output, guard_outputs, save_lut
 from ptpcore.fit import describe_lut
 from ptpcore.rig import rig_to_toml
 from ptpcore.run import save_session

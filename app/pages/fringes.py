@@ -12,9 +12,8 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QHBoxLayout, QHeaderView, QLabel, QLineEdit, QSlider, QSpinBox, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
-from ptpcore.decode import design_check, fringe_image, fringe_profile
-from ptpcore.decode.harmonics import measured_harmonics
-from ptpcore.decode.patterns import GRAY_TEMPLATE, gray_bits_needed
+from ptpcore.decode import (GRAY_TEMPLATE, design_check, fringe_image, fringe_profile, gray_bits_needed,
+    measured_harmonics)
 from ptpcore.rig import DirectionFringes, FringeDesign, format_period, position_label, rig_from_toml, rig_to_toml
 from ptpcore.evaluate import predicted_signal
 

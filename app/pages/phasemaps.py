@@ -8,8 +8,7 @@ from PySide6.QtWidgets import QComboBox, QFormLayout, QGroupBox, QLabel, QVBoxLa
 
 from ptpcore.decode import REASON_NAMES
 from ptpcore.rig import format_period, position_label
-from ptpcore.run import decode_position
-from ptpcore.run.decoding import direction_reasons
+from ptpcore.run import decode_position, direction_reasons
 from ptpcore.evaluate import (REASON_COLOURS, REASON_ORDER, VALID_COLOUR, reason_counts, reason_rgba,
     reason_text)
 
@@ -236,7 +235,7 @@ class PhaseMapsPage(StudioPage):
     def _say_what_is_wrong(self, pos) -> None:
         """What ``ptp decode`` says of this position: a wrong phase convention (naming the
         setting), or too few valid pixels with the dominant reason."""
-        from ptpcore.run.diagnose import convention_check, position_report
+        from ptpcore.run import convention_check, position_report
 
         rig = self.model.session.rig
         try:

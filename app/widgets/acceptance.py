@@ -22,11 +22,9 @@ from PySide6.QtWidgets import (QCheckBox, QFileDialog, QGridLayout, QGroupBox, Q
 
 from ptpcore.atomic import write_text_atomic
 from ptpcore.errors import OutputError
-from ptpcore.io.outputs import Output, guard_outputs
-from ptpcore.evaluate.acceptance_png import acceptance_page
-from ptpcore.evaluate.pngtext import write_png
-from ptpcore.evaluate.vdi2634 import FIGURES, evaluate_acceptance, parse_mpe
-from ptpcore.run.acceptance import conventional_calibration, reconstruct_scans, scan_folders
+from ptpcore.io import Output, guard_outputs
+from ptpcore.evaluate import FIGURES, acceptance_page, evaluate_acceptance, parse_mpe, write_png
+from ptpcore.run import conventional_calibration, reconstruct_scans, scan_folders
 
 from ..worker import Job
 from .jobpanel import JobPanel

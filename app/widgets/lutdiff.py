@@ -16,8 +16,8 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QFileDialog, QGridLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit, QPushButton,
                                QStackedWidget, QWidget)
 
-from ptpcore.evaluate.diff import LutDiff, diff_luts
-from ptpcore.io.lutfile import load_lut
+from ptpcore.evaluate import LutDiff, diff_luts
+from ptpcore.io import load_lut
 
 from ..worker import Job
 from .jobpanel import JobPanel

@@ -21,7 +21,7 @@ from PySide6.QtCore import QPointF, QRectF, Qt, Signal
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
 from scipy import ndimage
 
-from ptpcore.evaluate import views
+from ptpcore.evaluate import DISPLAY_PIXELS, DisplayMap, prepare_display, robust_levels
 
 __all__ = ["MapView", "HeatmapPanel", "axis_label", "colormap", "legend_below", "line_profile", "plain_axes"]
 
@@ -140,7 +140,7 @@ class MapView(pg.GraphicsLayoutWidget):
         self._detail: tuple[int, int, int, int] | None = None  # rows r0:r1, cols c0:c1 shown at full resolution
         self._cmap_name: str | None = None  # the colour map last set by name
         self.plot.vb.sigRangeChanged.connect(self._update_detail)
-        self._screen_pixels = views.DISPLAY_PIXELS  # the view box's device pixels (GUI thread writes, any reads)
+        self._screen_pixels = DISPLAY_PIXELS  # the view box's device pixels (GUI thread writes, any reads)
         self.plot.vb.sigResized.connect(self.note_size)
         self._pad = (0, 0)  # margins (px) left and right, top and bottom, that give the view box the map's aspect
         self._base_margins = tuple(self.ci.layout.getContentsMargins())  # left, top, right, bottom
@@ -215,7 +215,7 @@ class MapView(pg.GraphicsLayoutWidget):
         if data.ndim != 2:
             raise ValueError(f"a map must be (H, W), got shape {data.shape}")
         if levels is None:
-            levels = views.robust_levels(data)
+            levels = robust_levels(data)
         self.data = data
         if isinstance(cmap, str):
             # The colour bar rebuilds its lookup table on every setColorMap: not for each live frame.
@@ -279,7 +279,7 @@ class MapView(pg.GraphicsLayoutWidget):
         (x0, x1), (y0, y1) = self.plot.vb.viewRange()
         c0, c1 = max(0, int(math.floor(x0 + 0.5))), min(w, int(math.ceil(x1 + 0.5)))
         r0, r1 = max(0, int(math.floor(y0 + 0.5))), min(h, int(math.ceil(y1 + 0.5)))
-        if c1 <= c0 or r1 <= r0 or (r1 - r0) * (c1 - c0) > views.DISPLAY_PIXELS:
+        if c1 <= c0 or r1 <= r0 or (r1 - r0) * (c1 - c0) > DISPLAY_PIXELS:
             if self._detail is not None:  # zoomed out again: the reduced map (self.data, self._step)
                 self._detail = None
                 self._show_part(self.data, self._covered(self.data.shape))
@@ -398,7 +398,7 @@ class HeatmapPanel(QWidget):
     def set_map(self, data: np.ndarray, *, title: str, unit: str = "", cmap: str = "viridis",
                 levels: tuple[float, float] | None = None, integer: bool = False,
                 value_text: Callable[[int, int], str] | None = None,
-                prepared: views.DisplayMap | None = None) -> None:
+                prepared: DisplayMap | None = None) -> None:
         """Show ``data`` (already in display units: µm, px, counts).
 
         Parameters
@@ -420,7 +420,7 @@ class HeatmapPanel(QWidget):
             (:func:`ptpcore.evaluate.views.prepare_display`, on a worker thread); computed here otherwise.
         """
         if prepared is None:
-            prepared = views.prepare_display(data, integer=integer, levels=levels)
+            prepared = prepare_display(data, integer=integer, levels=levels)
         self.unit = unit
         self.value_text = value_text
         self.title.setText(title)

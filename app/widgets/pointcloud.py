@@ -19,9 +19,8 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QDoubleSpinBox, QFileDia
                                QHBoxLayout, QLabel, QLineEdit, QPushButton, QRadioButton, QStackedWidget)
 
 from ptpcore.errors import OutputError
-from ptpcore.io.outputs import Output, guard_outputs
-from ptpcore.io.pointcloud import PointCloud, read_height_map, write_point_cloud
-from ptpcore.run.scanner import reconstruct
+from ptpcore.io import Output, PointCloud, guard_outputs, read_height_map, write_point_cloud
+from ptpcore.run import reconstruct
 
 from ..worker import Job
 from .jobpanel import JobPanel

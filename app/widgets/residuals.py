@@ -16,7 +16,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtWidgets import QComboBox, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout
 
-from ptpcore.evaluate.residuals import ResidualField
+from ptpcore.evaluate import ResidualField
 from ptpcore.rig import position_label
 
 from .maps import axis_label

@@ -12,7 +12,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtWidgets import QGroupBox, QHBoxLayout, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout
 
-from ptpcore.fit.stage_pose import POSE_NAMES
+from ptpcore.fit import POSE_NAMES
 
 from .maps import axis_label
 

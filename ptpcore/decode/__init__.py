@@ -13,13 +13,14 @@ or anything above.
 """
 
 from .patterns import (fringe_values, fringe_profile, fringe_image, DesignItem, DesignReport,
-    design_check, phase_noise_rad)
+    design_check, phase_noise_rad, GRAY_TEMPLATE, gray_bits_needed)
 from .phase import (Reason, REASON_NAMES, PhaseAccumulator, WrappedPhase, wrapped_phase,
     unwrap_hierarchical, DirectionDecode, DecodedPosition, DecodeOptions, decode_direction,
     finish_position)
 from .noise import NoiseModel, NoiseAccumulator
 from .display import level_bias_px, level_bias_table, level_bias_at, level_phase_errors_px
 from .position import decode_sets, flag_more_reasons, reference_clipping, coordinate_sigma
+from .harmonics import measured_harmonics
 
 __all__ = [
     "fringe_values",
@@ -29,6 +30,8 @@ __all__ = [
     "DesignReport",
     "design_check",
     "phase_noise_rad",
+    "GRAY_TEMPLATE",
+    "gray_bits_needed",
     "Reason",
     "REASON_NAMES",
     "PhaseAccumulator",
@@ -50,4 +53,5 @@ __all__ = [
     "flag_more_reasons",
     "reference_clipping",
     "coordinate_sigma",
+    "measured_harmonics",
 ]

@@ -16,6 +16,11 @@ from .statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS, PAIR_KINDS, REF
 from .report import CompareResult, Coverage, FeaturePoints, Fold, MethodReport, ReferenceReport, format_summary
 from .protocol import compare, draw_features, smooth_degree_for, split_positions
 from .accuracy import HeldOutAccuracy, held_out_accuracy
+from .residuals import ResidualField, residual_field, residual_png
+from .pngtext import write_png
+from .vdi2634 import FIGURES, evaluate_acceptance, parse_mpe
+from .acceptance_png import acceptance_page
+from .diff import LutDiff, diff_luts
 from .views import (REASON_ORDER, REASON_COLOURS, VALID_COLOUR, reason_rgba, reason_counts, reason_text, mask_rgba,
     subsample, DISPLAY_PIXELS, display_step, reduce_for_display, robust_levels, histogram, DisplayMap, prepare_display, ScaledMap, PixelSeries, pixel_series, predicted_signal)
 
@@ -26,6 +31,8 @@ __all__ = [
     "CompareResult", "Coverage", "FeaturePoints", "Fold", "MethodReport", "ReferenceReport", "format_summary",
     "compare", "draw_features", "smooth_degree_for", "split_positions",
     "HeldOutAccuracy", "held_out_accuracy",
+    "ResidualField", "residual_field", "residual_png", "write_png",
+    "FIGURES", "evaluate_acceptance", "parse_mpe", "acceptance_page", "LutDiff", "diff_luts",
     "REASON_ORDER", "REASON_COLOURS", "VALID_COLOUR", "reason_rgba", "reason_counts", "reason_text", "mask_rgba",
     "subsample", "DISPLAY_PIXELS", "display_step", "reduce_for_display", "robust_levels", "histogram", "DisplayMap", "prepare_display", "ScaledMap", "PixelSeries", "pixel_series", "predicted_signal",
 ]

@@ -51,8 +51,8 @@ import numpy as np
 
 from ptpcore.evaluate.report import (METHODS, PAIR_KINDS, SPLITS, CompareResult, Coverage, FeaturePoints, Fold,
     HeldOutMaps, MethodReport, ReferenceReport)
-from ptpcore.evaluate.statistics import (CoordinateAccumulator, DistanceErrors, _curve, _draw_pairs, _verdict,
-    coordinate_stats, error_stats)
+from ptpcore.evaluate.statistics import (CoordinateAccumulator, DistanceErrors, comparison_verdict, coordinate_stats,
+    distance_curve, draw_pairs, error_stats)
 from ptpcore.fit import fit_lut, fit_smooth_lut
 from ptpcore.fit.choice import fit_auto
 from ptpcore.io import MODELS, SampleStack
@@ -259,7 +259,7 @@ def compare(samples: SampleStack, rig: Rig, truth=None, seed: int = 0, *, split:
     measured_xyz = _measured_points(samples, held_positions, z_held)
     groups = [np.flatnonzero(fold_of_held == fi) for fi in range(len(folds_idx))]
     maps = acc.maps
-    pairs = {kind: _draw_pairs(maps.mask_at, acc.cov["n_compared"], samples.shape, groups, kind, int(n_pairs),
+    pairs = {kind: draw_pairs(maps.mask_at, acc.cov["n_compared"], samples.shape, groups, kind, int(n_pairs),
                                int(n_bins), np.random.default_rng([seed, 1, i]), measured_xyz)
              for i, kind in enumerate(PAIR_KINDS)}
 
@@ -631,7 +631,7 @@ def _reference_report(result: CompareResult, ref: str, ends: _PairEnds) -> Refer
         e = np.concatenate([d.error_mm for d in methods[m].distance.values()])
         return error_stats(e).rms_um
 
-    v = _verdict(ref, {m: methods[m].coordinate.rms_um for m in result.methods},
+    v = comparison_verdict(ref, {m: methods[m].coordinate.rms_um for m in result.methods},
                  {m: dist_rms(m) for m in result.methods})
     return ReferenceReport(ref, methods, v)
 
@@ -650,5 +650,5 @@ def _distance_errors(result: CompareResult, m: str, ref: str, ends: _PairEnds) -
         d_method = np.linalg.norm(pts[0][0] - pts[1][0], axis=1)
         d_ref = np.linalg.norm(pts[0][1] - pts[1][1], axis=1)
         err = d_method - d_ref
-        dist[kind] = DistanceErrors(kind, m, ref, d_ref, err, error_stats(err), _curve(d_ref, err, p.edges_mm))
+        dist[kind] = DistanceErrors(kind, m, ref, d_ref, err, error_stats(err), distance_curve(d_ref, err, p.edges_mm))
     return dist

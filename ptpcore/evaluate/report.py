@@ -16,7 +16,7 @@ import numpy as np
 
 from ptpcore import __version__
 from ptpcore.evaluate.statistics import (COMPARE_FORMAT, METHOD_LABELS, METHODS, PAIR_KINDS, REFERENCES, SPLITS,
-    CoordinateStats, Verdict, _block_rms, _jsonable)
+    CoordinateStats, Verdict, block_rms, jsonable)
 from ptpcore.atomic import DiskFullError
 from ptpcore.fit.glass import describe_corrections
 from ptpcore.rig import position_label
@@ -477,18 +477,18 @@ class CompareResult:
             "folds": [{"calibration": f.calibration.tolist(), "held_out": f.held_out.tolist(),
                        "lut_valid_fraction": f.lut_valid_fraction, "pinhole": _pinhole_json(f.pinhole),
                        "warnings": list(f.warnings),
-                       "smooth_valid_fraction": _jsonable(f.smooth_valid_fraction),
-                       "smooth_scale_px": _jsonable(f.smooth_scale_px), "lut_degree": f.lut_degree}
+                       "smooth_valid_fraction": jsonable(f.smooth_valid_fraction),
+                       "smooth_scale_px": jsonable(f.smooth_scale_px), "lut_degree": f.lut_degree}
                       for f in self.folds],
             "coverage": {k: v.tolist() for k, v in self.coverage.__dict__.items() if v is not None},
-            "pairs": {k: {"n": len(p), "edges_mm": _jsonable(p.edges_mm)} for k, p in self.pairs.items()},
+            "pairs": {k: {"n": len(p), "edges_mm": jsonable(p.edges_mm)} for k, p in self.pairs.items()},
             "reference_noise": None if self.reference_noise is None else self.reference_noise.to_json_dict(),
             "notes": list(self.notes),
             "corrections": self.corrections,
             "references": {},
         }
         for ref, rr in self.references.items():
-            r = {"verdict": {k: _jsonable(v) for k, v in rr.verdict.__dict__.items()}}
+            r = {"verdict": {k: jsonable(v) for k, v in rr.verdict.__dict__.items()}}
             for m, mr in rr.methods.items():
                 r[m] = {
                     "coordinate": mr.coordinate.to_json_dict(),
@@ -496,7 +496,7 @@ class CompareResult:
                                      for k, z, s in zip(self.held_positions, self.z_held, mr.per_position)],
                     "distance": {kind: {"stats": d.stats.to_json_dict(), "curve": d.curve.to_json_dict()}
                                  for kind, d in mr.distance.items()},
-                    "heatmap": {"block_px": block, "rms_um": _jsonable(_block_rms(mr.heatmap_mm, block) * 1e3)},
+                    "heatmap": {"block_px": block, "rms_um": jsonable(block_rms(mr.heatmap_mm, block) * 1e3)},
                 }
             out["references"][ref] = r
         return out
@@ -505,7 +505,7 @@ class CompareResult:
 def _pinhole_json(fit: PinholeFit) -> dict:
     d = fit.model.to_dict()
     d.update(param_names=list(fit.param_names), param_values=fit.param_values.tolist(),
-             param_std=_jsonable(fit.param_std), reprojection_rms_px=fit.reprojection_rms_px,
+             param_std=jsonable(fit.param_std), reprojection_rms_px=fit.reprojection_rms_px,
              n_points=fit.n_points)
     return d
 

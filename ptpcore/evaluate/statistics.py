@@ -55,7 +55,7 @@ class ErrorStats:
     max_um: float
 
     def to_json_dict(self) -> dict:
-        return {k: _jsonable(v) for k, v in self.__dict__.items()}
+        return {k: jsonable(v) for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -130,10 +130,10 @@ class DistanceCurve:
     p95_um: np.ndarray
 
     def to_json_dict(self) -> dict:
-        return {k: _jsonable(v) for k, v in self.__dict__.items()}
+        return {k: jsonable(v) for k, v in self.__dict__.items()}
 
 
-def _curve(distance_mm: np.ndarray, error_mm: np.ndarray, edges: np.ndarray) -> DistanceCurve:
+def distance_curve(distance_mm: np.ndarray, error_mm: np.ndarray, edges: np.ndarray) -> DistanceCurve:
     nb = max(len(edges) - 1, 0)
     b = np.clip(np.searchsorted(edges, distance_mm, side="right") - 1, 0, max(nb - 1, 0))
     out = {k: np.full(nb, np.nan) for k in ("rms", "mean", "p95")}
@@ -238,7 +238,7 @@ class Verdict:
         return b / a if a > 0 else (math.inf if b > 0 else 1.0)
 
 
-def _draw_pairs(mask_at, sizes, shape, groups, kind: str, n_pairs: int, n_bins: int, rng: np.random.Generator,
+def draw_pairs(mask_at, sizes, shape, groups, kind: str, n_pairs: int, n_bins: int, rng: np.random.Generator,
                 measured_xyz) -> PairSet:
     """Random point pairs whose measured distances spread over the field.
 
@@ -486,7 +486,7 @@ def _versus(values: dict, order: list) -> str:
     return ", ".join(parts[:-1]) + " and " + parts[-1]
 
 
-def _verdict(reference: str, coord: dict, dist: dict) -> Verdict:
+def comparison_verdict(reference: str, coord: dict, dist: dict) -> Verdict:
     """The verdict from every method's coordinate RMS and RMS distance error (µm, keyed by method)."""
     c_ahead, c_ratio, c_order = _rank(coord)
     d_ahead, d_ratio, d_order = _rank(dist)
@@ -513,7 +513,7 @@ def _verdict(reference: str, coord: dict, dist: dict) -> Verdict:
     return Verdict(reference, c_ahead, c_ratio, d_ahead, d_ratio, text, dict(coord), dict(dist))
 
 
-def _block_rms(img: np.ndarray, block: int) -> np.ndarray:
+def block_rms(img: np.ndarray, block: int) -> np.ndarray:
     """RMS of the finite values of ``img`` (H, W) in ``block`` x ``block`` tiles (NaN where none)."""
     h, w = img.shape
     hb, wb = -(-h // block), -(-w // block)
@@ -527,14 +527,14 @@ def _block_rms(img: np.ndarray, block: int) -> np.ndarray:
     return np.sqrt(ms)
 
 
-def _jsonable(v):
+def jsonable(v):
     """Plain JSON value: numpy scalars and arrays to Python, NaN/inf to None."""
     if isinstance(v, np.ndarray):
-        return [_jsonable(x) for x in v.tolist()] if v.ndim else _jsonable(v.item())
+        return [jsonable(x) for x in v.tolist()] if v.ndim else jsonable(v.item())
     if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
+        return [jsonable(x) for x in v]
     if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
+        return {str(k): jsonable(x) for k, x in v.items()}
     if isinstance(v, (np.integer,)):
         return int(v)
     if isinstance(v, (float, np.floating)):

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .scanner import VDI_LEAVE_OUT
-from .statistics import ErrorStats, _curve, _jsonable, error_stats
+from .statistics import ErrorStats, distance_curve, jsonable, error_stats
 
 __all__ = ["ACCEPTANCE_FORMAT", "FIGURES", "FIGURE_OF_KIND", "SphereFit", "PlaneFit", "fit_sphere", "fit_plane",
            "left_out_count", "split_ball_bar", "Artefact", "PoseFigures", "pose_figures", "truth_figures",
@@ -338,8 +338,8 @@ class PoseFigures:
 
     def to_json_dict(self) -> dict:
         return {"pose": self.pose, "kind": self.kind, "method": self.method, "n_points": self.n_points,
-                "n_left_out": self.n_left_out, "figures_mm": _jsonable(self.figures), "fit": _jsonable(self.fit),
-                "truth": None if self.truth is None else _jsonable(self.truth)}
+                "n_left_out": self.n_left_out, "figures_mm": jsonable(self.figures), "fit": jsonable(self.fit),
+                "truth": None if self.truth is None else jsonable(self.truth)}
 
 
 def pose_figures(points, artefact: Artefact, *, pose: str = "", method: str = "",
@@ -535,7 +535,7 @@ class AcceptanceReport:
                "poses": [p.to_json_dict() for p in self.poses]}
         if len(self.methods) == 2:
             a, b = self.methods
-            out["ratios"] = {f"{a}/{b}": {k: _jsonable(self.ratio(k, a, b)) for k in FIGURES}}
+            out["ratios"] = {f"{a}/{b}": {k: jsonable(self.ratio(k, a, b)) for k in FIGURES}}
         if self.distance:
             out["distance_errors_3d"] = {m: d.to_json_dict() for m, d in self.distance.items()}
         return out
@@ -611,7 +611,7 @@ def point_distance_errors(points: dict, truth: list, *, n_pairs: int = 20000, n_
             d_true = np.linalg.norm(t_all[a] - t_all[b], axis=1)
             err = np.linalg.norm(p_all[a] - p_all[b], axis=1) - d_true
             edges = np.linspace(0.0, float(d_true.max()) if d_true.size else 1.0, n_bins + 1)
-            kinds[kind] = (error_stats(err), _curve(d_true, err, edges))
+            kinds[kind] = (error_stats(err), distance_curve(d_true, err, edges))
         out[m] = PointDistanceErrors(m, kinds, error_stats(np.linalg.norm(p_all - t_all, axis=1)))
     return out
 

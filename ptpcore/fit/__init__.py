@@ -15,12 +15,15 @@ May import :mod:`ptpcore.pinhole`, :mod:`ptpcore.io`, :mod:`ptpcore.decode`, :mo
 """
 
 from .perpixel import fit_lut
-from .sigma import sample_sigma, predicted_poly_sigma
+from .sigma import sample_sigma, predicted_poly_sigma, sigma_parts
 from .smooth import (sample_sigma_from_noise, fit_smooth_lut, SmoothInfo, poly_sigma_maps,
     local_linear_smooth, global_pinhole)
 from .models import LUT_MODELS, fit_model, lut_model, describe_lut
 from .choice import ModelChoice, fit_auto
-from .settings import FitSettings, fit_arguments
+from .settings import FIT_SETTINGS_KEY, FitSettings, fit_arguments
+from .corrected import correct_all, samples_as_fitted
+from .glass import corrected_samples, describe_corrections
+from .stage_pose import POSE_NAMES
 
 __all__ = [
     "fit_lut",
@@ -39,5 +42,12 @@ __all__ = [
     "ModelChoice",
     "fit_auto",
     "FitSettings",
+    "FIT_SETTINGS_KEY",
     "fit_arguments",
+    "correct_all",
+    "samples_as_fitted",
+    "corrected_samples",
+    "describe_corrections",
+    "sigma_parts",
+    "POSE_NAMES",
 ]

@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from ptpcore.io.lutfile import MODELS, Lut, _group_by_pattern, _interp_table
+from ptpcore.io.lutfile import MODELS, Lut, group_by_pattern, interp_table
 from ptpcore.io.samples import SampleStack
 
 __all__ = ["fit_lut"]
@@ -23,7 +23,7 @@ _TILE = 1 << 16  # pixels per fitting tile: bounds the float64 working set (~10 
 
 
 
-def _z_normalisation(z: np.ndarray) -> tuple[float, float]:
+def z_normalisation(z: np.ndarray) -> tuple[float, float]:
     lo, hi = float(np.min(z)), float(np.max(z))
     return 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-12)
 
@@ -159,7 +159,7 @@ class _FitPlan:
         self.order = np.argsort(z)
         self.z_sorted = z[self.order]
         self.sorted_z = bool(np.all(self.order == np.arange(z.size)))
-        self.z_center, self.z_scale = _z_normalisation(z)
+        self.z_center, self.z_scale = z_normalisation(z)
         self.t = (z - self.z_center) / self.z_scale
 
     def fit_tile(self, out: _LutArrays, start: int, stop: int) -> None:
@@ -257,7 +257,7 @@ def _fit_poly_tile(t: np.ndarray, values: np.ndarray, mask: np.ndarray, degree: 
 
 
 def _pattern_groups(mask: np.ndarray, n_min: int, counts: np.ndarray | None = None):
-    """``_group_by_pattern`` of the columns with at least ``n_min`` samples.
+    """``group_by_pattern`` of the columns with at least ``n_min`` samples.
 
     The common pattern "every position valid" is found without sorting.
     ``counts``: ``mask.sum(axis=0)`` if the caller has it.
@@ -269,7 +269,7 @@ def _pattern_groups(mask: np.ndarray, n_min: int, counts: np.ndarray | None = No
         yield np.ones(mask.shape[0], bool), np.flatnonzero(full)
     rest = np.flatnonzero(~full & (counts >= n_min))
     if rest.size:
-        for pattern, cols in _group_by_pattern(mask[:, rest]):
+        for pattern, cols in group_by_pattern(mask[:, rest]):
             yield pattern, rest[cols]
 
 
@@ -352,7 +352,7 @@ def _table_loo(z_sorted: np.ndarray, values: np.ndarray, mask: np.ndarray, kind:
             continue
         # Remove node i (not NaN it: a NaN node would split the run around z_i).
         dropped = np.delete(vals, i, axis=0)
-        pred = _interp_table(np.delete(z_sorted, i), dropped[:, None, :], z_sorted[i], kind).ravel()
+        pred = interp_table(np.delete(z_sorted, i), dropped[:, None, :], z_sorted[i], kind).ravel()
         ok = has & np.isfinite(pred)
         err = np.where(ok, pred - vals[i], 0.0)
         sq += err * err

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ptpcore.fit.perpixel import _z_normalisation
-from ptpcore.io.lutfile import _group_by_pattern
+from ptpcore.fit.perpixel import z_normalisation
+from ptpcore.io.lutfile import group_by_pattern
 from ptpcore.io.samples import SampleStack
 
 __all__ = ["sample_sigma", "predicted_poly_sigma", "predicted_poly_sigma_flat", "stage_pose_sample_sigma",
@@ -67,7 +67,7 @@ def predicted_poly_sigma(samples: SampleStack, sigma: np.ndarray, degree: int, p
     (E, H, W) float64
     """
     positions = np.asarray(positions)
-    t, te = _normalised_heights(samples.z[positions], z_eval)
+    t, te = normalised_heights(samples.z[positions], z_eval)
     k = len(positions)
     h, w = samples.shape
     mask = samples.valid[positions].reshape(k, -1)
@@ -75,9 +75,9 @@ def predicted_poly_sigma(samples: SampleStack, sigma: np.ndarray, degree: int, p
     return predicted_poly_sigma_flat(t, te, mask, sig, degree).reshape(len(te), h, w)
 
 
-def _normalised_heights(z: np.ndarray, z_eval) -> tuple[np.ndarray, np.ndarray]:
+def normalised_heights(z: np.ndarray, z_eval) -> tuple[np.ndarray, np.ndarray]:
     """The fit's normalised heights ``t`` (K,) of the positions ``z`` and ``te`` (E,) of ``z_eval`` (mm)."""
-    zc, zs = _z_normalisation(z)
+    zc, zs = z_normalisation(z)
     return (z - zc) / zs, (np.asarray(z_eval, float) - zc) / zs
 
 
@@ -104,7 +104,7 @@ def predicted_poly_sigma_flat(t: np.ndarray, te: np.ndarray, mask: np.ndarray, s
     out = np.full((len(te), mask.shape[1]), np.nan)
     vander = np.vander(t, degree + 1, increasing=True)
     ve = np.vander(te, degree + 1, increasing=True)
-    for pattern, cols in _group_by_pattern(mask):
+    for pattern, cols in group_by_pattern(mask):
         if pattern.sum() < degree + 2:
             continue
         g = ve @ np.linalg.pinv(vander[pattern])  # (E, n): value weights per sample
@@ -182,9 +182,9 @@ def stage_pose_sigma_maps(samples: SampleStack, rig, lut, pose_sigma: np.ndarray
     sigma_x, sigma_y : (H, W) float64, mm; NaN where the LUT is invalid.
     """
     positions = np.arange(len(samples.z)) if positions is None else np.asarray(list(positions))
-    t, _ = _normalised_heights(np.asarray(samples.z, float)[positions], [])
+    t, _ = normalised_heights(np.asarray(samples.z, float)[positions], [])
     zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
-    _, te = _normalised_heights(np.asarray(samples.z, float)[positions], zs)
+    _, te = normalised_heights(np.asarray(samples.z, float)[positions], zs)
     h, w = samples.shape
     out = (np.full((h, w), np.nan), np.full((h, w), np.nan))
     for r0 in range(0, h, rows_per_block):
@@ -240,7 +240,7 @@ MAP_BIN_PX = 2
 is 4 px, and the Gaussian blurs' maps at 12 MP would otherwise be 100 MB each."""
 
 
-def _gauss(a: np.ndarray, scale: float) -> np.ndarray:
+def gaussian_blur(a: np.ndarray, scale: float) -> np.ndarray:
     import cv2
 
     return cv2.GaussianBlur(a, (0, 0), scale, borderType=cv2.BORDER_CONSTANT)
@@ -271,8 +271,8 @@ def _local_mean(s_sum: np.ndarray, s_n: np.ndarray, scale: float) -> np.ndarray:
     if f > 1:
         small = _local_mean(_binned(s_sum, f), _binned(s_n, f), scale / f)
         return _unbinned(small, f, s_sum.shape)
-    den = _gauss(s_n, scale)
-    return np.where(den > 1e-12, _gauss(s_sum, scale) / np.maximum(den, 1e-300), 0.0)
+    den = gaussian_blur(s_n, scale)
+    return np.where(den > 1e-12, gaussian_blur(s_sum, scale) / np.maximum(den, 1e-300), 0.0)
 
 
 def _split_half_scale(halves, scales) -> tuple[float, dict, tuple]:

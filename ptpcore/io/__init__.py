@@ -23,6 +23,7 @@ from .readahead import READ_AHEAD_BYTES, DatasetReader, source_sets
 from .sample_store import SampleWriter, world_xy
 from .lutfile import LUT_FORMAT, Lut, LutEvaluation, save_lut, load_lut, MODELS
 from .pointcloud import PointCloud, read_height_map, write_point_cloud
+from .outputs import PLAIN_FOLDER, Output, guard_outputs
 
 __all__ = [
     "FrameSource",
@@ -55,4 +56,7 @@ __all__ = [
     "PointCloud",
     "read_height_map",
     "write_point_cloud",
+    "PLAIN_FOLDER",
+    "Output",
+    "guard_outputs",
 ]

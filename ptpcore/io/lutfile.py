@@ -189,8 +189,8 @@ class Lut:
             run_tiles(rows, h, w)
             return LutEvaluation(x, y, in_range)
         in_range = _in_range(self.valid, z, self.pixel_z_min, self.pixel_z_max)
-        x = _interp_table(self.z_nodes, self.x, z, self.kind)
-        y = _interp_table(self.z_nodes, self.y, z, self.kind)
+        x = interp_table(self.z_nodes, self.x, z, self.kind)
+        y = interp_table(self.z_nodes, self.y, z, self.kind)
         keep = in_range if not extrapolate else self.valid
         return LutEvaluation(np.where(keep, x, np.nan), np.where(keep, y, np.nan), in_range)
 
@@ -301,7 +301,7 @@ def _runs(mask_1d: np.ndarray) -> list[tuple[int, int]]:
     return runs
 
 
-def _group_by_pattern(mask: np.ndarray):
+def group_by_pattern(mask: np.ndarray):
     """Group columns of a (K, P) bool mask by identical pattern.
 
     Yields ``(pattern (K,) bool, column indices)``.
@@ -315,7 +315,7 @@ def _group_by_pattern(mask: np.ndarray):
         yield mask[:, f], order[bounds[g]:bounds[g + 1]]
 
 
-def _interp_table(z_nodes: np.ndarray, table: np.ndarray, z, kind: str) -> np.ndarray:
+def interp_table(z_nodes: np.ndarray, table: np.ndarray, z, kind: str) -> np.ndarray:
     """Per-pixel interpolation of a (K, H, W) table with NaN nodes.
 
     Each pixel is interpolated over the maximal run of consecutive valid nodes
@@ -325,7 +325,7 @@ def _interp_table(z_nodes: np.ndarray, table: np.ndarray, z, kind: str) -> np.nd
     vals = table.reshape(k, -1)
     zq = np.broadcast_to(np.asarray(z, dtype=float), (h, w)).reshape(-1)
     out = np.full(h * w, np.nan)
-    for pattern, cols in _group_by_pattern(np.isfinite(vals)):
+    for pattern, cols in group_by_pattern(np.isfinite(vals)):
         for a, b in _runs(pattern):
             if b - a < 2:
                 continue
@@ -372,7 +372,7 @@ _QUALITY = ("n_positions", "z_min", "z_max", "rms_x", "rms_y", "loo_x", "loo_y")
 _MAX_DEGREE = 5
 
 
-def _lut_root_attrs(obj) -> None:
+def write_lut_attrs(obj) -> None:
     """The ``/`` attributes of ``ptp-lut/1`` (also put on a session's ``/lut`` group)."""
     obj.attrs["format"] = LUT_FORMAT
     obj.attrs["software"] = f"ptpcore {__version__}"
@@ -380,11 +380,11 @@ def _lut_root_attrs(obj) -> None:
     obj.attrs["units"] = "mm"
 
 
-def _write_lut_group(group, lut: Lut) -> None:
+def write_lut_group(group, lut: Lut) -> None:
     """Write every ``ptp-lut/1`` dataset and group of ``lut`` into an open HDF5 group.
 
     ``save_lut`` writes into the file's root group; a session file into ``/lut``.
-    The format attributes are not written here (see :func:`_lut_root_attrs`).
+    The format attributes are not written here (see :func:`write_lut_attrs`).
     """
     h, w = lut.shape
     group.create_group("camera").attrs.update({"width": w, "height": h})
@@ -432,10 +432,10 @@ def save_lut(lut: Lut, path) -> None:
     A process killed during the write leaves the previous file (if any) intact.
     """
     def fill(f) -> None:
-        _lut_root_attrs(f)
-        _write_lut_group(f, lut)
+        write_lut_attrs(f)
+        write_lut_group(f, lut)
 
-    write_hdf5_atomic(path, fill, _nbytes(lut.x, lut.y, lut.valid, lut.n_positions, lut.rms_x, lut.rms_y,
+    write_hdf5_atomic(path, fill, arrays_nbytes(lut.x, lut.y, lut.valid, lut.n_positions, lut.rms_x, lut.rms_y,
                                           lut.loo_x, lut.loo_y, lut.sigma_x, lut.sigma_y, lut.sigma_model_x,
                                           lut.sigma_model_y))
 
@@ -483,12 +483,12 @@ def write_hdf5_atomic(path, fill, size_hint: int | None = None) -> None:
     write_bytes_atomic(path, buf.getbuffer())
 
 
-def _nbytes(*arrays) -> int:
+def arrays_nbytes(*arrays) -> int:
     """Total bytes of the arrays given (None skipped): a file's uncompressed size."""
     return sum(int(a.nbytes) for a in arrays if a is not None)
 
 
-def _str_attr(value) -> str | None:
+def str_attr(value) -> str | None:
     if isinstance(value, bytes):
         return value.decode("utf-8", "replace")
     if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "SUO":
@@ -520,7 +520,7 @@ def check_format(obj, where: str, expected: str) -> None:
         Missing or other format; a version newer than this software reads is
         called "too new".
     """
-    fmt = _str_attr(obj.attrs.get("format"))
+    fmt = str_attr(obj.attrs.get("format"))
     if fmt == expected:
         return
     family, _, version = expected.rpartition("/")
@@ -533,7 +533,7 @@ def check_format(obj, where: str, expected: str) -> None:
     raise FileFormatError(f"{where}: attribute 'format' is {fmt!r}, expected {expected!r}")
 
 
-def _read_lut_group(group, where: str) -> Lut:
+def read_lut_group(group, where: str) -> Lut:
     """Read and check the ``ptp-lut/1`` content of an open HDF5 group.
 
     Parameters
@@ -606,7 +606,7 @@ class _GroupReader:
             raise self.fail(f"missing attribute {key!r} of {where}") from None
         label = f"attribute {key!r} of {self.name(obj_rel)}"
         if kind is str:
-            s = _str_attr(val)
+            s = str_attr(val)
             if s is None:
                 raise self.fail(f"{label} must be text, got {val!r}")
             return s
@@ -651,10 +651,10 @@ def _read_lut_arrays(rd: _GroupReader) -> tuple[Lut, tuple[int, int]]:
     n_rejected = rd.array("quality/n_rejected", 2, "ui") if "quality/n_rejected" in group else None
     rig_toml = ""
     if "rig" in group:
-        rig_toml = _str_attr(group["rig"].attrs.get("toml", "")) or ""
+        rig_toml = str_attr(group["rig"].attrs.get("toml", "")) or ""
     provenance, poses = {}, {}
     if "provenance" in group:
-        provenance = {str(k): str(_str_attr(v)) for k, v in group["provenance"].attrs.items()}
+        provenance = {str(k): str(str_attr(v)) for k, v in group["provenance"].attrs.items()}
         poses = {n: rd.array(f"provenance/{n}", 2, "f") for n in ("stage_pose", "stage_pose_sigma")
                  if f"provenance/{n}" in group}
     # valid stays as stored until _check_lut_values has seen it hold only 0 and 1.
@@ -744,4 +744,4 @@ def load_lut(path) -> Lut:
     f, where = open_hdf5(path)
     with f:
         check_format(f, where, LUT_FORMAT)
-        return _read_lut_group(f, where)
+        return read_lut_group(f, where)

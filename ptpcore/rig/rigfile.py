@@ -16,7 +16,6 @@ from .model import (DATASET_FORMAT, DATASET_FORMAT_2, DEFAULT_TEMPLATE, SCAN_FOR
                     Stage, format_period, heterodyne_beats, projector_rig)  # noqa: F401
 from .reading import MAX_POSITIONS, load_rig, load_scan, rig_from_toml  # noqa: F401
 from .templates import GRAY_TEMPLATE_FIELDS, REFERENCE_TEMPLATE_FIELDS, TEMPLATE_FIELDS, validate_template  # noqa: F401
-from .toml_fields import Section, read_text, short_repr, tname, toml_document
 from .writing import rig_to_toml, save_rig, scan_to_toml
 
 __all__ = [
@@ -47,11 +46,3 @@ __all__ = [
     "heterodyne_beats",
     "check_heterodyne_span",
 ]
-
-# The old private names that ptpcore.capture.devices.config imports from here; their public
-# homes are in ptpcore.rig.toml_fields.
-_read_text = read_text
-_Section = Section
-_short_repr = short_repr
-_tname = tname
-_toml_document = toml_document

@@ -15,6 +15,10 @@ from .session import (SESSION_FORMAT, SESSION_VERSION, SESSION_SUFFIX, STAGES, S
     new_session, save_session, load_session)
 from .sanity import check_samples
 from .calibration import Calibration, calibrate_session, calibrate, run_session, write_lut
+from .decoding import direction_reasons
+from .diagnose import convention_check, position_report
+from .acceptance import conventional_calibration, reconstruct_scans, scan_folders
+from .scanner import reconstruct
 
 __all__ = [
     "decode_position",
@@ -36,4 +40,11 @@ __all__ = [
     "load_session",
     "run_session",
     "check_samples",
+    "direction_reasons",
+    "convention_check",
+    "position_report",
+    "conventional_calibration",
+    "reconstruct_scans",
+    "scan_folders",
+    "reconstruct",
 ]

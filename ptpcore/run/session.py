@@ -69,8 +69,8 @@ import numpy as np
 
 from ptpcore import __version__
 from ptpcore.errors import ConfigError, FileFormatError
-from ptpcore.io.lutfile import (LUT_FORMAT, Lut, _lut_root_attrs, _nbytes, _read_lut_group, _str_attr,
-    _write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
+from ptpcore.io.lutfile import (LUT_FORMAT, Lut, write_lut_attrs, arrays_nbytes, read_lut_group, str_attr,
+    write_lut_group, check_format, open_hdf5, write_hdf5_atomic)
 from ptpcore.io.samples import SampleStack
 from ptpcore.fit.models import check_positions_for_model
 from ptpcore.fit.settings import FIT_SETTINGS_KEY, FitSettings
@@ -244,7 +244,7 @@ def _sim_settings_of(folder: Path) -> str | None:
         return None
     try:
         with h5py.File(truth, "r") as f:
-            return _str_attr(f.attrs.get("settings"))
+            return str_attr(f.attrs.get("settings"))
     except OSError:
         return None
 
@@ -326,17 +326,17 @@ def save_session(session: Session, path) -> None:
                 g.attrs.update({"noise_read_var": float(noise.read_var), "noise_gain": float(noise.gain)})
         if session.lut is not None:
             g = f.create_group("lut")
-            _lut_root_attrs(g)
-            _write_lut_group(g, session.lut)
+            write_lut_attrs(g)
+            write_lut_group(g, session.lut)
         if session.comparison is not None:
             text = (session.comparison if isinstance(session.comparison, str)
                     else json.dumps(session.comparison, default=_json_default))
             f.create_group("comparison").attrs["json"] = text
 
     s = session.samples
-    size = 0 if s is None else _nbytes(s.x, s.y, s.x_ref, s.y_ref, s.reasons, s.modulation, s.background)
+    size = 0 if s is None else arrays_nbytes(s.x, s.y, s.x_ref, s.y_ref, s.reasons, s.modulation, s.background)
     if session.lut is not None:
-        size += _nbytes(session.lut.x, session.lut.y)
+        size += arrays_nbytes(session.lut.x, session.lut.y)
     write_hdf5_atomic(path, fill, size)
 
 
@@ -358,7 +358,7 @@ _mem_files = itertools.count()
 
 
 def _file_version(f: h5py.File, where: str) -> int:
-    fmt = _str_attr(f.attrs.get("format"))
+    fmt = str_attr(f.attrs.get("format"))
     if not isinstance(fmt, str):
         raise FileFormatError(f"{where}: attribute 'format' is {fmt!r}, expected {SESSION_FORMAT!r}"
                               " (not a session file)")
@@ -436,7 +436,7 @@ def _attr(f, group: str, key: str, where: str, kind, default=...):
     val = obj.attrs[key]
     label = f"{where}: attribute {key!r} of /{group}"
     if kind is str:
-        s = _str_attr(val)
+        s = str_attr(val)
         if s is None:
             raise FileFormatError(f"{label} must be text, got {val!r}"[:300])
         return s
@@ -479,7 +479,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
         for key, val in want.items():
             got = stored.get(key)
             if isinstance(val, list):
-                same = got is not None and [_str_attr(v) or str(v) for v in np.atleast_1d(got)] == val
+                same = got is not None and [str_attr(v) or str(v) for v in np.atleast_1d(got)] == val
             else:
                 same = got is not None and np.array_equal(np.asarray(got), np.asarray(val))
             if not same:
@@ -508,7 +508,7 @@ def _read_checked(f: h5py.File, where: str) -> Session:
     lut = None
     if "lut" in f:
         check_format(f["lut"], f"{where}: /lut", LUT_FORMAT)
-        lut = _read_lut_group(f["lut"], where)
+        lut = read_lut_group(f["lut"], where)
         if lut.shape != rig.camera.shape:
             raise FileFormatError(f"{where}: /lut is {lut.shape[1]}x{lut.shape[0]} px, /rig says camera"
                                   f" {rig.camera.width}x{rig.camera.height}")
@@ -521,10 +521,10 @@ def _read_checked(f: h5py.File, where: str) -> Session:
         except ValueError:
             raise FileFormatError(f"{where}: attribute 'json' of /comparison is not valid JSON") from None
 
-    stage = _str_attr(f.attrs.get("stage"))
+    stage = str_attr(f.attrs.get("stage"))
     session = Session(rig=rig, dataset=dataset, settings=settings, options=options, positions=positions, out=out,
                       sim_settings=sim, samples=samples, lut=lut, comparison=comparison,
-                      created=_str_attr(f.attrs.get("created")) or _now())
+                      created=str_attr(f.attrs.get("created")) or _now())
     if stage is not None and stage != session.stage:
         if stage not in STAGES:
             raise FileFormatError(f"{where}: attribute 'stage' is {stage!r}, not one of {STAGES}")

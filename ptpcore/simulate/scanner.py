@@ -33,7 +33,7 @@ from ptpcore.io.lutfile import write_hdf5_atomic
 from ptpcore.rig.rigfile import (FringeDesign, HeightSweep, Projector, Rig, ScanSpec, format_period, projector_rig,
                                  save_rig, scan_to_toml)
 from ptpcore.decode.patterns import fringe_values
-from ptpcore.simulate.virtual_rig import SimSettings, VirtualRig, _period_key, _write_image, preset, scale_rig
+from ptpcore.simulate.virtual_rig import SimSettings, VirtualRig, period_key, write_image, preset, scale_rig
 from ptpcore.atomic import write_text_atomic
 
 __all__ = ["ProjectorSettings", "ScannerSettings", "ScanObject", "ScannerRig", "SCANNER_PRESETS",
@@ -510,7 +510,7 @@ class ScannerRig:
             if directions is not None and d not in directions:
                 continue
             yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
-                                                   (20, k, "xy".index(d), _period_key(t), n))
+                                                   (20, k, "xy".index(d), period_key(t), n))
 
     def scan_frames(self, obj: ScanObject, scan_id: int = 0):
         """Yield ``((dir, level, period, step, N), image)`` of an object (defocus at its middle height)."""
@@ -519,7 +519,7 @@ class ScannerRig:
         blur = self.blur_sigma(z_mid)
         for d, j, t, n, big_n in self.scan_projector.fringes.frames():
             yield (d, j, t, n, big_n), self._frame(geo, d, t, n, big_n, blur,
-                                                   (21, scan_id, "xy".index(d), _period_key(t), n))
+                                                   (21, scan_id, "xy".index(d), period_key(t), n))
 
     def scan_truth(self, obj: ScanObject) -> dict:
         """Per camera pixel centre: the true point on the object (NaN off it) and whether it is lit."""
@@ -779,7 +779,7 @@ def simulate_scan(out_dir, sr: ScannerRig, obj: ScanObject, scan_id: int = 0, im
     template = "{dir}_T{period}_n{step:02d}" + image_ext
     spec = ScanSpec(sr.rig.camera, sr.scan_projector, template)
     for (d, _j, t, n, big_n), img in sr.scan_frames(obj, scan_id):
-        _write_image(out / template.format(dir=d, period=format_period(t), step=n), img, image_ext)
+        write_image(out / template.format(dir=d, period=format_period(t), step=n), img, image_ext)
     truth = sr.scan_truth(obj)
 
     def fill(f) -> None:
@@ -831,7 +831,7 @@ def simulate_scanner_dataset(out_dir, rig: Rig, sim: SimSettings, scanner: Scann
         if progress:
             progress(0.5 + 0.4 * k / k_total, f"rendering plate height {k} (0 … {k_total - 1})")
         for (d, _j, t, n, big_n), img in sr.height_frames(k):
-            _write_image(out / h_rig.image_name(k, d, t, n, big_n), img, image_ext)
+            write_image(out / h_rig.image_name(k, d, t, n, big_n), img, image_ext)
     _write_scanner_truth(out / SCANNER_TRUTH_FILE, sr)
     objects = default_objects(rig) if objects is None else objects
     share = 0.05 if acceptance else 0.1

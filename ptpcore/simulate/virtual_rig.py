@@ -46,6 +46,9 @@ __all__ = [
     "VirtualRig",
     "simulate_dataset",
     "load_truth",
+    "save_truth",
+    "TRUTH_FILE",
+    "settings_from_json",
 ]
 
 TRUTH_FILE = "truth.h5"
@@ -322,7 +325,7 @@ class GroundTruth:
         return self.x0 + self.sx * z, self.y0 + self.sy * z
 
 
-def _period_key(period) -> int:
+def period_key(period) -> int:
     """A period as an integer of a noise stream's key: itself when whole (the streams of integer
     periods as they always were), else its value in thousandths of a px beyond 10^9."""
     t = float(period)
@@ -564,7 +567,7 @@ class VirtualRig:
         return self._render_pattern(
             k, direction, lambda: fringe_profile(lcd, f, direction, period, step, n_steps, z_read, display),
             lambda coord: fringe_values(coord, f, direction, period, step, n_steps, z_read),
-            (2, k, "xy".index(direction), _period_key(period), step))
+            (2, k, "xy".index(direction), period_key(period), step))
 
     def _render_pattern(self, k: int, direction: str, profile, values, noise_key: tuple) -> np.ndarray:
         """One camera frame of a pattern varying along ``direction``'s LCD axis.
@@ -822,11 +825,11 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
         if progress:
             progress(k / k_total, f"rendering position {k} (0 … {k_total - 1})")
         for (d, _j, t, n, big_n), img in vr.frames(k):
-            _write_image(out / rig.image_name(k, d, t, n, big_n), img, image_ext)
+            write_image(out / rig.image_name(k, d, t, n, big_n), img, image_ext)
         for (d, b, inv), img in vr.gray_frames(k).items():
-            _write_image(out / rig.gray_name(k, d, b, inv), img, image_ext)
+            write_image(out / rig.gray_name(k, d, b, inv), img, image_ext)
         for which, img in vr.reference_frames(k).items():
-            _write_image(out / rig.reference_name(k, which), img, image_ext)
+            write_image(out / rig.reference_name(k, which), img, image_ext)
     # rig.toml last: a folder without it is visibly incomplete.
     save_rig(rig, out / "rig.toml")
     if progress:
@@ -834,7 +837,7 @@ def simulate_dataset(out_dir, rig: Rig, settings: SimSettings, seed: int = 0,
     return out
 
 
-def _write_image(path: Path, img: np.ndarray, image_ext: str) -> None:
+def write_image(path: Path, img: np.ndarray, image_ext: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     ok, buf = cv2.imencode(image_ext, img)
     if not ok:

@@ -170,7 +170,7 @@ def test_pairs_are_the_whole_mask_draw(small, kind):
 
     n_pairs = 300
     old = _old_draw_pairs(mask, groups, kind, n_pairs, 10, np.random.default_rng(7), measured_xyz)
-    st._draw_pairs(r.maps.mask_at, r.coverage.n_compared, r.shape, groups, kind, n_pairs, 10,
+    st.draw_pairs(r.maps.mask_at, r.coverage.n_compared, r.shape, groups, kind, n_pairs, 10,
                    np.random.default_rng(7), measured_xyz)
     e, row, col = seen["ends"]
     assert old[0].size > 100 and e.size >= old[0].size

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ptpcore.evaluate import held_out_accuracy
-from ptpcore.fit.perpixel import _z_normalisation, fit_lut
+from ptpcore.fit.perpixel import z_normalisation, fit_lut
 from ptpcore.pinhole import fit_pinhole
 import ptpcore.fit.smooth as ptpcore_smooth
 from ptpcore.fit import fit_smooth_lut, local_linear_smooth, poly_sigma_maps
@@ -174,7 +174,7 @@ def test_level_bias_and_stage_error_on_the_brown_lens(mild_rig, even_split_smoot
     raw, _ = even_split_smooth_fit(mild_rig)
     m = fixed.valid
     assert np.all(fixed.sigma_x[m] >= raw.sigma_x[m] * (1 - 1e-6))
-    zc, zs = _z_normalisation(samples.z[cal])
+    zc, zs = z_normalisation(samples.z[cal])
     lev = ptpcore_smooth.stage_leverage((samples.z[cal] - zc) / zs, 1)
     slope = truth.sx[m] - vr.rig.stage.direction[0]  # the global model's slope is within 1e-3 of it
     expect = np.sqrt(raw.sigma_x[m].astype(float) ** 2 + (slope * stage) ** 2 * lev)

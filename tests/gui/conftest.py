@@ -48,11 +48,11 @@ def no_leaks(qtbot, qapp):
     from PySide6.QtCore import QEvent
     from PySide6.QtWidgets import QApplication
 
-    from ptp_studio.worker import _ACTIVE, wait_for_jobs
+    from ptp_studio.worker import ACTIVE_JOBS, wait_for_jobs
 
     before = set(QApplication.topLevelWidgets())
     yield
-    running = [j.name for j in _ACTIVE]
+    running = [j.name for j in ACTIVE_JOBS]
     assert wait_for_jobs(30000)
     for _ in range(3):
         qapp.processEvents()

@@ -33,13 +33,6 @@ def test_plate_offset_is_snells_law():
 def test_the_old_module_keeps_its_names():
     for name in rigfile.__all__:
         assert getattr(rigfile, name) is getattr(rig, name), name
-    # Private names another room imports from rigfile today (ptpcore.capture.devices.config).
-    from ptpcore.rig import toml_fields
-    from ptpcore.rig.rigfile import _read_text, _Section, _short_repr, _tname, _toml_document
-
-    assert (_read_text, _Section, _short_repr, _tname, _toml_document) == (
-        toml_fields.read_text, toml_fields.Section, toml_fields.short_repr, toml_fields.tname,
-        toml_fields.toml_document)
     for name in ("DEFAULT_TEMPLATE", "TEMPLATE_FIELDS", "GRAY_TEMPLATE_FIELDS", "REFERENCE_TEMPLATE_FIELDS",
                  "MAX_POSITIONS", "MAX_PERIOD_PX", "MAX_STEPS", "MAX_GRAY_BITS"):
         assert hasattr(rigfile, name), name

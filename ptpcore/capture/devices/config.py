@@ -46,7 +46,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from ptpcore.errors import ConfigError
-from ptpcore.rig.rigfile import _read_text, _Section, _short_repr, _tname, _toml_document
+from ptpcore.rig.toml_fields import Section, read_text, short_repr, tname, toml_document
 from ptpcore.capture.devices.stage import SerialProtocol
 
 __all__ = ["CAPTURE_CONFIG_FORMAT", "CaptureConfig", "CameraConfig", "StageConfig", "DisplayConfig",
@@ -93,7 +93,7 @@ class CaptureConfig:
     exposure_check: dict = field(default_factory=dict)
 
 
-# The kinds _Section.get checks, from SerialProtocol's own annotations (a tuple is written as a list).
+# The kinds Section.get checks, from SerialProtocol's own annotations (a tuple is written as a list).
 _SERIAL_KINDS = {f.name: {"tuple[str, ...]": "list[str]"}.get(f.type, f.type) for f in fields(SerialProtocol) if f.init}
 
 
@@ -106,8 +106,8 @@ def serial_protocol_from_table(table, source: str = "capture.toml", name: str = 
         Naming ``source`` and the key (``stage.serial.move_reply``...).
     """
     if not isinstance(table, dict):
-        raise ConfigError(f"{source}: '{name}' must be a table [{name}], got {_tname(table)}")
-    s = _Section({name: table}, name, source)
+        raise ConfigError(f"{source}: '{name}' must be a table [{name}], got {tname(table)}")
+    s = Section({name: table}, name, source)
     values = {}
     for key, kind in _SERIAL_KINDS.items():
         if key in table:
@@ -125,9 +125,9 @@ def serial_protocol_from_table(table, source: str = "capture.toml", name: str = 
 
 def capture_config_from_toml(text: str, source: str = "capture.toml") -> CaptureConfig:
     """Parse and validate the text of a capture configuration file."""
-    doc = _toml_document(text, source, CAPTURE_CONFIG_FORMAT, {"format", "camera", "display", "stage", "exposure_check"})
+    doc = toml_document(text, source, CAPTURE_CONFIG_FORMAT, {"format", "camera", "display", "stage", "exposure_check"})
 
-    s = _Section(doc, "camera", source, required=False)
+    s = Section(doc, "camera", source, required=False)
     kind = s.get("kind", "str", "sim")
     if kind not in CAMERA_KINDS:
         raise ConfigError(f"{source}: key 'camera.kind' must be one of {', '.join(CAMERA_KINDS)}, got {kind!r}")
@@ -138,17 +138,17 @@ def capture_config_from_toml(text: str, source: str = "capture.toml") -> Capture
     s.used.add("source")
     if isinstance(src, bool) or not isinstance(src, (int, str)):
         raise ConfigError(f"{source}: key 'camera.source' must be a camera index or a string,"
-                          f" got {_tname(src)} {_short_repr(src)}")
+                          f" got {tname(src)} {short_repr(src)}")
     dev = s.table.get("device", 0)
     s.used.add("device")
     if isinstance(dev, bool) or not isinstance(dev, int) or dev < 0:
-        raise ConfigError(f"{source}: key 'camera.device' must be a device index (0, 1, ...), got {_short_repr(dev)}")
+        raise ConfigError(f"{source}: key 'camera.device' must be a device index (0, 1, ...), got {short_repr(dev)}")
     camera = CameraConfig(kind, exposure, src, s.get("width", "int", None), s.get("height", "int", None),
                           s.get("cti", "str", ""), dev, s.get("serial_number", "str", ""),
                           s.get("pixel_format", "str", ""), s.get("timeout_s", "float", 5.0))
     s.finish()
 
-    s = _Section(doc, "display", source, required=False)
+    s = Section(doc, "display", source, required=False)
     screen = s.get("screen", "int", None)
     settle = s.get("settle_ms", "float", 0.0)
     s.finish()
@@ -156,7 +156,7 @@ def capture_config_from_toml(text: str, source: str = "capture.toml") -> Capture
         raise ConfigError(f"{source}: key 'display.settle_ms' must be >= 0, got {settle}")
     display = DisplayConfig(screen, settle)
 
-    s = _Section(doc, "stage", source, required=False)
+    s = Section(doc, "stage", source, required=False)
     kind = s.get("kind", "str", "sim")
     if kind not in STAGE_KINDS:
         raise ConfigError(f"{source}: key 'stage.kind' must be one of {', '.join(STAGE_KINDS)}, got {kind!r}")
@@ -169,7 +169,7 @@ def capture_config_from_toml(text: str, source: str = "capture.toml") -> Capture
         raise ConfigError(f"{source}: stage.kind is \"serial\" but there is no [stage.serial] table")
     stage = StageConfig(kind, serial)
 
-    s = _Section(doc, "exposure_check", source, required=False)
+    s = Section(doc, "exposure_check", source, required=False)
     limits = {}
     from ptpcore.capture.sequence import ExposureLimits
 
@@ -185,4 +185,4 @@ def capture_config_from_toml(text: str, source: str = "capture.toml") -> Capture
 def load_capture_config(path) -> CaptureConfig:
     """Read and validate a capture configuration file."""
     path = Path(path)
-    return capture_config_from_toml(_read_text(path), str(path))
+    return capture_config_from_toml(read_text(path), str(path))

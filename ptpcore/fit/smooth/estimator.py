@@ -7,7 +7,7 @@ from typing import Callable
 
 import numpy as np
 
-from ptpcore.fit.perpixel import _z_normalisation, fit_lut
+from ptpcore.fit.perpixel import z_normalisation, fit_lut
 from ptpcore.fit.sigma import MODEL_MAP_WORDS
 from ptpcore.fit.smooth.global_model import GlobalRays, global_pinhole
 from ptpcore.fit.smooth.leave_one_out import LooSetup
@@ -130,7 +130,7 @@ def fit_smooth_lut(samples: SampleStack, rig: Rig, degree: int = 2, positions=No
                                                                        global_points, seed)
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
-    z_norm = _z_normalisation(z)
+    z_norm = z_normalisation(z)
     # 2 and 4. Every pixel's own fit of its residuals, and the smoothing scale chosen on held-out positions.
     fits, t, b, noise_scale, (scale, cv_score, excess_var) = _fit_pixels_and_choose_scale(
         samples, rig, positions, z, z_norm, gfit, degree, scales_px, cv_bin, level_bias, footprint, report)

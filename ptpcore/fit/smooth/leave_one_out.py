@@ -298,11 +298,11 @@ def _left_out_inflation(weight: np.ndarray, precision: np.ndarray, scale: float)
     -------
     (H, W) float32; NaN where the pixel did not use the sample.
     """
-    from ptpcore.fit.sigma import _gauss
+    from ptpcore.fit.sigma import gaussian_blur
 
     use = weight > 0
     if scale > 0:
-        weight, precision = _gauss(weight, scale), _gauss(precision, scale)
+        weight, precision = gaussian_blur(weight, scale), gaussian_blur(precision, scale)
     with np.errstate(all="ignore"):
         h_bar = np.divide(weight, precision, out=weight)  # in place: no third plane
         return np.where(use & (h_bar < 1.0), np.float32(1.0) / (np.float32(1.0) - h_bar), np.float32(np.nan))

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ptpcore.fit.sigma import _normalised_heights, model_variance_map, predicted_poly_sigma_flat
-from ptpcore.io.lutfile import _group_by_pattern
+from ptpcore.fit.sigma import normalised_heights, model_variance_map, predicted_poly_sigma_flat
+from ptpcore.io.lutfile import group_by_pattern
 from ptpcore.store import read_block, row_store
 from ptpcore.fit.smooth.blocks import nanmean0, row_blocks, run_blocks
 from ptpcore.fit.smooth.leave_one_out import LooSetup, LooSums, ModelError, leave_one_out
@@ -285,7 +285,7 @@ def poly_sigma_maps(samples: SampleStack, rig: Rig, lut: Lut, positions=None,
     z = np.asarray(samples.z, dtype=float)[sel]
     # RMS over the calibrated range: evaluate on a fine uniform grid of z.
     zs = np.linspace(lut.z_min, lut.z_max, 4 * len(positions) + 1)
-    t, te = _normalised_heights(z, zs)
+    t, te = normalised_heights(z, zs)
     h, w = samples.shape
     # A stage reading off by dz moves the sample by (dX/dz - a) dz: the pixel's own slope.
     axes = ((0, lut.x), (1, lut.y)) if stage_sigma_mm else ((0, None),)
@@ -330,7 +330,7 @@ def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None
     positions = list(range(samples.z.size)) if positions is None else list(positions)
     sel = np.asarray(positions)
     z = np.asarray(samples.z, dtype=float)[sel]
-    t, _ = _normalised_heights(z, [])
+    t, _ = normalised_heights(z, [])
     interior = (z > z.min()) & (z < z.max())
     h, w = samples.shape
     sums = {a: np.zeros(h * w) for a in "xy"}
@@ -356,7 +356,7 @@ def poly_model_variance(samples: SampleStack, rig: Rig, lut: Lut, positions=None
             r = vals - vander @ coef
             x = np.zeros(r.shape)
             use = np.zeros(r.shape, bool)
-            for pattern, cols in _group_by_pattern(valid):
+            for pattern, cols in group_by_pattern(valid):
                 if pattern.sum() < lut.degree + 2:
                     continue
                 vp = vander[pattern]
