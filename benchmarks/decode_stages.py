@@ -34,7 +34,7 @@ RECIPE_MODULES = ("ptpcore.decode.position", "ptpcore.run.pipeline")
 STAGES = {  # (module, attribute): label
     ("RECIPE", "wrapped_phase"): "N-step sums (wrapped_phase)",
     ("RECIPE", "harmonic_noise_samples"): "noise samples (harmonic_noise_samples)",
-    ("RECIPE", "black_clipped"): "black clipping",
+    ("RECIPE", "black_clipped"): "black clipping (before it joined the N-step sums)",
     ("RECIPE", "decode_and_finish"): "unwrapping + classification (decode_and_finish)",
     ("ptpcore.decode.spatial", "spatial_outliers"): "spatial check (spatial_outliers)",
     ("ptpcore.run.decoding", "direction_reasons"): "per-direction reasons (spatial check included)",
@@ -121,6 +121,8 @@ def measure(folder, positions, compression: str = "none", out_dir=None) -> dict:
     saved = []
     for (mod, name), label in STAGES.items():
         m = recipe_module() if mod == "RECIPE" else importlib.import_module(mod)
+        if not hasattr(m, name):  # a stage that no longer runs apart (e.g. fused into another)
+            continue
         saved.append((m, name, getattr(m, name)))
         setattr(m, name, timer.wrap(label, getattr(m, name)))
     write = decodedfile.DecodedWriter.write

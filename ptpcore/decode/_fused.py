@@ -48,26 +48,30 @@ LOW_MODULATION, SATURATED, UNWRAP, OUTSIDE_LCD, BORDER = 1, 2, 4, 8, 16  # ptpco
 # Two row kernels on purpose: the coarse periods need only S, C, modulation and saturation, and
 # the extra sums of the full kernel (background, noise residual) cost about half its time.
 @njit(**_OPTS)
-def _row_lean(frames, r, ws, wc, sat_thr, two_over_n, ns_row, c_row, mod_row, sat_row):
+def _row_lean(frames, r, ws, wc, sat_thr, black_thr, two_over_n, ns_row, c_row, mod_row, sat_row, black_row):
     n = len(frames)
     for c in range(ns_row.shape[0]):
         s = np.float32(0.0)
         cc = np.float32(0.0)
-        m = 0
+        m = frames[0][r, c]
+        lo = m
         for i in range(n):
             x = frames[i][r, c]
             v = np.float32(x)
             s += ws[i] * v
             cc += wc[i] * v
             m = max(m, x)
+            lo = min(lo, x)
         ns_row[c] = s
         c_row[c] = cc
         mod_row[c] = np.float32(math.sqrt(s * s + cc * cc)) * two_over_n
         sat_row[c] = np.int64(m) >= sat_thr
+        black_row[c] = np.int64(lo) <= black_thr
 
 
 @njit(**_OPTS)
-def _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, ns_row, c_row, mod_row, sat_row, bg_row, rv_row):
+def _row_full(frames, r, ws, wc, sat_thr, black_thr, two_over_n, one_w, ns_row, c_row, mod_row, sat_row, black_row,
+              bg_row, rv_row):
     n = len(frames)
     fn = np.float32(n)
     n_w = one_w * n
@@ -79,7 +83,8 @@ def _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, ns_row, c_row, mod_
         cc = np.float32(0.0)
         a = np.float32(0.0)
         sq = zero_w
-        m = 0
+        m = frames[0][r, c]
+        lo = m
         for i in range(n):
             x = frames[i][r, c]
             v = np.float32(x)
@@ -89,11 +94,13 @@ def _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, ns_row, c_row, mod_
             vw = v * one_w
             sq += vw * vw
             m = max(m, x)
+            lo = min(lo, x)
         ns_row[c] = s
         c_row[c] = cc
         zz = np.float32(math.sqrt(s * s + cc * cc))
         mod_row[c] = zz * two_over_n
         sat_row[c] = np.int64(m) >= sat_thr
+        black_row[c] = np.int64(lo) <= black_thr
         bg_row[c] = a / fn
         # (N sum I^2 - (sum I)^2 - 2 |Z|^2) / (N (N - 3)), as the numpy path; computed even
         # when not wanted (then into a scratch row): a branch here stops the loop vectorising
@@ -108,11 +115,14 @@ def _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, ns_row, c_row, mod_
 
 @njit(**_OPTS)
 def nstep_rows(frames, r0, r1, ws, wc, sat_thr, neg_s, c_out, modulation, saturated,
-               photometry, background, one_w, residual_var, rv_r0):
+               photometry, background, one_w, residual_var, rv_r0, black_thr, black, black_r0):
     """N-step sums of rows ``[r0, r1)`` of ``frames``, a tuple of N (H, W) uint8 or uint16 frames.
 
     ``ws``/``wc``: float32 weights ``-sin(delta_n)``, ``cos(delta_n)``.
     ``sat_thr``: saturated where the maximum step is ``>= sat_thr`` (an integer).
+    ``black_thr``: ``black`` row ``r - black_r0`` is True where the minimum step is ``<= black_thr``
+    (an integer; the minimum is kept beside the maximum, so the black-clipping check costs no pass
+    of its own; an unwanted one goes to a scratch tile, ``black_r0 = r0``).
     ``neg_s``, ``c_out``: (r1 - r0, W) float32, the tile's ``-S`` and ``C``.
     ``modulation``, ``saturated``, ``background``, ``residual_var``: (H, W)
     outputs (the last two only if ``photometry``). ``one_w``: a 1 of the dtype
@@ -133,10 +143,11 @@ def nstep_rows(frames, r0, r1, ws, wc, sat_thr, neg_s, c_out, modulation, satura
     for r in range(r0, r1):
         t = r - r0
         if photometry:
-            _row_full(frames, r, ws, wc, sat_thr, two_over_n, one_w, neg_s[t], c_out[t], modulation[r],
-                      saturated[r], background[r], residual_var[r - rv_r0])
+            _row_full(frames, r, ws, wc, sat_thr, black_thr, two_over_n, one_w, neg_s[t], c_out[t], modulation[r],
+                      saturated[r], black[r - black_r0], background[r], residual_var[r - rv_r0])
         else:
-            _row_lean(frames, r, ws, wc, sat_thr, two_over_n, neg_s[t], c_out[t], modulation[r], saturated[r])
+            _row_lean(frames, r, ws, wc, sat_thr, black_thr, two_over_n, neg_s[t], c_out[t], modulation[r],
+                      saturated[r], black[r - black_r0])
 
 
 @njit(**_OPTS)
@@ -393,3 +404,36 @@ def valid_span(reasons, order, n_out, first_out, last_out):
     seen = np.zeros(p, np.bool_)
     for jj in range(k):
         _span_row(reasons[order[jj]], jj, n_out, first_out, last_out, seen)
+
+
+@njit(**_OPTS)
+def dft_pairs(frames, transposed, rows, pairs, cos_t, sin_t, re_out, im_out, bg_out):
+    """DFT bins and mean of the sampled pixels of one N-step set, straight from its integer frames.
+
+    ``frames``: tuple of N (H, W) uint8/uint16 frames; sample ``(i, j)`` is pixel ``(rows[i], pairs[j])``
+    of the image (of its transpose when ``transposed``: pixel ``(pairs[j], rows[i])``). For bin ``b``
+    (``cos_t[b]``, ``sin_t[b]``: the N weights), ``re_out[b, i, j] = sum_n I_n cos_n`` and
+    ``im_out[b, i, j] = -sum_n I_n sin_n``, ``bg_out[i, j] = sum_n I_n / N``: float64, summed frame by
+    frame in order as :func:`ptpcore.decode.harmonics._dft_bin` and ``np.mean`` do (the same bits).
+    """
+    n = len(frames)
+    nb = cos_t.shape[0]
+    vals = np.empty(n)
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for j in range(pairs.shape[0]):
+            c = pairs[j]
+            for k in range(n):
+                vals[k] = np.float64(frames[k][c, r] if transposed else frames[k][r, c])
+            for b in range(nb):
+                re = vals[0] * cos_t[b, 0]
+                im = vals[0] * sin_t[b, 0]
+                for k in range(1, n):
+                    re += vals[k] * cos_t[b, k]
+                    im += vals[k] * sin_t[b, k]
+                re_out[b, i, j] = re
+                im_out[b, i, j] = -im
+            s = vals[0]
+            for k in range(1, n):
+                s += vals[k]
+            bg_out[i, j] = s / n

@@ -13,6 +13,8 @@ kernels take about 0.3 s, on the tile pool.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -96,10 +98,27 @@ def _plain_median(src, rr, cc, offs, with_centre, buf):
 
 
 @njit(**_OPTS)
+def _centre_span(src, rr, pad, w):
+    """``[c0, c1)``: the columns from the first to the last non-NaN centre of padded row ``rr``
+    (``c0 == c1`` when every centre is NaN)."""
+    c0 = 0
+    while c0 < w and np.isnan(src[rr, pad + c0]):
+        c0 += 1
+    c1 = w
+    while c1 > c0 and np.isnan(src[rr, pad + c1 - 1]):
+        c1 -= 1
+    return c0, c1
+
+
+@njit(**_OPTS)
 def residual_rows(cp, gcp, grp, offs, pad, min_n, r0, r1, resid, count):
     """Rows ``r0:r1``: the residual from the median-carried neighbours (before the
-    neighbours' residual is taken off) and the count of neighbours. ``cp``, ``gcp``,
-    ``grp``: the coordinate and its column/row gradients, NaN-padded by ``pad``."""
+    neighbours' residual is taken off) and the count of neighbours (0 at an invalid centre).
+    ``cp``, ``gcp``, ``grp``: the coordinate and its column/row gradients, NaN-padded by ``pad``.
+
+    An invalid (NaN) centre's residual is NaN whatever its neighbours: the windows are taken
+    between the first and last valid centre of each row only (the bezel outside the LCD, about
+    a fifth of a map, costs nothing)."""
     nk = offs.shape[0]
     w = resid.shape[1]
     buf = np.empty(nk + 1)
@@ -112,11 +131,20 @@ def residual_rows(cp, gcp, grp, offs, pad, min_n, r0, r1, resid, count):
     fin = np.empty(w, np.int64)
     for r in range(r0, r1):
         rr = r + pad
-        median25_row(gcp, rr, pad, w, g_c, nan_c)
-        median25_row(grp, rr, pad, w, g_r, nan_r)
-        # Windows with a NaN again, NaN-ignoring; all-NaN ones (the 20 % of a map outside the
-        # LCD) are NaN without a look.
-        for c in range(w):
+        c0, c1 = _centre_span(cp, rr, pad, w)
+        for c in range(c0):
+            resid[r, c] = np.nan
+            count[r, c] = 0
+        for c in range(c1, w):
+            resid[r, c] = np.nan
+            count[r, c] = 0
+        if c1 == c0:
+            continue
+        m = c1 - c0
+        median25_row(gcp, rr, pad + c0, m, g_c[c0:c1], nan_c[c0:c1])
+        median25_row(grp, rr, pad + c0, m, g_r[c0:c1], nan_r[c0:c1])
+        # Windows with a NaN again, NaN-ignoring; all-NaN ones are NaN without a look.
+        for c in range(c0, c1):
             if nan_c[c] > nk:
                 g_c[c] = np.nan
             elif nan_c[c] > 0:
@@ -125,12 +153,16 @@ def residual_rows(cp, gcp, grp, offs, pad, min_n, r0, r1, resid, count):
                 g_r[c] = np.nan
             elif nan_r[c] > 0:
                 g_r[c] = _plain_median(grp, rr, pad + c, offs, True, buf)
-        carried_median24_row(cp, rr, pad, w, g_c, g_r, pred, nan_p, fin)
-        for c in range(w):
+        carried_median24_row(cp, rr, pad + c0, m, g_c[c0:c1], g_r[c0:c1], pred[c0:c1], nan_p[c0:c1],
+                             fin[c0:c1])
+        for c in range(c0, c1):
             p = pred[c]
             centre = cp[rr, pad + c]
-            # An invalid centre's residual is its NaN whatever the prediction: no second look.
-            if nan_p[c] > 0 and fin[c] >= min_n and not np.isnan(centre):
+            if np.isnan(centre):
+                resid[r, c] = np.nan
+                count[r, c] = 0
+                continue
+            if nan_p[c] > 0 and fin[c] >= min_n:
                 p = _carried_median(cp, rr, pad + c, offs, g_c[c], g_r[c], buf)
             res = centre - p
             if fin[c] < min_n:
@@ -142,7 +174,7 @@ def residual_rows(cp, gcp, grp, offs, pad, min_n, r0, r1, resid, count):
 @njit(**_OPTS)
 def around_rows(rp, offs, pad, r0, r1, out):
     """Rows ``r0:r1``: the residual minus the median of its neighbours' residuals (``rp``: the
-    residuals NaN-padded by ``pad``)."""
+    residuals NaN-padded by ``pad``); NaN where the residual is, without a look."""
     nk = offs.shape[0]
     w = out.shape[1]
     buf = np.empty(nk)
@@ -150,8 +182,15 @@ def around_rows(rp, offs, pad, r0, r1, out):
     nans = np.empty(w, np.int64)
     for r in range(r0, r1):
         rr = r + pad
-        median24_row(rp, rr, pad, w, around, nans)
-        for c in range(w):
+        c0, c1 = _centre_span(rp, rr, pad, w)
+        for c in range(c0):
+            out[r, c] = np.nan
+        for c in range(c1, w):
+            out[r, c] = np.nan
+        if c1 == c0:
+            continue
+        median24_row(rp, rr, pad + c0, c1 - c0, around[c0:c1], nans[c0:c1])
+        for c in range(c0, c1):
             a = around[c]
             centre = rp[rr, pad + c]
             if nans[c] > 0 and not np.isnan(centre):  # else the NaN centre stays NaN
@@ -159,3 +198,28 @@ def around_rows(rp, offs, pad, r0, r1, out):
             if not np.isfinite(a):
                 a = 0.0
             out[r, c] = centre - a
+
+
+
+@njit(**_OPTS)
+def flag_band(resid, n, sig, spread, k, half_pi, flagged, defined, start):
+    """:func:`ptpcore.decode.spatial._flag_rows` on one band, in one pass: ``flagged`` where
+    ``|resid| > k max(sig, spread) sqrt(1 + half_pi / max(n, 1))`` (NaN sigma or residual: not
+    flagged), and ``max(sig, spread)`` of every pixel with a sigma appended to ``defined`` from
+    ``start``; returns the new end. numpy's operations, in its order (the same bits)."""
+    h, w = resid.shape
+    m = start
+    for r in range(h):
+        for c in range(w):
+            sg = sig[r, c]
+            if np.isnan(sg):
+                flagged[r, c] = False
+                continue
+            s = sg if sg > spread else spread
+            defined[m] = s
+            m += 1
+            x = resid[r, c]
+            nn = n[r, c] if n[r, c] > 1 else 1
+            scale = math.sqrt(1.0 + half_pi / np.float64(nn))
+            flagged[r, c] = np.isfinite(x) and abs(x) > k * s * scale
+    return m

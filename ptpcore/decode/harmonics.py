@@ -63,9 +63,10 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
     """
     n = len(frames)
     bins = noise_bins(n)
-    if axis == 0:
+    kern = _kernels(frames)
+    if axis == 0 and kern is None:
         frames = [np.asarray(f).T for f in frames]
-    h, w = np.shape(frames[0])
+    h, w = np.shape(frames[0])[::-1] if axis == 0 and kern is not None else np.shape(frames[0])
     if not bins or w < 2:
         return None
     rows = np.arange(0, h, stride)
@@ -75,10 +76,34 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
     # Bands of sampled rows: every quantity is a pixel pair's own, and the whole-grid stack (8 frames
     # of float64, then complex) was 300 MB of transients at 5 MP.
     band = max(1, BAND_VALUES // max(1, n * pairs.size))
-    for b0 in range(0, rows.size, band):
-        stack = np.stack([np.asarray(f)[rows[b0:b0 + band]][:, pairs] for f in frames]).astype(np.float64)
-        for name, val in _pair_noise(stack, bins, cols.size).items():
-            out[name][b0:b0 + band] = val
+    if kern is not None:  # the bins straight from the integer frames, bands on the tile pool
+        from ptpcore.decode.phase import _kernel_frames
+        from ptpcore.parallel import map_in_order
+
+        hs = [1, *bins]
+        angle = np.stack([2.0 * np.pi * hh * np.arange(n) / n for hh in hs])  # as _dft_bin's, bit for bit
+        cos_t, sin_t = np.cos(angle), np.sin(angle)
+        kframes = _kernel_frames(frames)
+
+        def one(b0):
+            r = rows[b0:b0 + band]
+            re, im = np.empty((2, len(hs), r.size, pairs.size))
+            bg = np.empty((r.size, pairs.size))
+            kern.dft_pairs(kframes, axis == 0, r, pairs, cos_t, sin_t, re, im, bg)
+            x = {}
+            for i, hh in enumerate(hs):
+                x[hh] = np.empty(bg.shape, np.complex128)
+                x[hh].real, x[hh].imag = re[i], im[i]
+            return b0, _pair_maps(x, bg, bins, cols.size, n)
+
+        for b0, maps in map_in_order(one, range(0, rows.size, band)):
+            for name, val in maps.items():
+                out[name][b0:b0 + band] = val
+    else:
+        for b0 in range(0, rows.size, band):
+            stack = np.stack([np.asarray(f)[rows[b0:b0 + band]][:, pairs] for f in frames]).astype(np.float64)
+            for name, val in _pair_noise(stack, bins, cols.size).items():
+                out[name][b0:b0 + band] = val
     if axis == 0:  # back to (rows, cols) of the image
         out = {k: v.T for k, v in out.items()}
         rows, cols = cols, rows
@@ -87,18 +112,34 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
     return out
 
 
+def _kernels(frames):
+    """:mod:`ptpcore.decode._fused` when the numba kernels are on and ``frames`` are integer (H, W) arrays."""
+    from ptpcore.decode.phase import fused_kernels
+
+    kern = fused_kernels()
+    if kern is None or not all(isinstance(f, np.ndarray) and f.ndim == 2 for f in frames):
+        return None
+    if len({f.dtype for f in frames}) != 1 or frames[0].dtype not in (np.uint8, np.uint16):
+        return None
+    return kern
+
+
 def _pair_noise(stack: np.ndarray, bins: list[int], m: int) -> dict:
     """:func:`harmonic_noise_samples`' maps of a band of sampled rows: ``stack`` (N, rows, 2 m) holds the
     first pixels of the pairs, then their neighbours."""
-    n = stack.shape[0]
     x = {hh: _dft_bin(stack, hh) for hh in [1, *bins]}
+    return _pair_maps(x, stack.mean(axis=0), bins, m, stack.shape[0])
+
+
+def _pair_maps(x: dict, bg: np.ndarray, bins: list[int], m: int, n: int) -> dict:
+    """The maps of :func:`_pair_noise` from the DFT bins ``x`` (``{h: (rows, 2 m) complex}``) and the mean ``bg``."""
     x1 = x[1]
     amp1 = np.abs(x1)
     with np.errstate(invalid="ignore", divide="ignore"):
         unit = x1 / amp1
     p, q = slice(0, m), slice(m, 2 * m)
-    acc = np.zeros((stack.shape[1], m))
-    harm = np.zeros((stack.shape[1], m))
+    acc = np.zeros((bg.shape[0], m))
+    harm = np.zeros((bg.shape[0], m))
     for hh in bins:
         rot = unit ** hh
         zq = x[hh][:, q] * np.conj(rot[:, q])  # demodulated at q
@@ -106,7 +147,6 @@ def _pair_noise(stack: np.ndarray, bins: list[int], m: int) -> dict:
             pred = zq * (amp1[:, p] / amp1[:, q]) * rot[:, p]  # carried to p
         acc += np.abs(x[hh][:, p] - pred) ** 2
         harm = np.maximum(harm, (2.0 / n) * np.abs(x[hh][:, p]))
-    bg = stack.mean(axis=0)
     return {"background": 0.5 * (bg[:, p] + bg[:, q]), "var": acc / (2.0 * n * len(bins)), "harmonic": harm,
             "modulation": (2.0 / n) * amp1[:, p]}
 

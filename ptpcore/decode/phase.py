@@ -137,7 +137,8 @@ def black_clipped(frames, black_level: float = 0.0) -> np.ndarray:
     out = None
     for f in frames:
         f = np.asarray(f)
-        hit = f <= black_level
+        # In the frames' own dtype: ``uint8 <= 0.0`` would convert every frame to float64 first.
+        hit = f <= (_int_black_threshold(black_level) if f.dtype.kind in "iu" else black_level)
         out = hit if out is None else np.logical_or(out, hit, out=out)
     return out
 
@@ -201,7 +202,8 @@ class PhaseAccumulator:
 
 
 def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
-                  photometry: bool = True, out: WrappedPhase | None = None) -> WrappedPhase:
+                  photometry: bool = True, out: WrappedPhase | None = None,
+                  black_level: float | None = None) -> WrappedPhase:
     """N-step wrapped phase of a stack.
 
     Parameters
@@ -221,6 +223,9 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
         Arrays to fill instead of new ones (a streaming caller reuses them for
         every position: fresh multi-megabyte arrays cost page faults each time).
         Its ``background``/``residual_var`` decide what is computed.
+    black_level : float, optional
+        Also fill ``black``: any step at or below this level (:func:`black_clipped`'s test, in the
+        same pass as the sums: the kernel keeps the minimum beside the maximum).
 
     Returns
     -------
@@ -246,8 +251,10 @@ def wrapped_phase(frames: np.ndarray, saturation_level: float | None = None, *,
                            np.empty((h, w), np.float32) if photometry and n > 3 else None)
     elif out.phase.shape != (h, w) or (out.residual_var is not None and n <= 3):
         raise ValueError(f"out does not fit {n} frames of shape {(h, w)}")
+    if black_level is not None and out.black is None:
+        out.black = np.empty((h, w), bool)
     fused = fused_kernels() is not None and np.dtype(frames[0].dtype) in _INT_SRC
-    run_tiles(functools.partial(_nstep_rows, frames, saturation_level, out), h, w,
+    run_tiles(functools.partial(_nstep_rows, frames, saturation_level, out, black_level=black_level), h, w,
               KERNEL_TILE_PIXELS if fused else TILE_PIXELS)
     return out
 
@@ -370,6 +377,15 @@ def _nstep_weights(n: int) -> tuple[np.ndarray, np.ndarray]:
     return ws.astype(np.float32), wc.astype(np.float32)
 
 
+def _int_black_threshold(level) -> int:
+    """``x <= level`` as ``x <= t`` for integer ``x``."""
+    if np.isnan(level) or level == -np.inf:
+        return -(1 << 40)
+    if level == np.inf:
+        return 1 << 40
+    return int(np.floor(level))
+
+
 def _int_threshold(level) -> int:
     """``x >= level`` as ``x >= t`` for integer ``x`` (never true without a level)."""
     if level is None or np.isnan(level) or level == np.inf:
@@ -379,7 +395,8 @@ def _int_threshold(level) -> int:
     return int(np.ceil(level))
 
 
-def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int, r1: int,
+                      black_level: float | None = None) -> None:
     """:func:`_nstep_rows` with the numba kernel (:func:`ptpcore.decode._fused.nstep_rows`): one pass over
     the tile's frames for all sums, then numpy's (SIMD) ``arctan2`` on the tile.
 
@@ -399,9 +416,13 @@ def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int
         rv, rv_r0 = np.empty((r1 - r0, w), np.float32), r0
     else:  # not touched
         rv, rv_r0 = out.modulation, 0
+    if black_level is not None:
+        black, black_r0, black_thr = out.black, 0, _int_black_threshold(black_level)
+    else:  # a scratch tile (a branch in the kernel's pixel loop would stop it vectorising)
+        black, black_r0, black_thr = np.empty((r1 - r0, w), bool), r0, -(1 << 40)
     kern.nstep_rows(_kernel_frames(frames), r0, r1, ws, wc, _int_threshold(saturation_level), neg_s, c,
                     out.modulation, out.saturated, photometry, out.background if photometry else out.modulation,
-                    work(1), rv, rv_r0)
+                    work(1), rv, rv_r0, black_thr, black, black_r0)
     np.arctan2(neg_s, c, out=neg_s)
 
 
@@ -418,7 +439,8 @@ def _kernel_frames(frames) -> tuple:
     return tuple(out)
 
 
-def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -> None:
+def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int,
+                black_level: float | None = None) -> None:
     """N-step reduction of rows ``[r0, r1)`` of a stack into ``out`` (see :func:`wrapped_phase`).
 
     ``frames``: an (N, H, W) array, or a list of N (H, W) arrays of one dtype.
@@ -427,9 +449,15 @@ def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int) -
     if frames[0].dtype in _INT_SRC:
         kern = fused_kernels()
         if kern is not None:
-            _nstep_rows_fused(kern, frames, saturation_level, out, r0, r1)
+            _nstep_rows_fused(kern, frames, saturation_level, out, r0, r1, black_level)
             return
     raw = frames[:, r0:r1] if isinstance(frames, np.ndarray) else np.stack([f[r0:r1] for f in frames])
+    if black_level is not None:  # in the frames' own dtype (a float comparison would convert them)
+        lo = np.min(raw, axis=0)
+        if lo.dtype.kind in "iu":
+            np.less_equal(lo, _int_black_threshold(black_level), out=out.black[r0:r1])
+        else:
+            np.less_equal(lo, black_level, out=out.black[r0:r1])
     fr = raw if raw.dtype in _CV_SRC and raw.strides[-1] == raw.itemsize else raw.astype(np.float32)
     rows = fr.shape[1:]
     photometry = out.background is not None
@@ -860,7 +888,7 @@ def finish_position(rig: Rig, index: int, decoded: dict, options: DecodeOptions 
 
 
 def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions = DecodeOptions(), *,
-                      outs: dict | None = None) -> DecodedPosition | None:
+                      outs: dict | None = None, per_direction: bool = False) -> DecodedPosition | None:
     """:func:`decode_direction` of every direction, then :func:`finish_position`, fused.
 
     With the numba kernels (:func:`fused_kernels`), unwrapping and the per-pixel
@@ -878,7 +906,12 @@ def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions
     options : DecodeOptions
     outs : dict, optional
         ``{d: (coord, disagreement), "reasons": reasons}`` arrays to fill
-        (reused by a streaming caller).
+        (reused by a streaming caller; with ``per_direction`` also ``("reasons", d)``).
+    per_direction : bool
+        Classify each direction alone (``ptp decode`` writes them apart): ``info["direction_reasons"]``
+        is ``{d: (H, W) uint8}``, each bit-equal to ``finish_position(rig, index, {d: ...}).reasons``,
+        and the position's ``reasons`` their OR (which differs from both directions classified
+        together only in the bezel's border: there each direction's own bezel sets ``BORDER``).
     """
     kern = fused_kernels()
     if kern is None:
@@ -909,27 +942,46 @@ def decode_and_finish(rig: Rig, index: int, levels: dict, options: DecodeOptions
         scale = periods[-1] / two_pi
         coord, dis = outs.get(d) or (np.empty((h, w), np.float64), np.empty((h, w), bool))
         extent = float(rig.lcd.width if d == "x" else rig.lcd.height)
+        own = reasons
+        if per_direction:
+            own = outs.get(("reasons", d))
+            if own is None:
+                own = np.zeros((h, w), np.uint8)
+            else:
+                own[...] = 0
         jobs.append((tuple(wp.phase for wp in wrapped), float(f.carrier(d) * z),
                      tuple(wp.modulation for wp in wrapped), tuple(wp.saturated for wp in wrapped),
-                     extent, coord, dis, ratios, scale))
+                     extent, coord, dis, ratios, scale, own))
         decoded[d] = DirectionDecode(coord, list(wrapped), dis, None, tuple(periods))
 
     def rows(r0: int, r1: int) -> None:
-        for phases, shift, mods, sats, extent, coord, dis, ratios, scale in jobs:
+        for phases, shift, mods, sats, extent, coord, dis, ratios, scale, own in jobs:
             kern.unwrap_classify_rows(r0, r1, phases, ratios, scale, shift, mods, sats, min_mod,
-                                      extent, coord, dis, reasons)
+                                      extent, coord, dis, own)
 
     run_tiles(rows, h, w, KERNEL_TILE_PIXELS)
     if m > 0:
         def edges(r0: int, r1: int) -> None:
-            for *_, extent, coord, _dis, _ratios, _scale in jobs:
-                kern.near_edge_rows(r0, r1, coord, extent, float(m), reasons)
+            for *_, extent, coord, _dis, _ratios, _scale, own in jobs:
+                kern.near_edge_rows(r0, r1, coord, extent, float(m), own)
 
         run_tiles(edges, h, w, KERNEL_TILE_PIXELS)
-        bezel = np.bitwise_and(reasons, Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)
-        if bezel.any():
-            near = cv2.dilate(bezel, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
-            run_tiles(lambda r0, r1: kern.border_rows(r0, r1, near, reasons), h, w, KERNEL_TILE_PIXELS)
+        for own in ([job[-1] for job in jobs] if per_direction else [reasons]):
+            _bezel_border(kern, own, m)
     u = decoded["x"].coord if "x" in decoded else None
     v = decoded["y"].coord if "y" in decoded else None
-    return DecodedPosition(index, z, u, v, reasons, decoded)
+    pos = DecodedPosition(index, z, u, v, reasons, decoded)
+    if per_direction:
+        for job in jobs:
+            np.bitwise_or(reasons, job[-1], out=reasons)
+        pos.info["direction_reasons"] = {d: job[-1] for d, job in zip(decoded, jobs)}
+    return pos
+
+
+def _bezel_border(kern, reasons: np.ndarray, m: int) -> None:
+    """``BORDER`` within ``m`` pixels of the bezel (outside the LCD or low modulation) of ``reasons``."""
+    h, w = reasons.shape
+    bezel = np.bitwise_and(reasons, Reason.OUTSIDE_LCD | Reason.LOW_MODULATION)
+    if bezel.any():
+        near = cv2.dilate(bezel, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
+        run_tiles(lambda r0, r1: kern.border_rows(r0, r1, near, reasons), h, w, KERNEL_TILE_PIXELS)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ptpcore.decode.harmonics import harmonic_noise_samples
 from ptpcore.decode.phase import (DecodedPosition, DecodeOptions, Reason, WrappedPhase, apply_convention,
-    black_clipped, decode_and_finish, decode_direction, finish_position, fused_kernels, wrapped_phase)
+    decode_and_finish, decode_direction, finish_position, fused_kernels, wrapped_phase)
 from ptpcore.rig import Rig
 
 __all__ = ["NOISE_PIXELS", "decode_sets", "reference_clipping", "flag_more_reasons", "coordinate_sigma",
@@ -32,7 +32,7 @@ NOISE_PIXELS = 1 << 18
 
 
 def decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: bool,
-                 buffers: dict | None = None, source=None) -> DecodedPosition:
+                 buffers: dict | None = None, source=None, per_direction: bool = False) -> DecodedPosition:
     """Wrapped phases of every set, then unwrapping and classification.
 
     The phase convention (``shift_sign``, ``phase_origin_rad``) is applied to
@@ -57,6 +57,11 @@ def decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: 
     source : FrameSource, optional
         Where Gray-code and reference frames come from (``gray_frames(k)``,
         ``reference_frames(k)``; Gray-code designs and designs with reference frames).
+    per_direction : bool
+        Classify each direction alone, once (``ptp decode``): ``info["direction_reasons"]`` holds
+        ``{d: (H, W) uint8}`` as :func:`ptpcore.decode.phase.finish_position` gives them for that
+        direction alone, before :func:`flag_more_reasons`; ``reasons`` is then their OR
+        (:func:`ptpcore.decode.phase.decode_and_finish`).
 
     Returns
     -------
@@ -82,10 +87,11 @@ def decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: 
                 # harmonic_noise_samples); 20 MB a direction less at 5 MP.
                 out = buffers[(d, j)] = WrappedPhase(
                     np.empty((h, w), np.float32), np.empty((h, w), np.float32),
-                    np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool), None)
-        wp = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out)
+                    np.empty((h, w), np.float32) if photometry else None, np.empty((h, w), bool), None,
+                    np.empty((h, w), bool))
+        # Black clipping (any step at 0) in the same pass as the sums.
+        wp = wrapped_phase(stack, rig.camera.max_level, photometry=photometry, out=out, black_level=0.0)
         apply_convention(wp, f.sign(d), f.origin(d))
-        wp.black = black_clipped(stack)
         if j == _noise_level(steps):
             part = harmonic_noise_samples(stack, stride, 1 if d == "x" else 0)
             if part is not None:
@@ -103,10 +109,11 @@ def decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: 
                 outs[d] = buffers.get(d)
                 if outs[d] is None:
                     outs[d] = buffers[d] = (np.empty((h, w)), np.empty((h, w), bool))
-            outs["reasons"] = buffers.get("reasons")
-            if outs["reasons"] is None:
-                outs["reasons"] = buffers["reasons"] = np.empty((h, w), np.uint8)
-        pos = decode_and_finish(rig, k, levels, options, outs=outs)
+            for key in ["reasons"] + ([("reasons", d) for d in f.directions] if per_direction else []):
+                outs[key] = buffers.get(key)
+                if outs[key] is None:
+                    outs[key] = buffers[key] = np.empty((h, w), np.uint8)
+        pos = decode_and_finish(rig, k, levels, options, outs=outs, per_direction=per_direction)
     if pos is None:
         z = rig.stage.z_mm[k]
         decoded = {}
@@ -127,6 +134,9 @@ def decode_sets(rig: Rig, k: int, sets, options: DecodeOptions, all_photometry: 
             if out is None:
                 out = buffers["reasons"] = np.empty((h, w), np.uint8)
         pos = finish_position(rig, k, decoded, options, out=out)
+        if per_direction:
+            pos.info["direction_reasons"] = {d: finish_position(rig, k, {d: dec}, options).reasons
+                                             for d, dec in decoded.items()}
     pos.info["noise_samples"] = {d: part for d, (_j, _n, part) in noise_parts.items()}
     pos.info["noise_levels"] = {d: (f.periods(d)[j], n) for d, (j, n, _p) in noise_parts.items()}
     if refs:

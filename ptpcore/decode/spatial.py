@@ -35,6 +35,35 @@ FLAG_ROWS = 256
 """Rows per band of :func:`spatial_outliers`' flagging (a few MB of temporaries at 5 MP)."""
 
 
+EXACT_MEDIAN_SAMPLE = 1 << 16
+"""Values of the sub-sample :func:`median_exact` brackets the median with."""
+
+
+def median_exact(x: np.ndarray) -> float:
+    """``np.median(x)`` of a 1-D array without NaN, the same number, without partitioning it all.
+
+    A regular sub-sample of :data:`EXACT_MEDIAN_SAMPLE` values brackets the median (its order
+    statistics 4.5 standard errors either side); one pass counts the values below the bracket and
+    gathers those inside, whose partition gives the two middle values of the whole. Should the
+    bracket miss (a tie-heavy or adversarial order), the whole array is partitioned. About 4x
+    cheaper than ``np.median`` on the millions of residuals of a 5 MP map.
+    """
+    n = x.size
+    if n <= 4 * EXACT_MEDIAN_SAMPLE:
+        return float(np.median(x))
+    sample = np.sort(x[::n // EXACT_MEDIAN_SAMPLE])
+    m = sample.size
+    d = int(4.5 * 0.5 * np.sqrt(m)) + 1
+    lo, hi = sample[max(m // 2 - d, 0)], sample[min(m // 2 + d, m - 1)]
+    k1, k2 = (n - 1) // 2, n // 2
+    below = int(np.count_nonzero(x < lo))
+    inside = x[(x >= lo) & (x <= hi)]
+    if not below <= k1 or not below + inside.size > k2:
+        return float(np.median(x))
+    part = np.partition(inside, [k1 - below, k2 - below])
+    return float(np.mean(part[[k1 - below, k2 - below]]))
+
+
 def _nanmedian0(stack: np.ndarray) -> np.ndarray:
     """``np.nanmedian(stack, axis=0)`` by one sort (NaN sort last): many times faster."""
     s = np.sort(stack, axis=0)
@@ -62,6 +91,7 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
     residual : (H, W) float64
         NaN where the pixel is invalid or has too few valid neighbours.
     n_neighbours : (H, W) int16
+        0 where the pixel is not valid (its residual is NaN whatever its neighbours).
     """
     h, w = coord.shape
     pad = radius
@@ -88,6 +118,7 @@ def neighbourhood_residual(coord: np.ndarray, valid: np.ndarray, *, radius: int 
             res = c[r0:r1] - pred
             res[n < MIN_NEIGHBOURS] = np.nan
             resid[r0:r1] = res
+            n[np.isnan(c[r0:r1])] = 0
             count[r0:r1] = n
         # What a plane leaves of a curved map is smooth too: take the neighbours' residuals
         # (their median) off, so only what stands out from its surroundings remains.
@@ -204,7 +235,7 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
         return np.zeros(coord.shape, bool), float("nan")
     magnitude = resid[finite]  # a copy, made absolute in place
     np.abs(magnitude, out=magnitude)
-    spread = ROBUST_SIGMA * float(np.median(magnitude, overwrite_input=True))
+    spread = ROBUST_SIGMA * median_exact(magnitude)
     del magnitude
     if sigma is None:
         sigma = spread
@@ -219,6 +250,16 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
     # The median of max(sigma, spread) is taken over the pixels where sigma is defined
     # (NaN stays NaN), gathered band by band (np.empty: only the pages written count).
     defined = np.empty(resid.size)
+    kern = _kernels()
+    if kern is not None:  # each band in one pass (the same bits as _flag_rows)
+        flagged = np.empty(resid.shape, bool)
+        end = 0
+        for r0 in range(0, resid.shape[0], FLAG_ROWS):
+            r1 = min(resid.shape[0], r0 + FLAG_ROWS)
+            sig = np.ascontiguousarray(sigma(r0, r1), np.float64)
+            end = kern.flag_band(resid[r0:r1], n[r0:r1], sig, spread, float(k), np.pi / 2.0, flagged[r0:r1],
+                                 defined, end)
+        return flagged, (median_exact(defined[:end]) if end else float("nan"))
     count = [0]
 
     def sigma_rows(r0, r1):
@@ -231,7 +272,7 @@ def spatial_outliers(coord: np.ndarray, valid: np.ndarray, sigma, k: float = 5.0
 
     flagged = _flag_rows(resid, n, finite, sigma_rows, spread, k)
     defined = defined[:count[0]]
-    return flagged, (float(np.median(defined, overwrite_input=True)) if defined.size else float("nan"))
+    return flagged, (median_exact(defined) if defined.size else float("nan"))
 
 
 def _flag_rows(resid, n, finite, sigma_rows, spread: float, k: float) -> np.ndarray:

@@ -72,13 +72,17 @@ def direction_reasons(rig, pos, options: DecodeOptions = DecodeOptions()) -> dic
     -------
     dict
         ``{direction: (H, W) uint8}``: :class:`ptpcore.decode.phase.Reason` bits, 0 where valid.
+        A position decoded with ``per_direction`` (:func:`ptpcore.run.pipeline.decode_positions`)
+        brings each direction's classification along: it is completed (in a copy), not made again.
     """
     from ptpcore.decode.position import flag_more_reasons
 
     options = options.for_rig(rig)
+    done = pos.info.get("direction_reasons", {})
     out = {}
     for d, dec in pos.directions.items():
-        r = finish_position(rig, pos.index, {d: dec}, options).reasons
+        r = done.get(d)
+        r = finish_position(rig, pos.index, {d: dec}, options).reasons if r is None else r.copy()
         flag_more_reasons(rig, pos, options, r, directions=[d])
         out[d] = r
     return out
@@ -219,7 +223,7 @@ def _decode_into(source, todo, options, min_fraction, check_conventions, progres
     present = ["xy".index(d) for d in rig.fringes.directions]
     # direction_reasons runs the spatial check of each direction alone: the decoder's own check (both
     # directions' flags together; only the positions' combined reasons, not written here) would be lost work.
-    with contextlib.closing(decode_positions(source, todo, options, spatial=False)) as decoded:
+    with contextlib.closing(decode_positions(source, todo, options, spatial=False, per_direction=True)) as decoded:
         for i, k in enumerate(todo):
             if progress:
                 progress(i / len(todo), f"decoding {position_label(k, rig.stage.z_mm[k])} ({i + 1} of {len(todo)})")

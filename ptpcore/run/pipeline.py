@@ -66,7 +66,8 @@ def decode_position(source, k: int, options: DecodeOptions = DecodeOptions()) ->
     return decode_sets(rig, k, source_sets(source, k), options, True, source=source)
 
 
-def decode_positions(source, positions, options: DecodeOptions = DecodeOptions(), *, spatial: bool = True):
+def decode_positions(source, positions, options: DecodeOptions = DecodeOptions(), *, spatial: bool = True,
+                     per_direction: bool = False):
     """Decode positions one after the other, as ``ptp decode`` needs them: a generator.
 
     One reader for all of them (a dataset folder's is read ahead across positions), and
@@ -82,6 +83,9 @@ def decode_positions(source, positions, options: DecodeOptions = DecodeOptions()
     spatial : bool
         False: no spatial-consistency flags in the positions' ``reasons`` (a caller that
         classifies each direction alone, as ``ptp decode`` does, runs its own check).
+    per_direction : bool
+        Each direction also classified alone, in the same pass (``info["direction_reasons"]``,
+        :func:`ptpcore.decode.position.decode_sets`); ``reasons`` is then their OR.
 
     Yields
     ------
@@ -96,7 +100,7 @@ def decode_positions(source, positions, options: DecodeOptions = DecodeOptions()
     try:
         for k in todo:
             sets = reader.sets_of(k) if reader else source_sets(source, k)
-            yield decode_sets(rig, k, sets, options, False, buffers, source)
+            yield decode_sets(rig, k, sets, options, False, buffers, source, per_direction)
     finally:
         if reader:
             reader.close()

@@ -88,6 +88,8 @@ def test_nstep_kernel_equals_the_float32_reference_exactly(dtype, n, kernels):
     level = 255 if dtype == np.uint8 else 4095
     frames = rng.integers(0, level + 1, (n, 23, 301)).astype(dtype)
     frames[:, 4, :50] = level
+    frames[:, 5, :40] = 1
+    frames[n - 1, 5, :20] = 0  # black in the last step only
     thr = int(0.98 * level)
     ref = _reference_sums(frames, thr)
     h, w = frames.shape[1:]
@@ -97,9 +99,12 @@ def test_nstep_kernel_equals_the_float32_reference_exactly(dtype, n, kernels):
         sat = np.zeros((h, w), bool)
         neg_s, c, mod, bg, rv = out[0][r0:r1], out[1][r0:r1], out[2], out[3], out[4]
         one_w = np.float32(1) if dtype == np.uint8 else np.float64(1)
+        black = np.zeros((h, w), bool)
         kernels.nstep_rows(_kernel_frames(frames), r0, r1, *_nstep_weights(n), thr, neg_s, c, mod, sat,
-                           photometry, bg, one_w, rv, 0)
+                           photometry, bg, one_w, rv, 0, 0, black, 0)
         rows = slice(r0, r1)
+        np.testing.assert_array_equal(black[rows], (frames <= 0).any(axis=0)[rows])
+        assert black[5, :20].all() and not black[:r0].any()
         np.testing.assert_array_equal(neg_s, ref[0][rows])
         np.testing.assert_array_equal(c, ref[1][rows])
         np.testing.assert_array_equal(mod[rows], ref[2][rows])
@@ -211,3 +216,17 @@ def test_spill_rows_written_from_threads_make_the_maps(tmp_path):
         np.testing.assert_array_equal(read_block(arrays[n], 10, 400, [2, 0]),  # file reads
                                       want[n][[2, 0]].reshape(2, -1)[:, 10:400])
     assert np.isnan(arrays["x"][1]).all() and (arrays["r"][1] == 0xFF).all()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_wrapped_phase_black_equals_black_clipped(dtype):
+    """The black-clipping test kept beside the N-step sums equals :func:`black_clipped` (both paths)."""
+    from ptpcore.decode.phase import WrappedPhase, black_clipped, wrapped_phase
+
+    rng = np.random.default_rng(7)
+    frames = rng.integers(0, 40, (8, 37, 53)).astype(dtype)
+    got = wrapped_phase(frames, 255, black_level=0.0)
+    np.testing.assert_array_equal(got.black, black_clipped(frames))
+    np.testing.assert_array_equal(black_clipped(frames), (frames.astype(np.float64) <= 0.0).any(axis=0))
+    out = WrappedPhase(*(np.empty((37, 53), np.float32) for _ in range(3)), np.empty((37, 53), bool), None)
+    assert wrapped_phase(frames, 255, out=out, black_level=0.0).black is not None

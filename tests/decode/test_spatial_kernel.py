@@ -101,3 +101,14 @@ def test_sigma_given_by_rows_flags_as_the_whole_map(monkeypatch):
     assert np.array_equal(whole[0], by_rows[0]) and whole[1] == by_rows[1]
     assert whole[0][50:53, 20:24].any()
     assert asked[0] == (0, 7) and asked[-1] == (119, 120) and len(asked) == -(-h // 7)
+
+
+@pytest.mark.parametrize("kind", ["normal", "abs", "ties", "sorted", "reversed", "constant"])
+@pytest.mark.parametrize("n", [11, 262_144, 262_145, 600_001, 600_002])
+def test_median_exact_is_numpys_median(kind, n):
+    """The spread's and the sigma's medians by a bracketing sub-sample: numpy's number, bit for bit."""
+    rng = np.random.default_rng(n)
+    x = rng.standard_normal(n)
+    x = {"normal": x, "abs": np.abs(x), "ties": np.round(3 * x) / 3, "sorted": np.sort(x),
+         "reversed": np.sort(x)[::-1].copy(), "constant": np.ones(n)}[kind]
+    assert spatial.median_exact(x) == float(np.median(x))
