@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,10 +11,9 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QDoubleSpinBo
                                QGroupBox, QHBoxLayout, QLabel, QPushButton, QSpinBox, QSplitter, QTableWidget,
                                QTableWidgetItem, QTabWidget, QVBoxLayout, QWidget)
 
-from ptpcore.fit import describe_lut
-from ptpcore.rig import lut_stage_z, position_label
-from ptpcore.fit import FitSettings, ModelChoice, describe_corrections, samples_as_fitted, sigma_parts
+from ptpcore.fit import FitSettings, ModelChoice, samples_as_fitted, sigma_parts
 from ptpcore.evaluate import ScaledMap, pixel_series, prepare_display, reason_text
+from ptpcore.evaluate import DriftRecord, HeightSummary, LutReport, RobustFit
 from ptpcore.evaluate import residual_field
 from ptpcore.run import calibrate_session
 
@@ -26,7 +24,7 @@ from ..widgets.stagepose import StagePosePanel
 from ..worker import Job
 from .base import StudioPage
 
-__all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "choice_of", "robust_text", "drift_text", "drift_map",
+__all__ = ["CalibratePage", "LutView", "lut_view", "quality_maps", "robust_text", "drift_text", "drift_map",
            "height_sweep_folder", "height_text"]
 
 MODELS = {"auto": "Auto (best held out)", "poly": "Polynomial", "pchip": "PCHIP (table)",
@@ -83,69 +81,35 @@ def height_sweep_folder(session):
     return session.dataset_folder if rig.projector is not None and rig.height is not None else None
 
 
-def height_text(lut) -> str:
+def height_text(hm: HeightSummary | None) -> str:
     """The height map in one sentence (degree, coverage, median sigma_z); empty without ``/height``."""
-    hm = getattr(lut, "height", None)
     if hm is None:
         return ""
-    v = hm.valid
-    sigma = f", median predicted 1σ of Z {1e3 * float(np.nanmedian(hm.sigma_z[v])):.1f} µm" if v.any() else ""
+    sigma = f", median predicted 1σ of Z {hm.sigma_z.median_um:.1f} µm" if hm.sigma_z is not None else ""
     chosen = f", chosen by {hm.chosen_by}" if hm.chosen_by else ""
     return (f" <b>Height map</b> (projector u_p → Z): rational of degree {hm.degree}{chosen};"
-            f" {int(v.sum())} of {v.size} pixels covered ({100 * v.mean():.1f} %){sigma}.")
+            f" {hm.n_valid} of {hm.n_pixels} pixels covered ({100 * hm.fraction:.1f} %){sigma}.")
 
 
-def choice_of(lut) -> ModelChoice | None:
-    """The model choice behind an ``auto`` LUT (its ``/provenance`` ``model_choice``), or None."""
-    text = lut.provenance.get("model_choice") if lut is not None and lut.provenance else None
-    if not text:
-        return None
-    try:
-        return ModelChoice.from_json(text)
-    except (ValueError, KeyError, TypeError, StopIteration):
-        return None
-
-
-def robust_text(lut) -> str:
-    """What the robust fit left out (``/provenance`` ``robust``), suspect positions named; empty without it."""
-    text = lut.provenance.get("robust") if lut.provenance else None
-    if not text:
+def robust_text(robust: RobustFit | None) -> str:
+    """What the robust fit left out (:attr:`LutReport.robust`), suspect positions named; empty without it."""
+    if robust is None:
         return ""
-    try:
-        d = json.loads(text)
-    except ValueError:
-        return ""
-    n = int(d.get('n_rejected', 0))
-    out = f" Robust fit: {n} sample{'' if n == 1 else 's'} left out (beyond {d.get('k_sigma', 0):g} predicted σ)."
-    z = lut_stage_z(lut)
-    for k in d.get("suspect_positions", []):
-        name = position_label(k, z[k] if k < len(z) else None)
-        out += (f" <b>SUSPECT {name}</b>: {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its"
-                " samples far from the others' curves (wrong images? a stage glitch?), left out everywhere.")
+    n = robust.n_rejected
+    out = f" Robust fit: {n} sample{'' if n == 1 else 's'} left out (beyond {robust.k_sigma:g} predicted σ)."
+    for s in robust.suspects:
+        out += (f" <b>SUSPECT {s.label}</b>: {100 * s.fraction:.0f} % of its samples far from the others' curves"
+                " (wrong images? a stage glitch?), left out everywhere.")
     return out
 
 
-def drift_text(lut) -> str:
-    """The drift of the sweep's repeat positions (``/provenance`` ``drift``) in words, warnings in bold
-    red first; empty without repeats."""
-    text = lut.provenance.get("drift") if lut.provenance else None
-    if not text:
+def drift_text(drift: DriftRecord | None) -> str:
+    """The drift of the sweep's repeat positions (:attr:`LutReport.drift`) in words, warnings in bold red
+    first; empty without repeats."""
+    if drift is None:
         return ""
-    try:
-        d = json.loads(text)
-    except ValueError:
-        return ""
-    out = "".join(f" <b style='color:#c53030'>DRIFT WARNING: {w}</b>" for w in d.get("warnings", []))
-    for r in d.get("repeats", []):
-        if r.get("position", -1) < 0 or r.get("rms_um") is None:
-            out += f" Drift at z = {r['z_mm']:g} mm: no sweep position at that reading, not judged."
-            continue
-        pred = r.get("predicted_rms_um")
-        m = r.get("mean_um") or [float("nan")] * 2
-        out += (f" Drift at z = {r['z_mm']:g} mm ({position_label(r['position'])} again): RMS {r['rms_um']:.3f} µm"
-                + (f" (noise predicts {pred:.3f} µm)" if pred is not None else "")
-                + f", mean ({m[0]:+.3f}, {m[1]:+.3f}) µm.")
-    return out
+    out = "".join(f" <b style='color:#c53030'>DRIFT WARNING: {w}</b>" for w in drift.warnings)
+    return out + "".join(f" {t[0].upper()}{t[1:]}." for t in (r.text() for r in drift.repeats))
 
 
 def drift_map(drift, index: int = 0) -> np.ndarray | None:
@@ -168,13 +132,15 @@ class LutView:
     maps : dict
         :func:`quality_maps` (and the drift map when the sweep was repeated).
     stats : str
-        The statistics line under the heatmap.
+        The statistics line under the heatmap (from ``report``).
     residual_field : ResidualField or None
     first_pixel : (row, col) or None
         The valid pixel nearest the sensor's centre, selected first.
     displays : dict
         Each map of ``maps`` ready to draw (:func:`ptpcore.evaluate.views.prepare_display`): at 5-12 MP
         reducing a map and its histogram on the GUI thread blocked it 0.1-0.3 s.
+    report : LutReport
+        What the LUT says of itself (:class:`ptpcore.evaluate.LutReport`, as ``ptp inspect`` prints it).
     """
 
     lut: object
@@ -183,6 +149,7 @@ class LutView:
     residual_field: object
     first_pixel: tuple[int, int] | None
     displays: dict = field(default_factory=dict)
+    report: LutReport | None = None
 
 
 def lut_view(lut, fitted_samples, positions=None, drift=None) -> LutView:
@@ -204,28 +171,33 @@ def lut_view(lut, fitted_samples, positions=None, drift=None) -> LutView:
     arrows = (residual_field(lut, fitted_samples, positions)
               if fitted_samples is not None and fitted_samples.shape == lut.shape else None)
     displays = {key: prepare_display(data, integer=integer) for key, (_t, data, _u, _c, integer) in maps.items()}
-    return LutView(lut, maps, _stats_text(lut, maps, fitted_samples), arrows, _central_pixel(lut.valid), displays)
+    report = LutReport.of(lut)
+    return LutView(lut, maps, _stats_text(report), arrows, _central_pixel(lut.valid), displays, report)
 
 
-def _stats_text(lut, maps: dict, fitted_samples) -> str:
-    """The statistics line: validity, median residual, LOO and predicted 1σ, corrections, robust, drift."""
-    v = lut.valid
-    rms = maps["rms_x"][1][v]
-    text = (f"<b>{describe_lut(lut)}</b>: {v.sum()} of {v.size} pixels valid ({100 * v.mean():.1f} %), "
-            f"z {lut.z_min:g} … {lut.z_max:g} mm.")
-    if rms.size:
-        text += (f" Median residual RMS X {np.nanmedian(rms):.2f} µm, Y {np.nanmedian(maps['rms_y'][1][v]):.2f} µm;"
-                 f" median LOO RMS X {np.nanmedian(maps['loo_x'][1][v]):.2f} µm.")
-    if "sigma_x" in maps and rms.size:
-        text += " Predicted 1σ (median) " + ", ".join(_sigma_text(lut, a, v) for a in "xy") + "."
-    for line in describe_corrections(fitted_samples.corrections if fitted_samples is not None else {}):
+def _stats_text(report: LutReport) -> str:
+    """The statistics line: validity, median residual, LOO and predicted 1σ, corrections, height map, robust,
+    drift, and any record of the LUT that could not be read."""
+    r = report
+    text = (f"<b>{r.model}</b>: {r.n_valid} of {r.n_pixels} pixels valid ({100 * r.fraction:.1f} %), "
+            f"z {r.z_min:g} … {r.z_max:g} mm.")
+    if {"x", "y"} <= set(r.rms) and "x" in r.loo:
+        text += (f" Median residual RMS X {r.rms['x'].median_um:.2f} µm, Y {r.rms['y'].median_um:.2f} µm;"
+                 f" median LOO RMS X {r.loo['x'].median_um:.2f} µm.")
+    if r.sigma:
+        text += " Predicted 1σ (median) " + ", ".join(
+            f"{s.axis.upper()} {s.total.median_um:.2f} µm"
+            + (f" (noise {s.noise.median_um:.2f}, model {s.model.median_um:.2f})"
+               if s.model is not None and s.noise is not None else "") for s in r.sigma) + "."
+    for line in r.corrections:
         text += f" {line[0].upper()}{line[1:]}."
-    return text + height_text(lut) + robust_text(lut) + drift_text(lut)
+    text += height_text(r.height_map) + robust_text(r.robust) + drift_text(r.drift)
+    return text + "".join(f" <i>Note: {n}.</i>" for n in r.notes)
 
 
 def _sigma_text(lut, axis: str, where) -> str:
-    """``X 0.71 µm`` and, when the fit estimated its model's part, ``(noise 0.52, model 0.48)``: the
-    medians over ``where`` (a mask, or a pixel's ``(row, col)``) of the total and its two parts."""
+    """``X 0.71 µm`` and, when the fit estimated its model's part, ``(noise 0.52, model 0.48)`` at one pixel
+    (``where`` its ``(row, col)``; the summary's medians are the report's)."""
     total, noise, model = sigma_parts(lut, axis)
 
     def um(a):
@@ -600,7 +572,7 @@ class CalibratePage(StudioPage):
             self.map_buttons.button(0).setChecked(True)
         self._show_map()
         self.stats.setText(view.stats)
-        self._show_choice(choice_of(lut))
+        self._show_choice(view.report.choice if view.report is not None else None)
         self.stage_pose.set_pose(self.model.session.rig.stage.z_mm, lut.stage_pose, lut.stage_pose_sigma)
         self.residual_field = view.residual_field
         self.residuals.set_field(self.residual_field)

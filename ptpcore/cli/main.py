@@ -25,7 +25,7 @@ from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLi
                                 termination_requested)
 from ptpcore.errors import Cancelled, OutputError, PtpError
 from ptpcore.io.outputs import Output, check_output_file, check_output_folder, guard_outputs
-from ptpcore.rig import lut_stage_z, position_label
+from ptpcore.rig import position_label
 
 EXIT_PARTIAL = 3
 """``ptp calibrate`` / ``resume``: the XY LUT is written but the scanner's height map failed (the reason printed)."""
@@ -161,129 +161,25 @@ def _finish_session(args, session, session_path, out: Path, validate: bool) -> i
         result = calibrate_session(session, session_path, validate=validate, out=out, progress=bar)
     finally:
         bar.close()
-    print(_lut_summary(session.lut, out))
-    if result.drift is not None:
-        print("\n".join("  " + line for line in result.drift.lines()))
+    print(_lut_report(session.lut, out))  # the drift among it (/provenance drift)
     fitted = result.fitted_samples()
     if fitted is not None:
+        from ptpcore.evaluate.lut_report import fit_width
         from ptpcore.evaluate.residuals import residual_field
 
         field = residual_field(session.lut, fitted, session.positions)
-        print("\n".join("  " + line for line in field.lines()))
+        print("\n".join(out for line in field.lines() for out in fit_width("  " + line)))
     if result.partial:
         print(f"ptp: partial: {out} holds the XY LUT without /height; {result.height_error}", file=sys.stderr)
         return EXIT_PARTIAL
     return 0
 
-def _sigma_lines(lut, v) -> list[str]:
-    """``ptp inspect``'s sigma lines: the total, and its two parts (noise, model) when the LUT has them."""
-    def stats(arr):
-        arr = arr[v][np.isfinite(arr[v])] if arr is not None else np.zeros(0)
-        return (f"median {1e3 * np.median(arr):.2f} µm, 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm"
-                if arr.size else "")
+def _lut_report(lut, path) -> str:
+    """What ``ptp calibrate``, ``resume`` and ``inspect`` print of a LUT: its report
+    (:class:`ptpcore.evaluate.lut_report.LutReport`), every line within 100 columns."""
+    from ptpcore.evaluate.lut_report import LutReport
 
-    from ptpcore.fit.sigma import sigma_parts
-
-    lines = []
-    for a in "xy":
-        sig, noise, model = sigma_parts(lut, a)
-        total = stats(sig)
-        if not total:
-            continue
-        if model is None:
-            lines.append(f"  {'predicted sigma ' + a.upper():<20}{total}"
-                         " (phase noise; stage pose and glass tolerances when given)")
-            continue
-        lines += [f"  {'predicted sigma ' + a.upper():<20}{total} (noise and model in quadrature)",
-                  f"  {'  noise part ' + a.upper():<20}{stats(noise)}"
-                  " (phase noise; stage pose and glass tolerances when given)",
-                  f"  {'  model part ' + a.upper():<20}{stats(model)} (the model's own error, estimated from"
-                  " held-out positions: /provenance model_error)"]
-    return lines
-
-
-def _lut_summary(lut, path) -> str:
-    import json
-
-    from ptpcore.fit.glass import describe_corrections
-    from ptpcore.fit.models import describe_lut
-
-    v = lut.valid
-    model = describe_lut(lut)
-    lines = [
-        f"{path}: ptp-lut/1, {model}, {lut.shape[1]}x{lut.shape[0]} px, z {lut.z_min:g} .. {lut.z_max:g} mm",
-        f"  valid pixels        {v.sum()} ({100 * v.mean():.1f} %)",
-    ]
-    if v.any():
-        npos = lut.n_positions[v]
-        lines.append(f"  positions per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
-        for name in ("rms", "loo"):
-            for a in "xy":
-                arr = getattr(lut, f"{name}_{a}")[v]
-                arr = arr[np.isfinite(arr)]
-                if arr.size:
-                    label = {"rms": "fit residual RMS", "loo": "leave-one-out RMS"}[name]
-                    lines.append(f"  {label + ' ' + a.upper():<20}median {1e3 * np.median(arr):.2f} µm,"
-                                 f" 95th percentile {1e3 * np.percentile(arr, 95):.2f} µm")
-        lines += _sigma_lines(lut, v)
-    try:
-        corrections = json.loads(lut.provenance.get("corrections", "{}"))
-    except ValueError:
-        corrections = {"corrections": "unreadable /provenance record"}
-    for msg in describe_corrections(corrections if isinstance(corrections, dict) else {}):
-        if not msg.startswith("stage_refinement"):
-            lines.append(f"  correction          {msg}")
-    if lut.stage_pose is not None:
-        from ptpcore.fit.stage_pose import describe_stage_pose
-
-        from ptpcore.rig import rig_from_toml
-
-        try:
-            z = rig_from_toml(lut.rig_toml, "lut").stage.z_mm
-        except (PtpError, ValueError):
-            z = ()
-        if len(z) != len(lut.stage_pose):
-            z = np.arange(len(lut.stage_pose), dtype=float)  # positions by index
-        lines.append("  stage pose refined  per position (µm, µrad; up to a common offset, scale and linear trend):")
-        sig = lut.stage_pose_sigma if lut.stage_pose_sigma is not None else np.full_like(lut.stage_pose, np.nan)
-        lines += [f"    {line}" for line in describe_stage_pose(lut.stage_pose, sig, z)]
-    lines += _choice_lines(lut)
-    lines += _robust_lines(lut)
-    lines += _height_lines(lut)
-    return "\n".join(lines)
-
-
-def _height_lines(lut) -> list[str]:
-    """``ptp inspect``'s lines on the scanner's height map (``/height``), none without one."""
-    hm = lut.height
-    if hm is None:
-        return []
-    v = hm.valid
-    d = hm.design
-    lines = [f"  height map          rational, numerator degree {hm.degree} ({hm.chosen_by}), u_p from projector"
-             f" direction {hm.direction}, {d.get('width')}x{d.get('height')} px, periods"
-             f" {', '.join(f'{t:g}' for t in d.get('periods_px', []))} px",
-             f"    valid pixels      {v.sum()} ({100 * v.mean():.1f} %)"]
-    if not v.any():
-        return lines
-    npos = hm.n_positions[v]
-    lines.append(f"    heights per pixel {npos.min()} .. {npos.max()} (median {int(np.median(npos))})")
-    for name, label in (("rms_z", "fit residual RMS Z"), ("loo_z", "leave-one-out RMS Z"),
-                        ("sigma_z", "predicted sigma Z"), ("sigma_model_z", "  model part Z")):
-        arr = getattr(hm, name)
-        if arr is None:
-            continue
-        arr = arr[v][np.isfinite(arr[v])]
-        if arr.size:
-            lines.append(f"    {label:<20}median {1e3 * np.median(arr):.2f} µm, 95th percentile"
-                         f" {1e3 * np.percentile(arr, 95):.2f} µm")
-    choice = hm.provenance.get("degree_choice", {}).get("held_out_rms_mm")
-    if choice:
-        lines.append("    degree choice     held-out RMS " + ", ".join(f"D={k}: {1e3 * val:.2f} µm"
-                                                                    for k, val in choice.items()))
-    if hm.n_rejected is not None and hm.n_rejected.any():
-        lines.append(f"    robust fit        {int(hm.n_rejected.sum())} samples left out")
-    return lines
+    return LutReport.of(lut, path).text()
 
 
 def cmd_decode(args) -> int:
@@ -331,53 +227,11 @@ def _parse_positions(text: str, k_total: int) -> list[int]:
     return out
 
 
-def _choice_lines(lut) -> list[str]:
-    """The model-choice table of an ``auto`` LUT (``/provenance`` ``model_choice``), indented."""
-    from ptpcore.fit.choice import ModelChoice
-
-    text = lut.provenance.get("model_choice") if lut.provenance else None
-    if not text:
-        return []
-    try:
-        choice = ModelChoice.from_json(text)
-    except (ValueError, KeyError, TypeError, StopIteration):
-        return ["  model choice        (unreadable /provenance model_choice)"]
-    held = ", ".join(" ".join(str(k + 1) for k in h) for h in choice.held_out)
-    lines = [f"  model chosen by its error at held-out positions ({held}; {choice.rule}):"]
-    lines += ["    " + row for row in choice.table()]
-    if np.isfinite(choice.noise_rms_um):
-        lines.append(f"    (predicted noise of the held-out samples {choice.noise_rms_um:.3f} µm RMS;"
-                     " model error = held-out RMS with it taken out)")
-    return lines
-
-
-def _robust_lines(lut) -> list[str]:
-    """What the robust fit left out (``/provenance`` ``robust``), suspect positions first."""
-    import json
-
-    text = lut.provenance.get("robust") if lut.provenance else None
-    if not text:
-        return []
-    try:
-        d = json.loads(text)
-    except ValueError:
-        return ["  robust fit          (unreadable /provenance robust)"]
-    z = lut_stage_z(lut)
-    lines = [f"  SUSPECT             {position_label(k, z[k] if k < len(z) else None)}:"
-             f" {100 * d['rejected_fraction'].get(str(k), 1.0):.0f} % of its samples"
-             " far from the curve of the others (wrong images? a stage glitch?); left out everywhere"
-             for k in d.get("suspect_positions", [])]
-    n_pix = int((lut.n_rejected > 0).sum()) if lut.n_rejected is not None else 0
-    lines.append(f"  robust fit          {d.get('n_rejected', 0)} samples left out at {n_pix} pixels (beyond"
-                 f" {d.get('k_sigma', 0):g} x {d.get('noise_scale', 1):.2f} predicted sigma)")
-    return lines
-
-
 def cmd_inspect(args) -> int:
     from ptpcore.io.lutfile import load_lut
 
     lut = load_lut(args.lut_file)
-    print(_lut_summary(lut, args.lut_file))
+    print(_lut_report(lut, args.lut_file))
     return 0
 
 
@@ -605,6 +459,7 @@ def _demo_report(args, result, truth, sim, cal, held) -> None:
     """The demo's summary: the design check, the LUT (its model and why), its accuracy at the held-out positions."""
     from ptpcore.decode.patterns import design_check
     from ptpcore.evaluate.accuracy import held_out_accuracy
+    from ptpcore.evaluate.lut_report import LutReport
     from ptpcore.fit.models import describe_lut
 
     session, lut = result.session, result.lut
@@ -625,7 +480,7 @@ def _demo_report(args, result, truth, sim, cal, held) -> None:
     print(f"  median modulation   {med_b:.1f} grey levels")
     print(f"  LUT                 {describe_lut(lut)}; fitted on {len(cal)} positions, valid for"
           f" {100 * lut.valid.mean():.1f} % of pixels")
-    print("\n".join(_choice_lines(lut)) or f"  (model {session.settings.model}: chosen by --model)")
+    print("\n".join(LutReport.of(lut).choice_lines()) or f"  (model {session.settings.model}: chosen by --model)")
     print(f"  held-out accuracy at {len(held)} positions against the simulator's exact rays,"
           " per-axis error (X and Y errors pooled):")
     print(f"    RMS {acc.rms_um:.2f} µm   95th percentile {acc.p95_um:.2f} µm   max {acc.max_um:.2f} µm")

@@ -141,7 +141,7 @@ def test_glass_correction_is_the_exact_plate_offset_per_pixel():
 def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
     import json
 
-    from ptpcore.cli.main import _lut_summary
+    from ptpcore.evaluate import LutReport
     from ptpcore.io.lutfile import load_lut, save_lut
     from ptpcore.fit.glass import correct_samples
     from ptpcore.fit.perpixel import fit_lut
@@ -159,12 +159,12 @@ def test_corrections_reach_the_lut_file_and_the_summary(tmp_path):
     save_lut(lut, tmp_path / "a.lut.h5")
     back = load_lut(tmp_path / "a.lut.h5")
     assert json.loads(back.provenance["corrections"])["cover_glass"]["t_mm"] == 0.0
-    assert "bare panel is assumed" in _lut_summary(back, "a.lut.h5")
+    assert "bare panel is assumed" in LutReport.of(back).text(width=1000)
     # cover_glass_mm = 0 declared: no glass, said so (not "assumed").
     none, applied = correct_samples(raw, replace(rig, lcd=replace(rig.lcd, cover_glass_mm=0.0)))
     assert not applied and none.x_ref is raw.x_ref
     lut.provenance["corrections"] = json.dumps(none.corrections)
-    text = _lut_summary(lut, "b.lut.h5")
+    text = LutReport.of(lut).text(width=1000)
     assert "no cover glass (declared" in text and "assumed" not in text
 
 

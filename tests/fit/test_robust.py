@@ -88,12 +88,11 @@ def test_k_sigma_must_be_positive(mild):
 def test_the_calibrate_page_names_a_suspect_position():
     pytest.importorskip("PySide6")
     from ptp_studio.pages.calibrate import robust_text
+    from ptpcore.evaluate import RobustFit
 
-    class L:
-        provenance = {"robust": json.dumps({"n_rejected": 120, "k_sigma": 5.0, "suspect_positions": [3],
-                                            "rejected_fraction": {"3": 0.97}})}
-
-    text = robust_text(L())
+    record = json.dumps({"n_rejected": 120, "k_sigma": 5.0, "suspect_positions": [3],
+                         "rejected_fraction": {"3": 0.97}})
+    text = robust_text(RobustFit.from_json(record))
     assert "120 samples left out" in text and "SUSPECT position 3" in text and "97 %" in text
 
 

@@ -191,6 +191,7 @@ def test_inspect_and_diff_report_the_height_map(scanner, capsys):
     assert main(["inspect", path]) == 0
     out = capsys.readouterr().out
     assert f"numerator degree {lut.height.degree}" in out and "predicted sigma Z" in out
+    assert all(len(line) <= 100 for line in out.splitlines())  # issue 41: a 100-column terminal
     assert main(["diff", path, path, "--tolerance-um", "1"]) == 0
     out = capsys.readouterr().out
     assert f"height map Z        {int(lut.height.valid.sum())} common pixels: RMS 0.000 µm" in out
