@@ -155,10 +155,17 @@ def _padded_maps(coord: np.ndarray, valid: np.ndarray, pad: int, lo: int = 0, hi
     a0, a1 = max(lo - pad, 0), min(hi + pad, h)  # the image rows the padded maps hold
     g0, g1 = max(a0 - 1, 0), min(a1 + 1, h)  # and the rows their row differences read
     maps = []
-    for _ in range(4):
-        a = np.full((hi - lo + 2 * pad, w + 2 * pad), np.nan)
+    i0, i1 = a0 - lo + pad, a1 - lo + pad  # the padded rows of image rows [a0, a1)
+    first, last = max(a0, 1), min(a1, h - 1)  # the rows with a row difference
+    for i in range(4):
+        # NaN only where nothing is written below (the border; all of the residual's room but
+        # what the residual fills): np.full wrote every value twice.
+        a = np.empty((hi - lo + 2 * pad, w + 2 * pad))
+        a[:, :pad], a[:, pad + w:] = np.nan, np.nan
+        top, bottom = (i0, i1) if i < 2 else (first - a0 + i0, last - a0 + i0) if i == 2 else (pad, pad + hi - lo)
+        a[:top], a[max(bottom, top):] = np.nan, np.nan
         maps.append(a)
-    inner = slice(a0 - lo + pad, a1 - lo + pad), slice(pad, pad + w)
+    inner = slice(i0, i1), slice(pad, pad + w)
     c, gc, gr = (m[inner] for m in maps[:3])
     near = np.full((g1 - g0, w), np.nan)  # the coordinate of rows [g0, g1), NaN where not valid
     np.copyto(near, coord[g0:g1], where=valid[g0:g1])
@@ -168,7 +175,6 @@ def _padded_maps(coord: np.ndarray, valid: np.ndarray, pad: int, lo: int = 0, hi
         np.subtract(c[:, 2:], c[:, :-2], out=gc[:, 1:-1])
         gc[:, 1:-1] *= 0.5
     # Row differences of rows [a0, a1), NaN at the image's first and last rows.
-    first, last = max(a0, 1), min(a1, h - 1)
     if last > first:
         out = gr[first - a0:last - a0]
         np.subtract(near[first + 1 - g0:last + 1 - g0], near[first - 1 - g0:last - 1 - g0], out=out)

@@ -112,3 +112,30 @@ def test_median_exact_is_numpys_median(kind, n):
     x = {"normal": x, "abs": np.abs(x), "ties": np.round(3 * x) / 3, "sorted": np.sort(x),
          "reversed": np.sort(x)[::-1].copy(), "constant": np.ones(n)}[kind]
     assert spatial.median_exact(x) == float(np.median(x))
+
+
+@pytest.mark.parametrize("lo, hi", [(0, None), (0, 9), (5, 17), (20, 30), (27, 30)])
+@pytest.mark.parametrize("w", [1, 2, 13])
+def test_padded_maps_are_nan_wherever_not_written(lo, hi, w):
+    """The padded maps are made with np.empty and only their border set to NaN: every value is
+    the one a NaN-filled map would hold (the residual's room NaN but where the residual goes)."""
+    rng = np.random.default_rng(w)
+    h, pad = 30, 4
+    coord = rng.standard_normal((h, w))
+    valid = rng.random((h, w)) > 0.2
+    cp, gcp, grp, rp = spatial._padded_maps(coord, valid, pad, lo, hi)
+    hi = h if hi is None else hi
+    ref = np.full((h + 2 * pad, w + 2 * pad), np.nan)  # the whole image's maps, padded
+    ref[pad:pad + h, pad:pad + w] = np.where(valid, coord, np.nan)
+    rows = slice(lo, hi + 2 * pad)  # padded rows of image rows [lo - pad, hi + pad)
+    assert np.array_equal(cp, ref[rows], equal_nan=True)
+    gc = np.full_like(ref, np.nan)
+    if w > 2:
+        gc[:, pad + 1:pad + w - 1] = 0.5 * (ref[:, pad + 2:pad + w] - ref[:, pad:pad + w - 2])
+    assert np.array_equal(gcp, gc[rows], equal_nan=True)
+    gr = np.full_like(ref, np.nan)
+    gr[pad + 1:pad + h - 1] = 0.5 * (ref[pad + 2:pad + h] - ref[pad:pad + h - 2])
+    gr[:, :pad], gr[:, pad + w:] = np.nan, np.nan
+    assert np.array_equal(grp, gr[rows], equal_nan=True)
+    assert np.isnan(rp).all() or np.isnan(np.delete(rp[:, :], np.s_[pad:pad + hi - lo], axis=0)).all()
+    assert np.isnan(rp[:, :pad]).all() and np.isnan(rp[:, pad + w:]).all()
