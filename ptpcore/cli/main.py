@@ -19,16 +19,14 @@ import numpy as np
 from ptpcore import __version__
 from ptpcore.atomic import remove_temporaries
 from ptpcore.cli.progress import progress_bar
-from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM, OneLineParser, Terminated,
+from ptpcore.cli.safety import (EXIT_BAD_INPUT, EXIT_PARTIAL, EXIT_SIGINT, EXIT_SIGTERM, OneLineParser,
+                                Terminated,
                                 add_input, add_output, existing_dir, existing_file, guard_arguments,
                                 positive_int, quiet_broken_pipe, seed, signals_as_interrupts,
                                 termination_requested)
 from ptpcore.errors import Cancelled, OutputError, PtpError
 from ptpcore.io.outputs import Output, check_output_file, check_output_folder, guard_outputs
 from ptpcore.rig import position_label
-
-EXIT_PARTIAL = 3
-"""``ptp calibrate`` / ``resume``: the XY LUT is written but the scanner's height map failed (the reason printed)."""
 
 
 # --------------------------------------------------------------------------- commands
@@ -365,6 +363,18 @@ def _height_argument(text: str, shape) -> tuple[object, str]:
     return z, f"z = {z:g} mm"
 
 
+def _diff_exact(args) -> int:
+    """``ptp diff A B --exact``: every dataset and attribute equal (the time of writing and the program's
+    version aside); exit 0 identical, 1 not (each difference one line)."""
+    from ptpcore.evaluate.lutcompare import compare_lut_files
+
+    if args.json or args.png:
+        raise ValueError("--exact compares the files and writes nothing: leave out --json and --png")
+    result = compare_lut_files(args.lut_a, args.lut_b, ignore=("created", "software", *args.ignore))
+    print("\n".join(result.lines()))
+    return 0 if result.equal else 1
+
+
 def cmd_diff(args) -> int:
     """``ptp diff A B``: exit 0 consistent, 1 differ (2 on bad input, from :func:`main`)."""
     import json
@@ -373,6 +383,8 @@ def cmd_diff(args) -> int:
     from ptpcore.evaluate.diff import diff_luts, diff_png
     from ptpcore.io.lutfile import load_lut
 
+    if args.exact:
+        return _diff_exact(args)
     # --json and --png passed the output guard (main): never an input LUT, a file of another kind or a
     # read-only folder; an existing file replaced only with --force.
     a, b = load_lut(args.lut_a), load_lut(args.lut_b)
@@ -567,6 +579,12 @@ def _add_diff_parser(sub) -> None:
     df.add_argument("--common-false-alarm", type=float, default=0.01, metavar="P",
                     help="false-alarm rate of the common-mode test (the mean shift of the image against its"
                          " standard error from block means, x and y together; default 0.01)")
+    df.add_argument("--exact", action="store_true",
+                    help="instead: are the two files identical, dataset by dataset and attribute by attribute (the"
+                         " time of writing and the program's version aside)? Exit 0 identical, 1 not")
+    df.add_argument("--ignore", action="append", default=[], metavar="NAME",
+                    help="with --exact: also leave out this attribute or dataset (a name, or a path such as"
+                         " /provenance@fit_settings); may be repeated")
     df.add_argument("--force", action="store_true", help=_FORCE)
     df.set_defaults(func=cmd_diff)
 
@@ -830,8 +848,8 @@ def main(argv=None) -> int:
     """Run one ``ptp`` command; return its exit code.
 
     0 done; 2 bad input or an output that cannot be written (one line on
-    stderr); 130 Ctrl-C; 143 SIGTERM; 141 standard output closed by its
-    reader. Every temporary file is removed on the way out, whatever ended
+    stderr); 3 partial (``calibrate``, ``resume``: the XY LUT written, the height
+    map failed); 130 Ctrl-C; 143 SIGTERM; 141 standard output closed by its reader. Every temporary file is removed on the way out, whatever ended
     the command.
     """
     parser = build_parser()

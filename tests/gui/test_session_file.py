@@ -93,7 +93,7 @@ def test_landing_page_follows_the_stage_and_autosave_writes_after_a_fit(qtbot, t
     src = StudioWizard(tour_session(**small_session_args))
     qtbot.addWidget(src)
     _acquire(src, qtbot)
-    es = to_engine(src.model.session, model="poly", degree=1)
+    es = to_engine(src.model.session, settings=FitSettings(model="poly", degree=1))
     save_session(es, tmp_path / "samples.ptps.h5")
     es_cmp = dataclasses.replace(es, comparison={"references": {"measured": {"verdict": {"text": "PTP is ahead."}}}},
                                  lut=None)

@@ -16,7 +16,7 @@ import pytest
 
 from ptpcore.run import session as sess
 from ptpcore.cli import main
-from ptpcore.errors import FileFormatError
+from ptpcore.errors import DatasetError, FileFormatError
 from ptpcore.io import load_lut, save_lut
 from ptpcore.rig import Camera
 from ptpcore.run import load_session, new_session, next_step, run_session, save_session
@@ -191,9 +191,9 @@ def test_cancel_during_decode_keeps_the_saved_stage(dataset, tmp_path):
 
     def cancel(fraction, message):
         if fraction > 0.05:  # in the decode (its share of the bar: K of K + 7 K position decodes for auto)
-            raise sess.DatasetError("cancelled by test")  # any exception: the file keeps its stage
+            raise DatasetError("cancelled by test")  # any exception: the file keeps its stage
 
-    with pytest.raises(sess.DatasetError):
+    with pytest.raises(DatasetError):
         run_session(s, path, progress=cancel)
     assert path.read_bytes() == before and load_session(path).stage == "new"
     assert [p.name for p in tmp_path.iterdir()] == ["c.ptps.h5"]
