@@ -437,3 +437,24 @@ def dft_pairs(frames, transposed, rows, pairs, cos_t, sin_t, re_out, im_out, bg_
             for k in range(1, n):
                 s += vals[k]
             bg_out[i, j] = s / n
+
+
+@njit(**_OPTS)
+def coordinate_sigma_rows(bg, mod, read_var, gain, amplitude, n_fine, period, out):
+    """:func:`ptpcore.decode.position.coordinate_sigma`'s rows in one pass, numpy's operations in its
+    order and precision (``bg``, ``mod`` float32; ``amplitude`` float32, as numpy divides a float32 map
+    by a Python float): ``sqrt(2 / n) sqrt(sigma_dn(bg)^2 + (mod / amplitude)^2 / 12) / mod * period / 2 pi``."""
+    c = math.sqrt(2.0 / n_fine)
+    two_pi = 2 * np.pi
+    twelve = np.float32(12.0)
+    h, w = out.shape
+    for r in range(h):
+        for j in range(w):
+            lv = np.float64(bg[r, j])
+            lv = lv if (lv >= 0.0 or np.isnan(lv)) else 0.0  # np.maximum(lv, 0.0)
+            s = math.sqrt(read_var + gain * lv)
+            q = mod[r, j] / amplitude
+            q = q * q
+            q = q / twelve
+            var = s * s + np.float64(q)
+            out[r, j] = c * math.sqrt(var) / np.float64(mod[r, j]) * period / two_pi

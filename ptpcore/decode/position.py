@@ -274,6 +274,19 @@ def coordinate_sigma(model, fine, n_fine: int, amplitude: float, period: float):
     """Predicted 1-sigma of the decoded coordinate (px) from the noise ``model`` and the finest
     level's background and modulation, as rows: ``sigma(r0, r1)`` -> ``(r1 - r0, W)`` float64
     (:func:`ptpcore.decode.spatial.spatial_outliers` takes them band by band; no whole map)."""
+    from ptpcore.decode.noise import NoiseModel
+
+    kern = fused_kernels()
+    if kern is not None and type(model).sigma_dn is NoiseModel.sigma_dn and fine.background.dtype == np.float32 \
+            and fine.modulation.dtype == np.float32:
+        def fused(r0: int, r1: int) -> np.ndarray:  # one pass, the same bits
+            out = np.empty((r1 - r0, fine.modulation.shape[1]))
+            kern.coordinate_sigma_rows(fine.background[r0:r1], fine.modulation[r0:r1], float(model.read_var),
+                                       float(model.gain), np.float32(amplitude), n_fine, float(period), out)
+            return out
+
+        return fused
+
     def rows(r0: int, r1: int) -> np.ndarray:
         bg, mod = fine.background[r0:r1], fine.modulation[r0:r1]
         # The camera's noise and the display's rounding to integer levels (uniform, 1/12

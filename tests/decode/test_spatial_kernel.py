@@ -139,3 +139,28 @@ def test_padded_maps_are_nan_wherever_not_written(lo, hi, w):
     assert np.array_equal(grp, gr[rows], equal_nan=True)
     assert np.isnan(rp).all() or np.isnan(np.delete(rp[:, :], np.s_[pad:pad + hi - lo], axis=0)).all()
     assert np.isnan(rp[:, :pad]).all() and np.isnan(rp[:, pad + w:]).all()
+
+
+@pytest.mark.parametrize("amplitude, n_fine, period", [(0.9, 8, 16.0), (1.0, 5, 24), (0.37, 12, 7.5)])
+def test_coordinate_sigma_kernel_is_numpys_bit_for_bit(monkeypatch, amplitude, n_fine, period):
+    """The predicted sigma's rows in one numba pass: the numpy expression's numbers (zeros, a NaN
+    and negative backgrounds included)."""
+    from types import SimpleNamespace
+
+    from ptpcore.decode import position
+    from ptpcore.decode.noise import NoiseModel
+    from ptpcore.decode.phase import fused_kernels
+
+    if fused_kernels() is None:
+        pytest.skip("numba kernels off")
+    rng = np.random.default_rng(n_fine)
+    bg = rng.uniform(-5, 250, (37, 41)).astype(np.float32)
+    mod = rng.uniform(0, 120, (37, 41)).astype(np.float32)
+    bg[3, 4], mod[5, 6], mod[7, 8] = np.nan, 0.0, np.nan
+    fine = SimpleNamespace(background=bg, modulation=mod)
+    model = NoiseModel(0.7, 0.031)
+    got = position.coordinate_sigma(model, fine, n_fine, amplitude, period)(2, 30)
+    monkeypatch.setattr(position, "fused_kernels", lambda: None)
+    with np.errstate(all="ignore"):
+        want = position.coordinate_sigma(model, fine, n_fine, amplitude, period)(2, 30)
+    assert np.array_equal(got, want, equal_nan=True)
