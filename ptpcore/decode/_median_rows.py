@@ -4,7 +4,8 @@ Written by ``python -m ptpcore.decode.median_networks`` (see that module); the t
 ``tests/decode/test_spatial_kernel.py`` fails when this file and the generator disagree.
 Each kernel takes the pixels ``(rr - pad, c)``, ``c < w``, of a NaN-padded map (``col0`` = the
 padding): ``out[c]`` the mean of the two middle values of the window by the network (meaningful
-only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere).
+only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere; ``nans[c]`` is 1 where
+the window holds a NaN (the carried kernel: the count of values not finite)).
 """
 
 from numba import njit
@@ -43,11 +44,12 @@ def median25_row(src, rr, col0, w, out, nans):
         a22 = src[rr + 4, col0 + c + 2]
         a23 = src[rr + 4, col0 + c + 4]
         a24 = src[rr, col0 + c]
-        nans[c] = ((a0 != a0) + (a1 != a1) + (a2 != a2) + (a3 != a3) + (a4 != a4)
-                   + (a5 != a5) + (a6 != a6) + (a7 != a7) + (a8 != a8) + (a9 != a9)
-                   + (a10 != a10) + (a11 != a11) + (a12 != a12) + (a13 != a13) + (a14 != a14)
-                   + (a15 != a15) + (a16 != a16) + (a17 != a17) + (a18 != a18) + (a19 != a19)
-                   + (a20 != a20) + (a21 != a21) + (a22 != a22) + (a23 != a23) + (a24 != a24))
+        t = (a0 + a1 + a2 + a3 + a4
+             + a5 + a6 + a7 + a8 + a9
+             + a10 + a11 + a12 + a13 + a14
+             + a15 + a16 + a17 + a18 + a19
+             + a20 + a21 + a22 + a23 + a24)
+        nans[c] = t != t
         lo = a0 if a0 < a1 else a1
         a1 = a1 if a0 < a1 else a0
         a0 = lo
@@ -418,11 +420,12 @@ def median24_row(src, rr, col0, w, out, nans):
         a21 = src[rr + 4, col0 + c]
         a22 = src[rr + 4, col0 + c + 2]
         a23 = src[rr + 4, col0 + c + 4]
-        nans[c] = ((a0 != a0) + (a1 != a1) + (a2 != a2) + (a3 != a3) + (a4 != a4)
-                   + (a5 != a5) + (a6 != a6) + (a7 != a7) + (a8 != a8) + (a9 != a9)
-                   + (a10 != a10) + (a11 != a11) + (a12 != a12) + (a13 != a13) + (a14 != a14)
-                   + (a15 != a15) + (a16 != a16) + (a17 != a17) + (a18 != a18) + (a19 != a19)
-                   + (a20 != a20) + (a21 != a21) + (a22 != a22) + (a23 != a23))
+        t = (a0 + a1 + a2 + a3 + a4
+             + a5 + a6 + a7 + a8 + a9
+             + a10 + a11 + a12 + a13 + a14
+             + a15 + a16 + a17 + a18 + a19
+             + a20 + a21 + a22 + a23)
+        nans[c] = t != t
         lo = a0 if a0 < a1 else a1
         a1 = a1 if a0 < a1 else a0
         a0 = lo
@@ -781,16 +784,12 @@ def carried_median24_row(src, rr, col0, w, g_c, g_r, out, nans, fin):
         a21 = src[rr + 4, col0 + c] - gc * 0.0 - gr * 4.0
         a22 = src[rr + 4, col0 + c + 2] - gc * 2.0 - gr * 4.0
         a23 = src[rr + 4, col0 + c + 4] - gc * 4.0 - gr * 4.0
-        nans[c] = ((a0 != a0) + (a1 != a1) + (a2 != a2) + (a3 != a3) + (a4 != a4)
-                   + (a5 != a5) + (a6 != a6) + (a7 != a7) + (a8 != a8) + (a9 != a9)
-                   + (a10 != a10) + (a11 != a11) + (a12 != a12) + (a13 != a13) + (a14 != a14)
-                   + (a15 != a15) + (a16 != a16) + (a17 != a17) + (a18 != a18) + (a19 != a19)
-                   + (a20 != a20) + (a21 != a21) + (a22 != a22) + (a23 != a23))
         fin[c] = ((abs(a0) < _INF) + (abs(a1) < _INF) + (abs(a2) < _INF) + (abs(a3) < _INF) + (abs(a4) < _INF)
                   + (abs(a5) < _INF) + (abs(a6) < _INF) + (abs(a7) < _INF) + (abs(a8) < _INF) + (abs(a9) < _INF)
                   + (abs(a10) < _INF) + (abs(a11) < _INF) + (abs(a12) < _INF) + (abs(a13) < _INF) + (abs(a14) < _INF)
                   + (abs(a15) < _INF) + (abs(a16) < _INF) + (abs(a17) < _INF) + (abs(a18) < _INF) + (abs(a19) < _INF)
                   + (abs(a20) < _INF) + (abs(a21) < _INF) + (abs(a22) < _INF) + (abs(a23) < _INF))
+        nans[c] = 24 - fin[c]
         lo = a0 if a0 < a1 else a1
         a1 = a1 if a0 < a1 else a0
         a0 = lo

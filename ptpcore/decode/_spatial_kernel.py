@@ -143,15 +143,14 @@ def residual_rows(cp, gcp, grp, offs, pad, min_n, r0, r1, resid, count):
         m = c1 - c0
         median25_row(gcp, rr, pad + c0, m, g_c[c0:c1], nan_c[c0:c1])
         median25_row(grp, rr, pad + c0, m, g_r[c0:c1], nan_r[c0:c1])
-        # Windows with a NaN again, NaN-ignoring; all-NaN ones are NaN without a look.
+        # Windows with a NaN again, NaN-ignoring (all-NaN ones give NaN); not an invalid centre's
+        # (its residual is NaN whatever its gradient).
         for c in range(c0, c1):
-            if nan_c[c] > nk:
-                g_c[c] = np.nan
-            elif nan_c[c] > 0:
+            if np.isnan(cp[rr, pad + c]):
+                continue
+            if nan_c[c] > 0:
                 g_c[c] = _plain_median(gcp, rr, pad + c, offs, True, buf)
-            if nan_r[c] > nk:
-                g_r[c] = np.nan
-            elif nan_r[c] > 0:
+            if nan_r[c] > 0:
                 g_r[c] = _plain_median(grp, rr, pad + c, offs, True, buf)
         carried_median24_row(cp, rr, pad + c0, m, g_c[c0:c1], g_r[c0:c1], pred[c0:c1], nan_p[c0:c1],
                              fin[c0:c1])

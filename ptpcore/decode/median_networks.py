@@ -95,7 +95,8 @@ Written by ``python -m ptpcore.decode.median_networks`` (see that module); the t
 ``tests/decode/test_spatial_kernel.py`` fails when this file and the generator disagree.
 Each kernel takes the pixels ``(rr - pad, c)``, ``c < w``, of a NaN-padded map (``col0`` = the
 padding): ``out[c]`` the mean of the two middle values of the window by the network (meaningful
-only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere).
+only where ``nans[c] == 0``: the caller takes a NaN-ignoring median elsewhere; ``nans[c]`` is 1 where
+the window holds a NaN (the carried kernel: the count of values not finite)).
 """
 
 from numba import njit
@@ -128,9 +129,14 @@ def _kernel(name: str, doc: str, m: int, with_centre: bool, carried: bool) -> li
         load = f"src[{_plus('rr', dr)}, {_plus('col0 + c', dc)}]"
         # The same operations in the same order as the numpy path: v - g_c * dc - g_r * dr.
         lines.append(f"{ind}a{k} = {load} - gc * {float(dc)!r} - gr * {float(dr)!r}" if carried else f"{ind}a{k} = {load}")
-    lines += _sum_lines(f"{ind}nans[c] = ", [f"(a{k} != a{k})" for k in range(m)], ind)
     if carried:
         lines += _sum_lines(f"{ind}fin[c] = ", [f"(abs(a{k}) < _INF)" for k in range(m)], ind)
+        lines.append(f"{ind}nans[c] = {m} - fin[c]")  # NaN (and infinite: the fall-back takes them alike)
+    else:
+        # Any NaN, by the sum (one add a value where counting took a compare, a convert and an add;
+        # +inf and -inf together also make NaN: the fall-back's median is then the network's).
+        lines += _sum_lines(f"{ind}t = ", [f"a{k}" for k in range(m)], ind)
+        lines.append(f"{ind}nans[c] = t != t")
     return lines + _network_lines(net, slots, ind)
 
 
