@@ -77,13 +77,13 @@ def harmonic_noise_samples(frames, stride: int = 1, axis: int = 1) -> dict | Non
     # of float64, then complex) was 300 MB of transients at 5 MP.
     band = max(1, BAND_VALUES // max(1, n * pairs.size))
     if kern is not None:  # the bins straight from the integer frames, bands on the tile pool
-        from ptpcore.decode.phase import _kernel_frames
+        from ptpcore.decode.phase import kernel_frames
         from ptpcore.parallel import map_in_order
 
         hs = [1, *bins]
         angle = np.stack([2.0 * np.pi * hh * np.arange(n) / n for hh in hs])  # as _dft_bin's, bit for bit
         cos_t, sin_t = np.cos(angle), np.sin(angle)
-        kframes = _kernel_frames(frames)
+        kframes = kernel_frames(frames)
 
         def one(b0):
             r = rows[b0:b0 + band]

@@ -426,9 +426,10 @@ def _nstep_rows_fused(kern, frames, saturation_level, out: WrappedPhase, r0: int
     np.arctan2(neg_s, c, out=neg_s)
 
 
-def _kernel_frames(frames) -> tuple:
+def kernel_frames(frames) -> tuple:
     """The frames as a tuple of read-only C-contiguous (H, W) arrays: one numba type per
-    dtype and N, whether they are slices of a stack, separate arrays or mapped files."""
+    dtype and N, whether they are slices of a stack, separate arrays or mapped files (what every
+    numba kernel over a set's frames takes: the N-step sums, the noise samples' DFT bins)."""
     out = []
     for f in frames:
         f = np.ascontiguousarray(f)
@@ -437,6 +438,9 @@ def _kernel_frames(frames) -> tuple:
             f.flags.writeable = False
         out.append(f)
     return tuple(out)
+
+
+_kernel_frames = kernel_frames
 
 
 def _nstep_rows(frames, saturation_level, out: WrappedPhase, r0: int, r1: int,
