@@ -4,14 +4,11 @@ the program's version aside), on the same datasets and settings as tests/run/tes
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from ptpcore.cli import main
 from ptpcore.evaluate.lutcompare import compare_lut_files
 from ptpcore.fit.settings import FitSettings
-from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
-from ptpcore.simulate.virtual_rig import scaled_preset, simulate_dataset
 
 from gui_helpers import run_job
 
@@ -23,22 +20,12 @@ CASES = [pytest.param(kind, settings, marks=() if (kind, settings) in FAST else 
          for kind in ("realistic", "real", "scanner") for settings in SETTINGS]
 
 
-def _dataset(kind: str, folder):
-    """As tests/run/test_one_door.py makes them: 64 px wide, 5 positions (5 plate heights)."""
-    if kind == "scanner":
-        rig, sim, sc = scanner_preset("scanner-mild", 64, heights=5)
-        rig = rig.with_z(np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), 5))
-        return simulate_scanner_dataset(folder, rig, sim, sc, seed=1, objects={})
-    rig, sim = scaled_preset(kind, 64, None, 5)
-    return simulate_dataset(folder, rig, sim, seed=1)
-
-
 @pytest.mark.parametrize("kind, settings", CASES)
-def test_the_wizard_writes_the_lut_ptp_calibrate_writes(wizard, qtbot, tmp_path, kind, settings):
+def test_the_wizard_writes_the_lut_ptp_calibrate_writes(wizard, qtbot, tmp_path, kind, settings, door_dataset):
     from ptp_studio.pages.export import LUT_NAME
 
     flags, fit = SETTINGS[settings]
-    ds = _dataset(kind, tmp_path / "ds")
+    ds = door_dataset(kind, tmp_path / "ds")
     cli = tmp_path / "cli.lut.h5"
     assert main(["calibrate", str(ds), "--out", str(cli), "-q", *flags]) == 0
     wizard.page_by_key["rig"].import_folder(ds)

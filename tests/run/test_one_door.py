@@ -22,8 +22,6 @@ from ptpcore.evaluate.lutcompare import compare_lut_files
 from ptpcore.fit.settings import FitSettings
 from ptpcore.io.lutfile import load_lut, save_lut
 from ptpcore.run import calibrate, calibrate_session, load_session, new_session
-from ptpcore.simulate.scanner import scanner_preset, simulate_scanner_dataset
-from ptpcore.simulate.virtual_rig import scaled_preset, simulate_dataset
 
 FAST = {("realistic", "defaults"), ("scanner", "smooth-refined")}
 SETTINGS = {"defaults": ([], FitSettings()),
@@ -31,20 +29,10 @@ SETTINGS = {"defaults": ([], FitSettings()),
                                FitSettings(model="smooth", refine_stage=True, stage_sigma_um=1.0))}
 
 
-def make_dataset(kind: str, folder: Path) -> Path:
-    """A small dataset of ``kind``: "realistic", "real" (cover glass) or "scanner" (height sweep)."""
-    if kind == "scanner":
-        rig, sim, sc = scanner_preset("scanner-mild", 64, heights=5)
-        rig = rig.with_z(np.linspace(min(rig.stage.z_mm), max(rig.stage.z_mm), 5))
-        return simulate_scanner_dataset(folder, rig, sim, sc, seed=1, objects={})
-    rig, sim = scaled_preset(kind, 64, None, 5)
-    return simulate_dataset(folder, rig, sim, seed=1)
-
-
 @pytest.fixture(scope="module")
-def datasets(tmp_path_factory):
+def datasets(tmp_path_factory, door_dataset):
     root = tmp_path_factory.mktemp("doors")
-    return {kind: make_dataset(kind, root / kind) for kind in ("realistic", "real", "scanner")}
+    return {kind: door_dataset(kind, root / kind) for kind in ("realistic", "real", "scanner")}
 
 
 def _equal(a: Path, b: Path) -> None:

@@ -59,7 +59,7 @@ def test_wrong_convention_in_rig_toml_names_the_setting(tmp_path, capfd):
                               (dict(shift_sign=1), "`shift_sign = -1`", "phase_origin_rad")):
         save_rig(replace(good, fringes=replace(good.fringes, **wrong)), ds / "rig.toml")
         capfd.readouterr()
-        assert main(["decode", str(ds), "--out", out, "--positions", "1", "-q"]) == 2
+        assert main(["decode", str(ds), "--out", out, "--positions", "1", "-q", "--force"]) == 2
         err = capfd.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ptp: error:") and fix in err[0] and other not in err[0], err
         # calibrate says the same, before its long decode
