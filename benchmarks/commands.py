@@ -46,7 +46,7 @@ COMMANDS = {
     "calibrate-poly": ["calibrate", "{dir}", "--out", "{out}", "--model", "poly"],
     "calibrate-smooth": ["calibrate", "{dir}", "--out", "{out}", "--model", "smooth"],
     "compare": ["compare", "{dir}", "--out", "{out}.json", "-q"],
-    "decode": ["decode", "{dir}", "--out", "{out}.decoded.h5", "-q"],
+    "decode": ["decode", "{dir}", "--out", "{out}.decoded.h5", "-q", "--force"],  # --force: the repeats write it again
 }
 MODULES = {"wizard": ["benchmarks.wizard_job", "{dir}"]}
 """Commands that run a module of ours (``python -m``) instead of the ``ptp`` command line."""
