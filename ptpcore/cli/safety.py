@@ -148,11 +148,7 @@ def add_output(parser, *flags, kind: str, resume: str | None = None, hint: str =
     ValueError
         An unknown kind, or no help text.
     """
-    if kind not in OUTPUT_KINDS:
-        raise ValueError(f"add_output: kind {kind!r} is not one of {', '.join(OUTPUT_KINDS)}")
-    if not kwargs.get("help"):
-        raise ValueError(f"add_output: {flags[0]} needs a help text")
-    action = parser.add_argument(*flags, **kwargs)
+    action = _marked(parser, flags, kwargs, "add_output", kind, OUTPUT_KINDS)
     action.ptp_output = kind
     action.ptp_resume = resume
     action.ptp_hint = hint or (f"add --{resume} to continue it" if resume else "")
@@ -183,13 +179,18 @@ def add_input(parser, *flags, kind: str, **kwargs) -> argparse.Action:
     ValueError
         An unknown kind, or no help text.
     """
-    if kind not in INPUT_KINDS:
-        raise ValueError(f"add_input: kind {kind!r} is not one of {', '.join(INPUT_KINDS)}")
-    if not kwargs.get("help"):
-        raise ValueError(f"add_input: {flags[0]} needs a help text")
-    action = parser.add_argument(*flags, **kwargs)
+    action = _marked(parser, flags, kwargs, "add_input", kind, INPUT_KINDS)
     action.ptp_input = kind
     return action
+
+
+def _marked(parser, flags, kwargs: dict, who: str, kind: str, kinds: tuple) -> argparse.Action:
+    """``parser.add_argument(*flags, **kwargs)`` once ``kind`` is one of ``kinds`` and a help text is given."""
+    if kind not in kinds:
+        raise ValueError(f"{who}: kind {kind!r} is not one of {', '.join(kinds)}")
+    if not kwargs.get("help"):
+        raise ValueError(f"{who}: {flags[0]} needs a help text")
+    return parser.add_argument(*flags, **kwargs)
 
 
 def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
