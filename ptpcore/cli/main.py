@@ -816,7 +816,7 @@ def _add_compare(sub) -> None:
 
 
 def _add_demo(sub) -> None:
-    from ptpcore.fit.settings import fit_arguments
+    from ptpcore.fit.settings import FitSettings, fit_arguments
     from ptpcore.simulate.virtual_rig import PRESETS
 
     d = sub.add_parser("demo", help="simulate, calibrate and report accuracy against the truth",
@@ -824,13 +824,11 @@ def _add_demo(sub) -> None:
                                    " at the others against the simulator's exact truth.")
     d.add_argument("--preset", default="realistic", choices=list(PRESETS), help="rig preset (default realistic)")
     d.add_argument("--seed", type=seed, default=0, help="random seed 0 .. 2^32-1 (default 0)")
-    fit_arguments(d)  # the LUT is fitted as ptp calibrate fits it (ptpcore/fit/settings.py)
-    # The demo's one difference: a poly LUT by default (seconds), where calibrate's auto fits every candidate.
-    d.set_defaults(model="poly")
-    for action in d._actions:
-        if action.dest == "model":
-            action.help = ("the LUT's model as for ptp calibrate (default poly here, for a quick first run;"
-                           " auto: the most accurate of poly 1-3 and smooth at held-out positions)")
+    # The LUT is fitted as ptp calibrate fits it; the one difference: a poly LUT by default (seconds),
+    # where calibrate's auto fits every candidate.
+    fit_arguments(d, FitSettings(model="poly"), {"model": "the LUT's model as for ptp calibrate (default poly here,"
+                                                          " for a quick first run; auto: the most accurate of poly"
+                                                          " 1-3 and smooth at held-out positions)"})
     add_output(d, "--out", kind="dataset", help="keep the simulated dataset in this folder (default: a temporary"
                                                 " folder, removed at the end)")
     d.add_argument("--force", action="store_true", help="write into an --out folder that already holds a dataset")

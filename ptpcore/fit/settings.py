@@ -163,17 +163,21 @@ def _problem(f, value) -> str | None:
     return None
 
 
-def fit_arguments(parser) -> None:
+def fit_arguments(parser, defaults: FitSettings | None = None, helps: dict | None = None) -> None:
     """Add a flag for every field of :class:`FitSettings` to an argparse ``parser``.
 
     A ``bool`` field whose flag starts with ``--no-`` is a default-on switch; other ``bool`` fields
     are default-off switches; other fields take a value of the field's type. The parsed names are
-    the field names (:meth:`FitSettings.from_flags` reads them back).
+    the field names (:meth:`FitSettings.from_flags` reads them back). ``defaults``: another command's
+    defaults for the valued fields (``ptp demo``'s poly); ``helps``: field name -> help text in place of
+    the field's own (a changed default says so there).
     """
-    defaults = FitSettings()
+    defaults = defaults or FitSettings()
+    helps = helps or {}
     for f in fields(FitSettings):
         meta = dict(f.metadata)
-        flag, text = meta.pop("flag"), meta.pop("help")
+        flag, text = meta.pop("flag"), helps.get(f.name, meta.pop("help"))
+        meta.pop("help", None)
         if f.type in ("bool", bool):
             parser.add_argument(flag, dest=f.name, action="store_true", help=text)
             continue
